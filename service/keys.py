@@ -1,0 +1,94 @@
+"""Key expressions of the wire contract (DESIGN.md): builders and a parser.
+
+    {prefix}/{vehicle}/sensor/imu/{id}            ImuSample
+    {prefix}/{vehicle}/sensor/gnss/{id}/fix       GnssFix
+    {prefix}/{vehicle}/sensor/gnss/{id}/raw       GnssRaw
+    {prefix}/{vehicle}/sensor/star/{id}           StarAttitude
+    {prefix}/{vehicle}/sensor/dvl/{id}            DvlVelocity
+    {prefix}/{vehicle}/sensor/usbl/{id}           UsblFix
+    {prefix}/{vehicle}/sensor/init                InitialNav
+    {prefix}/{vehicle}/truth                      Truth
+    {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
+    {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
+    {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
+    {prefix}/{vehicle}/service/health             Health
+    {prefix}/{vehicle}/service/status             queryable (and .../service/config)
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+DEFAULT_PREFIX = "fednav"
+_CHUNK = re.compile(r"^[A-Za-z0-9_\-.]+$")
+
+
+def _chunk(name: str, what: str) -> str:
+    if not _CHUNK.match(name):
+        raise ValueError(f"invalid {what} {name!r}: use letters, digits, '_', '-', '.'")
+    return name
+
+
+def sensor(vehicle: str, kind: str, sensor_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key of a sensor stream. ``kind`` is one of imu, gnss_fix, gnss_raw, star, dvl, usbl."""
+    v, s = _chunk(vehicle, "vehicle"), _chunk(sensor_id, "sensor id")
+    if kind == "gnss_fix":
+        return f"{prefix}/{v}/sensor/gnss/{s}/fix"
+    if kind == "gnss_raw":
+        return f"{prefix}/{v}/sensor/gnss/{s}/raw"
+    if kind in ("imu", "star", "dvl", "usbl"):
+        return f"{prefix}/{v}/sensor/{kind}/{s}"
+    raise ValueError(f"unknown sensor kind {kind!r}")
+
+
+def init(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/sensor/init"
+
+
+def truth(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/truth"
+
+
+def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
+    if what not in ("solution", "faults", "integrity"):
+        raise ValueError(f"unknown nav output {what!r}")
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/nav/{_chunk(pipeline, 'pipeline')}/{what}"
+
+
+def service(vehicle: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
+    if what not in ("health", "status", "config"):
+        raise ValueError(f"unknown service key {what!r}")
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/service/{what}"
+
+
+def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[str]:
+    """Key expressions the service subscribes to for a vehicle selector (``*`` = all vehicles)."""
+    return [f"{prefix}/{vehicles}/sensor/**", f"{prefix}/{vehicles}/truth"]
+
+
+@dataclass(frozen=True)
+class ParsedKey:
+    vehicle: str
+    kind: str  # imu, gnss_fix, gnss_raw, star, dvl, usbl, init, truth
+    sensor_id: str  # "" for init/truth
+
+
+def parse_input(key: str, prefix: str = DEFAULT_PREFIX) -> ParsedKey | None:
+    """Parse an input key; None when it is not a known input key (counted as ``unknown_key``)."""
+    parts = key.split("/")
+    if len(parts) < 3 or parts[0] != prefix:
+        return None
+    vehicle, rest = parts[1], parts[2:]
+    if rest == ["truth"]:
+        return ParsedKey(vehicle, "truth", "")
+    if not rest or rest[0] != "sensor":
+        return None
+    rest = rest[1:]
+    if rest == ["init"]:
+        return ParsedKey(vehicle, "init", "")
+    if len(rest) == 2 and rest[0] in ("imu", "star", "dvl", "usbl"):
+        return ParsedKey(vehicle, rest[0], rest[1])
+    if len(rest) == 3 and rest[0] == "gnss" and rest[2] in ("fix", "raw"):
+        return ParsedKey(vehicle, "gnss_" + rest[2], rest[1])
+    return None

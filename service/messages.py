@@ -1,0 +1,368 @@
+"""Wire contract: pydantic models of every message fednav sends or receives over Zenoh.
+
+Every payload is JSON produced and validated by these models. Validation is strict (no type
+coercion except int -> float), extra keys are errors, NaN/Inf are errors, and physically absurd
+magnitudes are errors (limits below, chosen generously above any vehicle fednav targets). The
+Zenoh encoding of a payload is ``application/json;fednav.<Type>/<SCHEMA_VERSION>``.
+
+Units are in the field names (``_m``, ``_mps``, ``_rad``, ``_deg``, ``_s``); frames too
+(``vel_enu_mps`` east/north/up, ``*_b_*`` body right/forward/up). Time ``t`` is sensor time in
+seconds of GPS time (since 1980-01-06), float64. Attitude ``rpy_deg`` = [roll, pitch, heading]
+with heading clockwise from true north in [0, 360).
+
+``python -m service.messages --write docs/schemas`` regenerates the JSON Schemas shipped in docs/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SCHEMA_VERSION = 1
+
+# Plausibility limits (absurd-magnitude rejection). A value beyond these is a corrupt message.
+MAX_RATE_RPS = 50.0  # ~2900 deg/s, above any tactical gyro range
+MAX_SPECIFIC_FORCE_MPS2 = 50.0 * 9.81  # 50 g
+MAX_SPEED_MPS = 3000.0
+MAX_DT_S = 1.0
+MIN_HEIGHT_M = -12000.0  # ocean trenches (underwater vehicles)
+MAX_HEIGHT_M = 1.0e5
+MAX_RANGE_M = 1.0e8  # pseudoranges (GEO ~ 4e7 m)
+T_MAX_S = 1.0e10  # GPS seconds; ~300 years
+
+
+class WireModel(BaseModel):
+    """Base of all wire messages: strict, closed, immutable, finite."""
+
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @classmethod
+    def encoding(cls) -> str:
+        return f"application/json;fednav.{cls.__name__}/{SCHEMA_VERSION}"
+
+    def to_json(self) -> bytes:
+        return self.model_dump_json().encode()
+
+
+Time = Annotated[float, Field(ge=0.0, le=T_MAX_S, description="Sensor time, s of GPS time")]
+Vec3 = tuple[float, float, float]
+PosStd3 = tuple[
+    Annotated[float, Field(gt=0.0, le=1e7)], Annotated[float, Field(gt=0.0, le=1e7)],
+    Annotated[float, Field(gt=0.0, le=1e7)]
+]
+Lat = Annotated[float, Field(ge=-90.0, le=90.0, description="Geodetic latitude, deg")]
+Lon = Annotated[float, Field(ge=-180.0, le=180.0, description="Longitude, deg")]
+Height = Annotated[float, Field(ge=MIN_HEIGHT_M, le=MAX_HEIGHT_M, description="Ellipsoidal height, m")]
+
+
+def _norm(v) -> float:
+    return math.sqrt(sum(x * x for x in v))
+
+
+def _check_speed(v, name: str) -> None:
+    if _norm(v) > MAX_SPEED_MPS:
+        raise ValueError(f"{name} magnitude {_norm(v):.1f} m/s exceeds {MAX_SPEED_MPS} m/s")
+
+
+def _check_rpy(rpy) -> None:
+    if not (-180.0 <= rpy[0] <= 180.0 and -90.0 <= rpy[1] <= 90.0 and -360.0 <= rpy[2] <= 360.0):
+        raise ValueError("rpy_deg out of range: roll [-180,180], pitch [-90,90], heading [-360,360]")
+
+
+# --- sensors ----------------------------------------------------------------------------------------
+class ImuSample(WireModel):
+    """One IMU interval ending at ``t``: angle and velocity increments in the body frame (RFU)."""
+
+    t: Time
+    dt_s: float = Field(gt=0.0, le=MAX_DT_S, description="Interval length, s")
+    dtheta_rad: Vec3 = Field(description="Angle increment over dt_s, body frame, rad")
+    dvel_mps: Vec3 = Field(description="Velocity (specific force) increment over dt_s, body frame, m/s")
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        if _norm(self.dtheta_rad) > MAX_RATE_RPS * self.dt_s:
+            raise ValueError("dtheta_rad implies an angular rate above the plausibility limit")
+        if _norm(self.dvel_mps) > MAX_SPECIFIC_FORCE_MPS2 * self.dt_s:
+            raise ValueError("dvel_mps implies a specific force above the plausibility limit")
+        return self
+
+
+class GnssFix(WireModel):
+    """Receiver position/velocity solution (loosely coupled aiding)."""
+
+    t: Time
+    lat_deg: Lat
+    lon_deg: Lon
+    height_m: Height
+    vel_enu_mps: Vec3
+    pos_std_enu_m: PosStd3 = Field(description="1-sigma position noise, east/north/up, m")
+    vel_std_enu_mps: PosStd3 = Field(description="1-sigma velocity noise, east/north/up, m/s")
+    constellation: Literal["GPS", "BDS", "GAL", "GLO", "MULTI"] = "GPS"
+    num_sats: int = Field(default=0, ge=0, le=200)
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_speed(self.vel_enu_mps, "vel_enu_mps")
+        return self
+
+
+class SatObservation(WireModel):
+    """One satellite's raw measurement with the broadcast (or precise) satellite state."""
+
+    id: str = Field(pattern=r"^[GCERJ]\d{2}$", description="RINEX-style id, e.g. C03, G12")
+    constellation: Literal["GPS", "BDS", "GAL", "GLO", "QZS"]
+    pseudorange_m: float = Field(gt=1.0e6, lt=MAX_RANGE_M)
+    range_rate_mps: float = Field(ge=-2.0e4, le=2.0e4)
+    pseudorange_sigma_m: float = Field(gt=0.0, le=1.0e4)
+    range_rate_sigma_mps: float = Field(gt=0.0, le=1.0e3)
+    sat_pos_ecef_m: Vec3
+    sat_vel_ecef_mps: Vec3
+    sat_clock_m: float = Field(default=0.0, ge=-1.0e7, le=1.0e7, description="Satellite clock bias x c, m")
+    sat_clock_drift_mps: float = Field(default=0.0, ge=-1.0e3, le=1.0e3)
+    elevation_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        if not (6.0e6 < _norm(self.sat_pos_ecef_m) < 6.0e7):
+            raise ValueError("sat_pos_ecef_m radius is not a plausible satellite orbit")
+        if _norm(self.sat_vel_ecef_mps) > 1.0e4:
+            raise ValueError("sat_vel_ecef_mps magnitude above 10 km/s")
+        return self
+
+
+class GnssRaw(WireModel):
+    """Raw pseudoranges and range rates of one epoch (tightly coupled aiding)."""
+
+    t: Time
+    sats: list[SatObservation] = Field(max_length=128)
+
+
+class StarAttitude(WireModel):
+    """Star tracker attitude solution, expressed as the body attitude in the navigation frame."""
+
+    t: Time
+    rpy_deg: Vec3
+    rpy_std_deg: PosStd3
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_rpy(self.rpy_deg)
+        return self
+
+
+class DvlVelocity(WireModel):
+    """Doppler velocity log: vehicle velocity over ground in the body frame."""
+
+    t: Time
+    vel_b_mps: Vec3
+    vel_std_mps: PosStd3
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_speed(self.vel_b_mps, "vel_b_mps")
+        return self
+
+
+class UsblFix(WireModel):
+    """USBL: body-frame vector from the vehicle array to a transponder at a known position."""
+
+    t: Time
+    rel_b_m: Vec3
+    transponder_lat_deg: Lat
+    transponder_lon_deg: Lon
+    transponder_height_m: Height
+    rel_std_m: PosStd3
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        if _norm(self.rel_b_m) > 5.0e4:
+            raise ValueError("rel_b_m beyond 50 km acoustic range")
+        return self
+
+
+class InitialNav(WireModel):
+    """Initial navigation state handed over by a host system (or by a simulator)."""
+
+    t: Time
+    lat_deg: Lat
+    lon_deg: Lon
+    height_m: Height
+    vel_enu_mps: Vec3
+    rpy_deg: Vec3
+    pos_std_enu_m: PosStd3
+    vel_std_enu_mps: PosStd3
+    rpy_std_deg: PosStd3
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_speed(self.vel_enu_mps, "vel_enu_mps")
+        _check_rpy(self.rpy_deg)
+        return self
+
+
+class ActiveFault(WireModel):
+    """A fault the simulator is injecting at this instant (truth side only)."""
+
+    sensor: str
+    kind: Literal["step", "ramp", "noise", "random_walk", "oscillation", "scale"]
+    channels: list[str]
+
+
+class Truth(WireModel):
+    """Simulator truth (never used for filtering; for errors, dashboards and evaluation)."""
+
+    t: Time
+    lat_deg: Lat
+    lon_deg: Lon
+    height_m: Height
+    vel_enu_mps: Vec3
+    rpy_deg: Vec3
+    faults: list[ActiveFault] = Field(default_factory=list)
+
+
+# --- service outputs ------------------------------------------------------------------------------
+NavStatus = Literal["initialising", "aligned", "aided", "ins_only", "reinitialised", "fault"]
+
+
+class Solution(WireModel):
+    """Navigation solution of one pipeline."""
+
+    t: Time
+    pipeline: str
+    lat_deg: Lat
+    lon_deg: Lon
+    height_m: Height
+    vel_enu_mps: Vec3
+    rpy_deg: Vec3
+    pos_std_enu_m: Vec3
+    vel_std_enu_mps: Vec3
+    rpy_std_deg: Vec3
+    gyro_bias_dph: Vec3 = (0.0, 0.0, 0.0)
+    accel_bias_ug: Vec3 = (0.0, 0.0, 0.0)
+    status: NavStatus
+
+
+class ObservationFault(WireModel):
+    label: str
+    statistic: float
+    threshold: float
+    flagged: bool
+    isolated: bool
+
+
+class SubsystemFaults(WireModel):
+    name: str
+    isolated: bool
+    observations: list[ObservationFault]
+
+
+class Faults(WireModel):
+    """Per-subsystem, per-observation fault tests of one pipeline at one aiding epoch."""
+
+    t: Time
+    pipeline: str
+    subsystems: list[SubsystemFaults]
+    sharing: dict[str, list[float]] = Field(
+        default_factory=dict, description="Per local filter, its sharing coefficient per common state"
+    )
+
+
+class SatelliteTest(WireModel):
+    id: str
+    statistic_m: float
+    threshold_m: float
+    vertical_statistic_m: float = 0.0
+    vertical_threshold_m: float = 0.0
+
+
+class Integrity(WireModel):
+    """MHSS integrity of one pipeline at one GNSS epoch."""
+
+    t: Time
+    pipeline: str
+    phase: str
+    hpl_m: float
+    vpl_m: float
+    hal_m: float
+    val_m: float | None
+    alarm: bool
+    available: bool
+    detected: bool
+    excluded: list[str]
+    satellites: list[SatelliteTest]
+
+
+class PipelineHealth(WireModel):
+    status: str
+    last_t: float | None
+    updates: int
+    reinitialisations: int = 0
+
+
+class Health(WireModel):
+    """Service health, once a second."""
+
+    t: float | None = Field(description="Latest sensor time processed (None before any)")
+    uptime_s: float
+    received: int
+    accepted: int
+    rejected: dict[str, int] = Field(description="Rejections by reason")
+    dropped_overload: int
+    queue_depth: int
+    latency_ms: dict[str, float] = Field(description="Intake-to-publish latency percentiles (p50, p99, max)")
+    pipelines: dict[str, PipelineHealth]
+
+
+SENSOR_MESSAGES: dict[str, type[WireModel]] = {
+    "imu": ImuSample,
+    "gnss_fix": GnssFix,
+    "gnss_raw": GnssRaw,
+    "star": StarAttitude,
+    "dvl": DvlVelocity,
+    "usbl": UsblFix,
+    "init": InitialNav,
+    "truth": Truth,
+}
+
+ALL_MESSAGES: list[type[WireModel]] = [
+    ImuSample, GnssFix, GnssRaw, StarAttitude, DvlVelocity, UsblFix, InitialNav, Truth,
+    Solution, Faults, Integrity, Health,
+]
+
+
+def json_schemas() -> dict[str, dict]:
+    """JSON Schema (draft 2020-12, pydantic's validation mode) of every wire message."""
+    out = {}
+    for m in ALL_MESSAGES:
+        s = m.model_json_schema()
+        s["$id"] = f"fednav.{m.__name__}/{SCHEMA_VERSION}"
+        out[m.__name__] = s
+    return out
+
+
+def write_schemas(folder: Path) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, schema in json_schemas().items():
+        p = folder / f"{name}.schema.json"
+        p.write_text(json.dumps(schema, indent=2, sort_keys=True) + "\n")
+        paths.append(p)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="Write the JSON Schemas of fednav's wire messages")
+    ap.add_argument("--write", type=Path, required=True, help="output folder (docs/schemas)")
+    args = ap.parse_args(argv)
+    for p in write_schemas(args.write):
+        print(p)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
