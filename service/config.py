@@ -1,0 +1,129 @@
+"""Service configuration: typed, documented, validated whole at load (errors name the field).
+
+A TOML file (``fednav-service --config service.toml``) or a ``[service]`` table of a scenario
+(used by ``fednav-sim eval``). Unknown keys are errors; nothing is silently "fixed".
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from service import earth
+from service.ins.error_model import ImuNoise
+
+
+class Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ImuModel(Model):
+    """The IMU grade the filters assume (process model), in datasheet units."""
+
+    gyro_bias_dph: float = Field(0.01, ge=0, description="Gyro bias 1-sigma (initial uncertainty), deg/h")
+    accel_bias_ug: float = Field(50.0, ge=0, description="Accelerometer bias 1-sigma, micro-g")
+    arw_dpsh: float = Field(0.001, gt=0, description="Angle random walk, deg/sqrt(h)")
+    vrw_ugpsHz: float = Field(5.0, gt=0, description="Velocity random walk, micro-g/sqrt(Hz)")
+    gyro_bias_rw_dphpsh: float = Field(0.0, ge=0, description="Gyro bias random walk, deg/h/sqrt(h)")
+    accel_bias_rw_ugpsh: float = Field(0.0, ge=0, description="Accel bias random walk, micro-g/sqrt(h)")
+
+    def noise(self) -> ImuNoise:
+        return ImuNoise(
+            arw=self.arw_dpsh * earth.DEG / 60.0,
+            vrw=self.vrw_ugpsHz * earth.UG,
+            gyro_bias_rw=self.gyro_bias_rw_dphpsh * earth.DPH / 60.0,
+            accel_bias_rw=self.accel_bias_rw_ugpsh * earth.UG / 60.0,
+        )
+
+    def bias_sigmas(self) -> tuple[float, float]:
+        return self.gyro_bias_dph * earth.DPH, self.accel_bias_ug * earth.UG
+
+
+class LooselyCoupledConfig(Model):
+    kind: Literal["loosely_coupled"] = "loosely_coupled"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    use_star: bool = Field(True, description="Use star-tracker attitude when present")
+    innovation_gate_sigma: float | None = Field(
+        None, gt=0, description="Reject a fix whose standardised innovation exceeds this (None: no gate)"
+    )
+
+
+PipelineConfig = Annotated[LooselyCoupledConfig, Field(discriminator="kind")]
+
+
+class ZenohConfig(Model):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+    config_file: Path | None = Field(None, description="A full Zenoh json5 config (overrides the above)")
+
+
+class IntakeConfig(Model):
+    queue_size: int = Field(100_000, ge=16, description="Bounded intake queue per vehicle (events)")
+    overload: Literal["block", "drop"] = Field(
+        "block", description="Full queue: block (back-pressure to reliable publishers) or drop (counted)"
+    )
+    late_tolerance_s: float = Field(0.5, ge=0, description="Aiding older than INS time by more is rejected")
+    max_lead_s: float = Field(5.0, gt=0, description="Aiding ahead of the INS by more is rejected")
+    max_imu_gap_s: float = Field(0.5, gt=0, description="IMU gap that marks the INS as lost")
+
+
+class InitConfig(Model):
+    mode: Literal["auto", "message", "static", "gnss_motion"] = Field(
+        "auto", description="auto: InitialNav if received, else static coarse alignment or GNSS in motion"
+    )
+    align_time_s: float = Field(60.0, gt=0, description="Static coarse-alignment averaging time")
+    min_speed_mps: float = Field(5.0, gt=0, description="GNSS speed needed for in-motion initialisation")
+
+
+class OutputConfig(Model):
+    solution_rate_hz: float = Field(10.0, gt=0, le=1000)
+    health_period_s: float = Field(1.0, gt=0)
+
+
+class ServiceConfig(Model):
+    prefix: str = "fednav"
+    vehicles: list[str] = Field(default_factory=lambda: ["v1"], description="Vehicles served ('*' = all)")
+    zenoh: ZenohConfig = ZenohConfig()
+    intake: IntakeConfig = IntakeConfig()
+    init: InitConfig = InitConfig()
+    output: OutputConfig = OutputConfig()
+    imu: ImuModel = ImuModel()
+    major_interval_s: float = Field(0.1, gt=0, le=1.0, description="INS major-update interval")
+    pipelines: list[PipelineConfig] = Field(
+        default_factory=lambda: [LooselyCoupledConfig(name="lc")], min_length=1
+    )
+    rrd: Path | None = Field(None, description="Recording path (.rrd); None: recordings/<time>.rrd")
+    viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
+
+
+class ConfigError(ValueError):
+    pass
+
+
+def _format(err: ValidationError, source: str) -> str:
+    lines = [f"invalid configuration in {source}:"]
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        lines.append(f"  {loc}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def from_dict(data: dict, source: str = "<dict>") -> ServiceConfig:
+    try:
+        return ServiceConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format(err, source)) from None
+
+
+def load(path: Path | str) -> ServiceConfig:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"cannot read {path}: {exc}") from None
+    return from_dict(data, str(path))

@@ -1,0 +1,98 @@
+"""An INS with a bank of error-state filters around it (closed loop).
+
+All members of the bank share the INS as their linearisation point and the same transition
+matrix; each member may have its own process-noise scale (federated sharing: Q_i = Q / beta_i).
+After a correction the INS absorbs the chosen error estimate and every member's state shifts by
+the same amount (x_i <- x_i - dx), which keeps the bank consistent (DESIGN.md "MHSS").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.estimation import kalman
+from service.ins import error_model as em
+from service.ins.mechanisation import Ins, NavState
+
+
+class InsFilterBank:
+    """INS + bank of B filters on the 15 common error states (plus optional private states).
+
+    Parameters
+    ----------
+    nav : NavState
+        Initial navigation state.
+    P0 : (n, n) or (B, n, n)
+        Initial covariance (n = 15 + n_private).
+    noise : ImuNoise
+        Process model of the IMU.
+    bank_size : int
+        Number of filters B.
+    Fq_private : callable(T) -> (Phi_pp, Qd_pp), optional
+        Discrete model of the private states (block diagonal with the INS states).
+    """
+
+    def __init__(self, nav: NavState, P0: np.ndarray, noise: em.ImuNoise, bank_size: int = 1,
+                 major_interval_s: float = 0.1, private_model=None):
+        self.ins = Ins(nav, major_interval_s)
+        self.noise = noise
+        P0 = np.asarray(P0, dtype=float)
+        self.n = P0.shape[-1]
+        self.B = bank_size
+        self.P = np.broadcast_to(P0, (bank_size, self.n, self.n)).copy()
+        self.x = np.zeros((bank_size, self.n))
+        self.q_scale = np.ones((bank_size, self.n))  # per-member, per-state process-noise scale
+        self.private_model = private_model
+        self.last_Phi = np.eye(self.n)
+
+    # --- time ---------------------------------------------------------------------------------
+    @property
+    def t(self) -> float:
+        return self.ins.time
+
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
+        t_before = self.ins.state.t
+        self.ins.push(dtheta_rad, dvel_mps, dt_s)
+        if self.ins.state.t != t_before:
+            self.propagate(self.ins.state.t - t_before)
+
+    def sync(self) -> None:
+        """Bring the state to the INS time (apply pending minor-loop increments and propagate)."""
+        T = self.ins.pending_s
+        if T > 0.0:
+            self.ins.major_update()
+            self.propagate(T)
+
+    def propagate(self, T: float) -> None:
+        s = self.ins.state
+        c_nb = s.mat_nb
+        F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
+        Qc = em.continuous_Q(self.noise, c_nb)
+        Phi15, Qd15 = em.discretise(F, Qc, T)
+        if self.n == em.N_STATES:
+            Phi, Qd = Phi15, Qd15
+        else:
+            Phi = np.eye(self.n)
+            Qd = np.zeros((self.n, self.n))
+            Phi[:15, :15], Qd[:15, :15] = Phi15, Qd15
+            Phi_pp, Qd_pp = self.private_model(T)
+            Phi[15:, 15:], Qd[15:, 15:] = Phi_pp, Qd_pp
+        self.last_Phi = Phi
+        if np.all(self.q_scale == 1.0):
+            Qb = Qd
+        else:
+            # Q_i = S_i^1/2 Q S_i^1/2 with S_i = diag(q_scale_i) (scalar sharing: Q / beta_i)
+            s_half = np.sqrt(self.q_scale)
+            Qb = s_half[:, :, None] * Qd[None] * s_half[:, None, :]
+        self.x, self.P = kalman.predict(self.x, self.P, Phi, Qb)
+
+    # --- feedback -----------------------------------------------------------------------------
+    def feedback(self, dx: np.ndarray) -> None:
+        """Feed the 15 INS error states of ``dx`` back into the INS; shift every member."""
+        dx = np.asarray(dx, dtype=float)
+        self.ins.correct(dx[em.POS], dx[em.VEL], dx[em.ATT], dx[em.GYRO], dx[em.ACC])
+        self.x[:, :15] -= dx[:15]
+
+    # --- outputs --------------------------------------------------------------------------------
+    def nav(self) -> NavState:
+        return self.ins.state

@@ -1,0 +1,128 @@
+"""Batched Kalman core: banks of B filters of dimension n as arrays.
+
+A bank is ``x`` (B, n) and ``P`` (B, n, n). :func:`predict` and :func:`update` are single numpy
+calls over the bank (matmul broadcasting), never Python loops over filter objects. Federated
+local filters, IMM models and MHSS sub/sub-sub filters are all banks of this core.
+
+Row exclusion (MHSS, isolation): ``mask`` (B, m) selects the rows each member uses. An excluded
+row has its H row zeroed, its innovation zeroed and R set to identity on that row/column, so the
+gain column is exactly zero and the row contributes nothing (same shapes for every member).
+
+Numerics: S = H P H' + R is factorised by Cholesky (S = L L'); the gain is solved from the factor
+(never ``inv(S)``); covariance by the Joseph form P = (I - K H) P (I - K H)' + K R K', then
+symmetrised. Every update returns the whitened innovations w = L^-1 r, the standardised
+innovations r_j / sqrt(S_jj) and NIS = r' S^-1 r = |w|^2, which fault tests consume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """Per-member innovation statistics of one update.
+
+    innovation (B, m): r = z - H x (zero on excluded rows); S (B, m, m); whitened (B, m): L^-1 r;
+    standardised (B, m): r_j / sqrt(S_jj); nis (B,): r' S^-1 r; dof (B,): rows used; K (B, n, m).
+    """
+
+    innovation: np.ndarray
+    S: np.ndarray
+    whitened: np.ndarray
+    standardised: np.ndarray
+    nis: np.ndarray
+    dof: np.ndarray
+    K: np.ndarray
+
+
+class NotPositiveDefinite(np.linalg.LinAlgError):
+    """A covariance (or innovation covariance) lost positive definiteness."""
+
+
+def symmetrise(P: np.ndarray) -> np.ndarray:
+    return 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def predict(x: np.ndarray, P: np.ndarray, Phi: np.ndarray, Qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Time update of a bank: x <- Phi x, P <- Phi P Phi' + Qd.
+
+    Phi and Qd may be shared (n, n) or per member (B, n, n).
+    """
+    x = np.einsum("...ij,...j->...i", Phi, x) if Phi.ndim == 3 else x @ Phi.T
+    P = Phi @ P @ np.swapaxes(Phi, -1, -2) + Qd
+    return x, symmetrise(P)
+
+
+def update(
+    x: np.ndarray,
+    P: np.ndarray,
+    z: np.ndarray,
+    H: np.ndarray,
+    R: np.ndarray,
+    mask: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, UpdateResult]:
+    """Measurement update of a bank of B filters (Joseph form, Cholesky solves).
+
+    Parameters
+    ----------
+    x : (B, n) states; P : (B, n, n) covariances.
+    z : (B, m) or (m,) measurements; H : (B, m, n) or (m, n); R : (B, m, m) or (m, m).
+    mask : (B, m) bool, optional. False excludes that row for that member.
+
+    Returns
+    -------
+    x, P : updated bank (new arrays).
+    UpdateResult : innovation statistics per member.
+    """
+    B, n = x.shape
+    m = H.shape[-2]
+    H = np.broadcast_to(H, (B, m, n))
+    R = np.broadcast_to(R, (B, m, m))
+    z = np.broadcast_to(z, (B, m))
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        keep = mask.astype(float)
+        H = H * keep[:, :, None]
+        eye_m = np.eye(m)
+        both = keep[:, :, None] * keep[:, None, :]
+        R = R * both + eye_m * (1.0 - keep)[:, :, None]
+        dof = mask.sum(axis=1)
+    else:
+        keep = None
+        dof = np.full(B, m)
+    Hx = np.einsum("bij,bj->bi", H, x)
+    r = z - Hx
+    if keep is not None:
+        r = r * keep
+    PHt = P @ np.swapaxes(H, 1, 2)  # (B, n, m)
+    S = symmetrise(H @ PHt + R)
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError as exc:
+        raise NotPositiveDefinite("innovation covariance S is not positive definite") from exc
+    # K = P H' S^-1 = (L'^-1 L^-1 H P)'  -- two triangular solves
+    Y = solve_triangular(L, np.swapaxes(PHt, 1, 2), lower=True)  # L^-1 H P   (B, m, n)
+    Kt = solve_triangular(np.swapaxes(L, 1, 2), Y, lower=False)  # S^-1 H P   (B, m, n)
+    K = np.swapaxes(Kt, 1, 2)
+    w = solve_triangular(L, r[:, :, None], lower=True)[:, :, 0]
+    x_new = x + np.einsum("bij,bj->bi", K, r)
+    IKH = np.eye(n) - K @ H
+    P_new = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ R @ Kt
+    sdiag = np.sqrt(np.diagonal(S, axis1=1, axis2=2))
+    std = r / sdiag
+    res = UpdateResult(r, S, w, std, np.einsum("bi,bi->b", w, w), dof, K)
+    return x_new, symmetrise(P_new), res
+
+
+def is_positive_definite(P: np.ndarray) -> np.ndarray:
+    """(B,) bool: which members' covariances are finite, symmetric and positive definite."""
+    if P.ndim == 2:
+        P = P[None]
+    finite = np.all(np.isfinite(P), axis=(1, 2))
+    Ps = np.where(finite[:, None, None], P, 0.0)
+    sym = np.all(np.abs(Ps - np.swapaxes(Ps, 1, 2)) <= 1e-9 * (1.0 + np.abs(Ps)), axis=(1, 2))
+    return finite & sym & (np.linalg.eigvalsh(symmetrise(Ps)).min(axis=-1) > 0.0)

@@ -1,0 +1,145 @@
+"""The pipeline interface: a configured chain sensors -> models -> filters -> outputs.
+
+Each pipeline owns its INS (closed loop makes references differ per pipeline), so several run
+side by side on one input stream. The engine calls, in sensor-time order:
+  ``initialise(nav, std)`` once (and again on re-initialisation),
+  ``push_imu(dtheta, dvel, dt)`` per (possibly split) IMU interval,
+  ``sync()`` before reading the state at an aiding or output epoch,
+  ``apply(kind, sensor_id, msg, dt_late)`` per aiding measurement -> extra outputs (Faults, ...),
+  ``solution(t)`` at output epochs, ``estimate()`` for errors/NEES against truth.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from service import earth
+from service.config import ImuModel
+from service.ins import error_model as em
+from service.ins.mechanisation import NavState
+from service.messages import Solution, WireModel
+
+
+@dataclass(frozen=True)
+class InitStd:
+    """1-sigma uncertainties of an initial state: ENU m, ENU m/s, nav-frame rad."""
+
+    pos_enu_m: np.ndarray
+    vel_enu_mps: np.ndarray
+    att_rad: np.ndarray
+
+
+def initial_covariance(std: InitStd, imu: ImuModel) -> np.ndarray:
+    sg, sa = imu.bias_sigmas()
+    d = np.concatenate([
+        std.pos_enu_m, std.vel_enu_mps, std.att_rad,
+        np.full(3, max(sg, 1e-12)), np.full(3, max(sa, 1e-12)),
+    ])
+    return np.diag(np.square(d))
+
+
+@dataclass
+class Estimate:
+    """What evaluation needs: the navigation state and the 9x9 covariance of (dp, dv, phi)."""
+
+    nav: NavState
+    P9: np.ndarray
+
+
+class Pipeline(ABC):
+    family: str = "loosely_coupled"
+
+    def __init__(self, name: str, imu: ImuModel, major_interval_s: float):
+        self.name = name
+        self.imu = imu
+        self.major_interval_s = major_interval_s
+        self.status = "initialising"
+        self.updates = 0
+        self.reinitialisations = 0
+
+    @abstractmethod
+    def initialise(self, nav: NavState, std: InitStd) -> None: ...
+
+    @abstractmethod
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None: ...
+
+    @abstractmethod
+    def sync(self) -> None: ...
+
+    @abstractmethod
+    def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
+        """Apply an aiding measurement at the current INS time; return extra output messages."""
+
+    @abstractmethod
+    def estimate(self) -> Estimate: ...
+
+    def solution(self) -> Solution:
+        est = self.estimate()
+        nav, P = est.nav, est.P9
+        sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
+        rpy = nav.rpy_rad
+        # attitude sigma: roll/pitch/heading from the misalignment sigmas (small-angle reading)
+        rpy_std = np.degrees(np.array([max(sd[6], sd[7]), max(sd[6], sd[7]), sd[8]]))
+        return Solution(
+            t=nav.t,
+            pipeline=self.name,
+            lat_deg=math.degrees(nav.lat_rad),
+            lon_deg=(math.degrees(nav.lon_rad) + 180.0) % 360.0 - 180.0,
+            height_m=nav.h_m,
+            vel_enu_mps=tuple(float(v) for v in nav.vel_enu_mps),
+            rpy_deg=tuple(earth.rpy_msg_deg(rpy)),
+            pos_std_enu_m=tuple(float(v) for v in sd[0:3]),
+            vel_std_enu_mps=tuple(float(v) for v in sd[3:6]),
+            rpy_std_deg=tuple(float(v) for v in rpy_std),
+            gyro_bias_dph=tuple(float(v) for v in nav.gyro_bias_rps / earth.DPH),
+            accel_bias_ug=tuple(float(v) for v in nav.accel_bias_mps2 / earth.UG),
+            status=self.status,
+        )
+
+
+ERROR_KEYS = ("lat_m", "lon_m", "h_m", "ve_mps", "vn_mps", "vu_mps", "phi_e_arcsec", "phi_n_arcsec", "phi_u_arcsec")
+
+
+def nav_errors(nav: NavState, truth_llh: np.ndarray, truth_vel: np.ndarray, truth_mat_nb: np.ndarray) -> np.ndarray:
+    """Errors (computed minus true) in the error-state convention: [dp_enu_m, dv_enu, phi_rad].
+
+    phi from C_computed = (I - [phi x]) C_true, i.e. phi = rotation vector of C_true C_computed'.
+    """
+    r_m, r_n = earth.radii(truth_llh[0])
+    dp = np.array([
+        earth.wrap_pi(nav.lon_rad - truth_llh[1]) * (r_n + truth_llh[2]) * math.cos(truth_llh[0]),
+        (nav.lat_rad - truth_llh[0]) * (r_m + truth_llh[2]),
+        nav.h_m - truth_llh[2],
+    ])
+    dv = nav.vel_enu_mps - truth_vel
+    phi = earth.quat_to_rotvec(earth.mat_to_quat(truth_mat_nb @ nav.mat_nb.T))
+    return np.concatenate([dp, dv, phi])
+
+
+def error_dict(e9: np.ndarray) -> dict[str, float]:
+    """Named errors for reports: lat_m (north), lon_m (east), h_m, velocities, phi in arcsec."""
+    return {
+        "lat_m": float(e9[1]), "lon_m": float(e9[0]), "h_m": float(e9[2]),
+        "ve_mps": float(e9[3]), "vn_mps": float(e9[4]), "vu_mps": float(e9[5]),
+        "phi_e_arcsec": float(e9[6] / earth.ARCSEC), "phi_n_arcsec": float(e9[7] / earth.ARCSEC),
+        "phi_u_arcsec": float(e9[8] / earth.ARCSEC),
+    }
+
+
+def nees(e9: np.ndarray, P9: np.ndarray) -> float:
+    """Normalised estimation error squared e' P^-1 e (Cholesky solve)."""
+    L = np.linalg.cholesky(P9)
+    w = np.linalg.solve(L, e9)
+    return float(w @ w)
+
+
+def p15_to_p9(P: np.ndarray) -> np.ndarray:
+    return P[:9, :9]
+
+
+__all__ = ["Pipeline", "InitStd", "Estimate", "initial_covariance", "nav_errors", "error_dict", "nees",
+           "ERROR_KEYS", "em"]

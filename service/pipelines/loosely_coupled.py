@@ -1,0 +1,63 @@
+"""Loosely coupled INS/GNSS: 15-state closed-loop error-state EKF, position + velocity aiding
+(and star-tracker attitude when configured and present)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.config import ImuModel, LooselyCoupledConfig
+from service.estimation import kalman, measurements
+from service.estimation.ins_filter import InsFilterBank
+from service.ins.mechanisation import NavState
+from service.messages import GnssFix, StarAttitude, WireModel
+from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+
+
+class LooselyCoupled(Pipeline):
+    family = "loosely_coupled"
+
+    def __init__(self, cfg: LooselyCoupledConfig, imu: ImuModel, major_interval_s: float):
+        super().__init__(cfg.name, imu, major_interval_s)
+        self.cfg = cfg
+        self.bank: InsFilterBank | None = None
+        self.last_nis: float | None = None
+
+    def initialise(self, nav: NavState, std: InitStd) -> None:
+        if self.bank is not None:
+            self.reinitialisations += 1
+        self.bank = InsFilterBank(nav, initial_covariance(std, self.imu), self.imu.noise(),
+                                  major_interval_s=self.major_interval_s)
+        self.status = "aligned"
+
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
+        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s)
+
+    def sync(self) -> None:
+        self.bank.sync()
+
+    def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
+        bank = self.bank
+        nav = bank.nav()
+        if kind == "gnss_fix":
+            meas = measurements.gnss_fix(nav, msg, dt_late_s=dt_late_s)
+        elif kind == "star" and self.cfg.use_star:
+            meas = measurements.star_attitude(nav, msg)
+        else:
+            return []
+        assert isinstance(msg, GnssFix | StarAttitude)
+        x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
+        if self.cfg.innovation_gate_sigma is not None and np.max(np.abs(res.standardised)) > self.cfg.innovation_gate_sigma:
+            return []
+        if not kalman.is_positive_definite(P)[0]:
+            # numerical health: flag and keep the prior rather than continue on a broken P
+            self.status = "fault"
+            return []
+        bank.x, bank.P = x, P
+        bank.feedback(bank.x[0].copy())
+        self.last_nis = float(res.nis[0])
+        self.updates += 1
+        self.status = "aided"
+        return []
+
+    def estimate(self) -> Estimate:
+        return Estimate(self.bank.nav(), self.bank.P[0, :9, :9])

@@ -1,0 +1,152 @@
+"""Zenoh behind one module: session config, publishers, the intake subscriber and queryables.
+
+The rest of the service sees plain data: (wall_time, key, payload bytes) from intake, and
+``publish(key, model)`` for outputs. Nothing here blocks inside a Zenoh callback: intake uses a
+bounded Zenoh FIFO channel (a full channel back-pressures reliable, blocking publishers instead
+of dropping) read by our own thread; queryables are served from a thread too.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from service.config import ZenohConfig
+from service.messages import WireModel
+
+
+def make_config(zc: ZenohConfig | None = None, listen: list[str] | None = None,
+                connect: list[str] | None = None, config_file: str | None = None) -> zenoh.Config:
+    """Explicit endpoints, multicast scouting off unless asked; a json5 file overrides everything."""
+    path = config_file or (str(zc.config_file) if zc and zc.config_file else None)
+    if path:
+        return zenoh.Config.from_file(path)
+    zc = zc or ZenohConfig()
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(zc.mode))
+    c.insert_json5("scouting/multicast/enabled", "true" if zc.multicast_scouting else "false")
+    c.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else zc.listen))
+    c.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else zc.connect))
+    return c
+
+
+class Publishers:
+    """Declared publishers per key (reliable; blocking or dropping congestion control)."""
+
+    def __init__(self, session: zenoh.Session, block: bool = True):
+        self.session = session
+        self.cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._pubs: dict[str, zenoh.Publisher] = {}
+        self._lock = threading.Lock()
+
+    def publisher(self, key: str, msg_type: type[WireModel]) -> zenoh.Publisher:
+        with self._lock:
+            pub = self._pubs.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key, encoding=zenoh.Encoding(msg_type.encoding()), congestion_control=self.cc,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+                self._pubs[key] = pub
+            return pub
+
+    def publish(self, key: str, msg: WireModel) -> None:
+        self.publisher(key, type(msg)).put(msg.to_json())
+
+    def undeclare_all(self) -> None:
+        with self._lock:
+            for p in self._pubs.values():
+                try:
+                    p.undeclare()
+                except zenoh.ZError:
+                    pass
+            self._pubs.clear()
+
+
+class Intake:
+    """Subscribes to input keys and hands (wall_time, key, payload) to ``deliver`` from a thread."""
+
+    def __init__(self, session: zenoh.Session, key_exprs: list[str], deliver: Callable[[float, str, bytes], None],
+                 capacity: int = 4096):
+        self._subs = [
+            session.declare_subscriber(k, zenoh.handlers.FifoChannel(capacity), allowed_origin=zenoh.Locality.REMOTE)
+            for k in key_exprs
+        ]
+        self._deliver = deliver
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        subs = self._subs
+        while not self._stop.is_set():
+            got = False
+            for s in subs:
+                sample = s.try_recv()
+                while sample is not None:
+                    got = True
+                    self._deliver(time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
+                    sample = s.try_recv()
+            if not got:
+                self._stop.wait(0.0005)
+        # drain what already arrived
+        for s in subs:
+            sample = s.try_recv()
+            while sample is not None:
+                self._deliver(time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
+                sample = s.try_recv()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        for s in self._subs:
+            try:
+                s.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+class QueryServer:
+    """Answers queryables from a thread with ``answer(key) -> bytes`` (JSON)."""
+
+    def __init__(self, session: zenoh.Session, key_exprs: list[str], answer: Callable[[str], bytes]):
+        self._qs = [session.declare_queryable(k, zenoh.handlers.FifoChannel(64)) for k in key_exprs]
+        self._answer = answer
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="fednav-queries", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            got = False
+            for q in self._qs:
+                query = q.try_recv()
+                while query is not None:
+                    got = True
+                    try:
+                        key = str(query.key_expr)
+                        query.reply(query.key_expr, self._answer(key),
+                                    encoding=zenoh.Encoding("application/json"))
+                    except Exception as exc:  # a bad query must not kill the server
+                        try:
+                            query.reply_err(str(exc))
+                        except zenoh.ZError:
+                            pass
+                    finally:
+                        query.drop()
+                    query = q.try_recv()
+            if not got:
+                self._stop.wait(0.01)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+        for q in self._qs:
+            try:
+                q.undeclare()
+            except zenoh.ZError:
+                pass

@@ -1,0 +1,64 @@
+"""Wire models: strictness, plausibility limits, committed JSON Schemas match the models."""
+
+import json
+from pathlib import Path
+
+import pytest
+from pydantic import ValidationError
+
+from service import keys
+from service.app import classify
+from service.messages import ALL_MESSAGES, ImuSample, json_schemas
+
+SCHEMAS = Path(__file__).resolve().parents[1] / "docs" / "schemas"
+
+
+def test_committed_schemas_match_models():
+    expected = json_schemas()
+    on_disk = {p.name.removesuffix(".schema.json"): json.loads(p.read_text()) for p in SCHEMAS.glob("*.schema.json")}
+    assert set(on_disk) == {m.__name__ for m in ALL_MESSAGES}, "run `make schemas` and commit docs/schemas"
+    for name, schema in expected.items():
+        assert on_disk[name] == json.loads(json.dumps(schema)), f"{name} schema drifted: run `make schemas`"
+
+
+def _imu(**kw):
+    d = {"t": 100.0, "dt_s": 0.01, "dtheta_rad": [0.0, 0.0, 1e-4], "dvel_mps": [0.0, 0.0, 0.098]}
+    d.update(kw)
+    return json.dumps(d)
+
+
+@pytest.mark.parametrize(
+    "payload, reason",
+    [
+        ("{not json", "malformed_json"),
+        (_imu(extra=1), "schema"),
+        (_imu(dt_s="0.01"), "schema"),
+        (_imu(dtheta_rad=[0.0, 0.0]), "schema"),
+        (_imu(dvel_mps=[float("nan"), 0.0, 0.0]), "non_finite"),
+        (_imu(dvel_mps=[1e9, 0.0, 0.0]), "absurd_value"),
+        (_imu(dt_s=-0.01), "out_of_range"),
+    ],
+)
+def test_bad_imu_rejected_with_reason(payload, reason):
+    with pytest.raises(ValidationError) as ei:
+        ImuSample.model_validate_json(payload)
+    assert classify(ei.value) == reason
+
+
+def test_good_imu_round_trip():
+    m = ImuSample.model_validate_json(_imu())
+    assert ImuSample.model_validate_json(m.to_json()) == m
+    assert ImuSample.encoding() == "application/json;fednav.ImuSample/1"
+
+
+def test_keys_round_trip():
+    k = keys.sensor("v1", "gnss_fix", "main")
+    assert k == "fednav/v1/sensor/gnss/main/fix"
+    p = keys.parse_input(k)
+    assert (p.vehicle, p.kind, p.sensor_id) == ("v1", "gnss_fix", "main")
+    assert keys.parse_input("fednav/v1/sensor/imu/wing1").kind == "imu"
+    assert keys.parse_input("fednav/v1/truth").kind == "truth"
+    assert keys.parse_input("fednav/v1/sensor/bogus/x") is None
+    assert keys.parse_input("other/v1/truth") is None
+    with pytest.raises(ValueError):
+        keys.sensor("v/1", "imu", "main")
