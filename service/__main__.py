@@ -15,6 +15,7 @@ from service import config as config_mod
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="fednav-service", description="fednav navigation fusion service")
     ap.add_argument("--config", type=Path, help="service TOML config")
+    ap.add_argument("--config-table", help="use this table of the TOML file (e.g. a scenario's 'service')")
     ap.add_argument("--rrd", type=Path, help="recording path (.rrd)")
     ap.add_argument("--no-record", action="store_true", help="do not write a recording")
     ap.add_argument("--viewer", help="also stream live to a Rerun viewer (gRPC URL)")
@@ -30,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
-        cfg = config_mod.load(args.config) if args.config else config_mod.ServiceConfig()
+        cfg = config_mod.load(args.config, args.config_table) if args.config else config_mod.ServiceConfig()
         if args.vehicle:
             cfg = cfg.model_copy(update={"vehicles": args.vehicle})
     except config_mod.ConfigError as exc:

@@ -51,7 +51,77 @@ class LooselyCoupledConfig(Model):
     )
 
 
-PipelineConfig = Annotated[LooselyCoupledConfig, Field(discriminator="kind")]
+SharingName = Literal[
+    "fixed", "trace", "vector", "vector_conservative", "eigen_trace", "eigen_trace_inverse", "diagonal",
+    "edop", "norm_weighted",
+]
+FaultHandlingName = Literal["none", "per_observation", "subsystem", "chi2_reconfig"]
+
+
+class SubsystemConfig(Model):
+    """A local filter of a federated pipeline: the sensor kinds it uses."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-/]+$")
+    sensors: list[Literal["gnss_fix", "star", "dvl", "usbl", "gnss_raw"]] = Field(min_length=1)
+
+
+def _default_subsystems() -> list[SubsystemConfig]:
+    return [SubsystemConfig(name="INS/BDS", sensors=["gnss_fix"]), SubsystemConfig(name="INS/CNS", sensors=["star"])]
+
+
+class FederatedConfig(Model):
+    """Federated filter (seed 000/002/004): local filters on the common 15 INS error states."""
+
+    kind: Literal["federated"] = "federated"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    subsystems: list[SubsystemConfig] = Field(default_factory=_default_subsystems, min_length=1)
+    sharing: SharingName = Field("vector", description="Information-sharing strategy")
+    fault_handling: FaultHandlingName = Field("per_observation", description="Fault handling plug-in")
+    reset: Literal["fusion_reset", "no_reset"] = Field("fusion_reset", description="Master reset mode")
+    false_alarm_prob: float = Field(0.001, gt=0, lt=0.5, description="Per-test false-alarm probability")
+    floor_share: float = Field(1e-3, gt=0, lt=0.5, description="Share floor of a state seen only by a flagged row")
+    master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
+
+
+class CentralizedConfig(Model):
+    """Centralised Kalman filter on all measurements (comparator)."""
+
+    kind: Literal["centralized"] = "centralized"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    fault_handling: FaultHandlingName = "none"
+    false_alarm_prob: float = Field(0.001, gt=0, lt=0.5)
+
+
+class ClockModel(Model):
+    """Receiver clock (seed 001): d(b)/dt = d + w_b, d(d)/dt = -beta d + w_d (b in m, d in m/s)."""
+
+    bias_psd_m2ps: float = Field(0.1, gt=0, description="White-noise PSD driving the bias, m^2/s")
+    drift_psd_m2ps3: float = Field(0.01, gt=0, description="White-noise PSD driving the drift, m^2/s^3")
+    correlation_time_s: float = Field(600.0, gt=0, description="Drift correlation time 1/beta, s")
+    init_bias_std_m: float = Field(1.0e5, gt=0)
+    init_drift_std_mps: float = Field(100.0, gt=0)
+
+
+class TightlyCoupledConfig(Model):
+    """Tightly coupled INS/GNSS (17 states: 15 INS + clock bias/drift) with optional MHSS integrity."""
+
+    kind: Literal["tightly_coupled"] = "tightly_coupled"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    clock: ClockModel = ClockModel()
+    use_range_rate: bool = True
+    integrity: bool = Field(True, description="Run MHSS (main + sub-filters) with protection levels")
+    sub_sub_filters: bool = Field(True, description="Sub-sub filters for exclusion")
+    phase: Literal["en_route", "terminal", "npa", "lpv", "lpv200"] = "npa"
+    p_fa: float = Field(1e-4, gt=0, lt=0.5, description="Total false-alarm probability per epoch")
+    p_md: float = Field(1e-3, gt=0, lt=0.5, description="Missed-detection probability")
+    exclusion: bool = True
+    readmit_after_s: float = Field(60.0, gt=0, description="Healthy time before an excluded satellite returns")
+    elevation_mask_deg: float = Field(5.0, ge=0, lt=90)
+
+
+PipelineConfig = Annotated[
+    LooselyCoupledConfig | FederatedConfig | CentralizedConfig | TightlyCoupledConfig, Field(discriminator="kind")
+]
 
 
 class ZenohConfig(Model):
@@ -120,10 +190,16 @@ def from_dict(data: dict, source: str = "<dict>") -> ServiceConfig:
         raise ConfigError(_format(err, source)) from None
 
 
-def load(path: Path | str) -> ServiceConfig:
+def load(path: Path | str, table: str | None = None) -> ServiceConfig:
+    """Load a TOML config; ``table`` selects a sub-table (e.g. a scenario's ``[service]``)."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"cannot read {path}: {exc}") from None
-    return from_dict(data, str(path))
+    source = str(path)
+    if table:
+        if not isinstance(data.get(table), dict):
+            raise ConfigError(f"{path} has no [{table}] table")
+        data, source = data[table], f"{path} [{table}]"
+    return from_dict(data, source)

@@ -57,6 +57,15 @@ def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
         from service.pipelines.loosely_coupled import LooselyCoupled
 
         return LooselyCoupled(cfg, config.imu, config.major_interval_s)
+    if cfg.kind in ("federated", "centralized"):
+        from service.pipelines.federated import Centralized, Federated
+
+        cls = Federated if cfg.kind == "federated" else Centralized
+        return cls(cfg, config.imu, config.major_interval_s)
+    if cfg.kind == "tightly_coupled":
+        from service.pipelines.tightly_coupled import TightlyCoupled
+
+        return TightlyCoupled(cfg, config.imu, config.major_interval_s)
     raise ValueError(f"unknown pipeline kind {cfg.kind!r}")  # unreachable: config validates kinds
 
 

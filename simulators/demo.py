@@ -1,0 +1,60 @@
+"""``make demo``: fednav-service and fednav-sim as separate processes on the demo scenario.
+
+Writes recordings/<scenario>-<time>.rrd, prints the headless inspection summary and the command
+that opens the recording in the Rerun viewer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from simulators.processes import free_port, start_service, start_sim, wait_idle
+from simulators.scenario import scenario_path
+
+DEFAULT = Path(__file__).resolve().parent / "scenarios" / "demo_aircraft.toml"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fednav-demo", description=__doc__)
+    ap.add_argument("--scenario", default=str(DEFAULT))
+    ap.add_argument("--speed", type=float, default=20.0, help="pacing, x real time")
+    ap.add_argument("--out", type=Path, default=Path("recordings"))
+    args = ap.parse_args(argv)
+    scen = scenario_path(args.scenario)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rrd = args.out / f"{scen.stem}-{datetime.now():%Y%m%d-%H%M%S}.rrd"
+    port = free_port()
+    t0 = time.monotonic()
+    print(f"starting fednav-service on tcp/127.0.0.1:{port} (recording {rrd})", flush=True)
+    svc = start_service(port, config=scen, table="service", rrd=rrd)
+    try:
+        print(f"starting fednav-sim run {scen.name} --speed {args.speed}", flush=True)
+        sim = start_sim(port, scen, speed=args.speed)
+        rc = sim.wait(timeout=600)
+        print(sim.output(), flush=True)
+        if rc != 0:
+            print(f"fednav-sim failed with exit code {rc}", file=sys.stderr)
+            return 1
+        status = wait_idle(port)
+        if status and status.get("health"):
+            h = status["health"]
+            print(f"service: received {h['received']}, accepted {h['accepted']}, rejected {h['rejected']}, "
+                  f"latency p50 {h['latency_ms']['p50']:.2f} ms p99 {h['latency_ms']['p99']:.2f} ms", flush=True)
+    finally:
+        svc.signal()
+        svc.wait(timeout=60)
+    print(f"run took {time.monotonic() - t0:.1f} s", flush=True)
+
+    from dashboards.inspect import inspect_rrd, render_text
+
+    print(render_text(inspect_rrd(rrd)))
+    print(f"\nopen the recording:  .venv/bin/rerun {rrd}   (or: .venv/bin/fednav-view {rrd})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,205 @@
+"""Aiding sensor models: GNSS position/velocity fixes and a star tracker.
+
+Epochs fall exactly on IMU sample times: a sensor at ``rate_hz`` samples every
+``imu_rate_hz / rate_hz`` IMU steps (an integer), starting one sensor period after the start, and
+its message time is the trajectory's ``t_s[k]`` bit for bit.
+
+Fault channels (see :mod:`simulators.faults`):
+
+========  ==========================  =====================================================
+sensor    channels                    quantity the channel carries (``scale`` multiplies it)
+========  ==========================  =====================================================
+gnss      pos_e, pos_n, pos_u         position error, measured minus true, ENU metres
+gnss      vel_e, vel_n, vel_u         measured velocity, ENU m/s
+star      roll, pitch, yaw            attitude error, measured minus true Euler angle, arcsec
+                                      (yaw west positive: a +yaw error is a -heading error)
+========  ==========================  =====================================================
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from service import earth
+from service.messages import GnssFix, StarAttitude
+from simulators.faults import FaultSet
+from simulators.trajectory import Trajectory, mat_nb_vec, radii_vec
+
+GNSS_SENSOR = "gnss"
+STAR_SENSOR = "star"
+GNSS_CHANNELS = ("pos_e", "pos_n", "pos_u", "vel_e", "vel_n", "vel_u")
+STAR_CHANNELS = ("roll", "pitch", "yaw")
+
+Vec3 = tuple[float, float, float]
+
+
+def _positive3(v: tuple[float, float, float], name: str) -> tuple[float, float, float]:
+    if min(v) <= 0.0:
+        raise ValueError(f"{name}: every component must be > 0 (got {list(v)})")
+    return v
+
+
+class GnssSpec(BaseModel):
+    """GNSS receiver producing position/velocity fixes with white noise."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: str = Field(default="main", pattern=r"^[A-Za-z0-9_\-.]+$", description="Sensor id in the key")
+    rate_hz: float = Field(default=1.0, gt=0.0, description="Fix rate, Hz (must divide the IMU rate)")
+    pos_std_enu_m: Vec3 = Field(description="1-sigma position noise east/north/up, m")
+    vel_std_enu_mps: Vec3 = Field(description="1-sigma velocity noise east/north/up, m/s")
+    constellation: Literal["GPS", "BDS"] = Field(default="GPS", description="Constellation in the message")
+    num_sats: int = Field(default=10, ge=0, le=200, description="Satellite count reported in the message")
+    outages: list[tuple[float, float]] = Field(
+        default_factory=list, description="No fixes for start_s <= t < end_s (s after the scenario start)"
+    )
+
+    @field_validator("pos_std_enu_m")
+    @classmethod
+    def _pos_pos(cls, v):
+        return _positive3(v, "pos_std_enu_m")
+
+    @field_validator("vel_std_enu_mps")
+    @classmethod
+    def _vel_pos(cls, v):
+        return _positive3(v, "vel_std_enu_mps")
+
+    @field_validator("outages")
+    @classmethod
+    def _outages_ordered(cls, v):
+        for i, (a, b) in enumerate(v):
+            if not (0.0 <= a < b):
+                raise ValueError(f"outages[{i}] = [{a}, {b}]: need 0 <= start_s < end_s")
+        return v
+
+
+class StarSpec(BaseModel):
+    """Star tracker: attitude with white noise, a small body-frame rotation of the true attitude."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: str = Field(default="main", pattern=r"^[A-Za-z0-9_\-.]+$", description="Sensor id in the key")
+    rate_hz: float = Field(default=1.0, gt=0.0, description="Output rate, Hz (must divide the IMU rate)")
+    std_arcsec: Vec3 = Field(description="1-sigma noise about roll, pitch, yaw, arcsec")
+
+    @field_validator("std_arcsec")
+    @classmethod
+    def _std_pos(cls, v):
+        return _positive3(v, "std_arcsec")
+
+
+def epoch_step(imu_rate_hz: float, rate_hz: float, what: str = "rate_hz") -> int:
+    """IMU steps per sensor epoch; ValueError unless ``imu_rate_hz / rate_hz`` is an integer >= 1."""
+    r = imu_rate_hz / rate_hz
+    if abs(r - round(r)) > 1e-9 or round(r) < 1:
+        raise ValueError(f"{what} = {rate_hz} Hz must divide the IMU rate {imu_rate_hz} Hz")
+    return int(round(r))
+
+
+def _epochs(traj: Trajectory, rate_hz: float, what: str) -> np.ndarray:
+    step = epoch_step(traj.imu_rate_hz, rate_hz, what)
+    return np.arange(step, traj.t_s.size, step)
+
+
+def simulate_gnss_fixes(
+    spec: GnssSpec, traj: Trajectory, rng: np.random.Generator, faults: FaultSet | None = None
+) -> list[tuple[int, GnssFix]]:
+    """GNSS fixes as ``(imu_sample_index, message)`` pairs, in time order.
+
+    Noise is drawn for every nominal epoch (outages included), so an outage does not change the
+    noise of the other epochs. Position noise is generated in ENU metres and converted to
+    latitude/longitude/height at the true position.
+    """
+    ks = _epochs(traj, spec.rate_hz, "gnss.rate_hz")
+    t_rel = ks / traj.imu_rate_hz
+    pos_err = rng.standard_normal((ks.size, 3)) * np.asarray(spec.pos_std_enu_m)
+    vel_meas = traj.vel_enu_mps[ks] + rng.standard_normal((ks.size, 3)) * np.asarray(spec.vel_std_enu_mps)
+    keep = np.ones(ks.size, dtype=bool)
+    for a, b in spec.outages:
+        keep &= ~((t_rel >= a) & (t_rel < b))
+    out = []
+    for i in np.flatnonzero(keep):
+        k = int(ks[i])
+        pe, vm = pos_err[i], vel_meas[i]
+        if faults is not None:
+            vals = dict(zip(GNSS_CHANNELS, [*pe.tolist(), *vm.tolist()], strict=True))
+            vals = faults.apply(GNSS_SENSOR, float(t_rel[i]), vals)
+            pe = np.array([vals[c] for c in GNSS_CHANNELS[:3]])
+            vm = np.array([vals[c] for c in GNSS_CHANNELS[3:]])
+        lat, lon, h = traj.llh[k]
+        r_m, r_n = radii_vec(lat)
+        lat_m = lat + pe[1] / (r_m + h)
+        lon_m = lon + pe[0] / ((r_n + h) * np.cos(lat))
+        msg = GnssFix(
+            t=float(traj.t_s[k]),
+            lat_deg=float(np.degrees(lat_m)),
+            lon_deg=float(np.degrees(earth.wrap_pi(lon_m))),
+            height_m=float(h + pe[2]),
+            vel_enu_mps=tuple(float(x) for x in vm),
+            pos_std_enu_m=tuple(float(x) for x in spec.pos_std_enu_m),
+            vel_std_enu_mps=tuple(float(x) for x in spec.vel_std_enu_mps),
+            constellation=spec.constellation,
+            num_sats=spec.num_sats,
+        )
+        out.append((k, msg))
+    return out
+
+
+def _rotvec_to_mat_vec(rv: np.ndarray) -> np.ndarray:
+    """Rodrigues formula, (P, 3) -> (P, 3, 3)."""
+    a = np.linalg.norm(rv, axis=1)
+    small = a < 1e-8
+    a_safe = np.where(small, 1.0, a)
+    s = np.where(small, 1.0 - a * a / 6.0, np.sin(a) / a_safe)
+    c = np.where(small, 0.5 - a * a / 24.0, (1.0 - np.cos(a)) / (a_safe * a_safe))
+    k = np.zeros(rv.shape[:1] + (3, 3))
+    k[:, 0, 1], k[:, 0, 2] = -rv[:, 2], rv[:, 1]
+    k[:, 1, 0], k[:, 1, 2] = rv[:, 2], -rv[:, 0]
+    k[:, 2, 0], k[:, 2, 1] = -rv[:, 1], rv[:, 0]
+    return np.eye(3) + s[:, None, None] * k + c[:, None, None] * (k @ k)
+
+
+def _mat_nb_to_rpy_vec(m: np.ndarray) -> np.ndarray:
+    pitch = np.arcsin(np.clip(m[:, 2, 1], -1.0, 1.0))
+    roll = np.arctan2(-m[:, 2, 0], m[:, 2, 2])
+    yaw = np.arctan2(-m[:, 0, 1], m[:, 1, 1])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def simulate_star(
+    spec: StarSpec, traj: Trajectory, rng: np.random.Generator, faults: FaultSet | None = None
+) -> list[tuple[int, StarAttitude]]:
+    """Star-tracker attitudes as ``(imu_sample_index, message)`` pairs, in time order.
+
+    Noise: ``mat_nb_meas = mat_nb @ Rot(delta_b)``, ``delta_b`` about body right (pitch), forward
+    (roll), up (yaw) with the stds of ``std_arcsec`` = [roll, pitch, yaw].
+    """
+    ks = _epochs(traj, spec.rate_hz, "star.rate_hz")
+    t_rel = ks / traj.imu_rate_hz
+    std_rad = np.asarray(spec.std_arcsec) * earth.ARCSEC
+    z = rng.standard_normal((ks.size, 3)) * std_rad  # roll, pitch, yaw
+    delta_b = np.stack([z[:, 1], z[:, 0], z[:, 2]], axis=-1)  # about right, forward, up
+    rpy_true = traj.rpy_rad[ks]
+    rpy_noisy = _mat_nb_to_rpy_vec(mat_nb_vec(rpy_true) @ _rotvec_to_mat_vec(delta_b))
+    err_arcsec = earth.wrap_pi(rpy_noisy - rpy_true) / earth.ARCSEC
+    std_deg = tuple(float(s) / 3600.0 for s in spec.std_arcsec)
+    out = []
+    for i, k in enumerate(ks.tolist()):
+        e = err_arcsec[i]
+        if faults is not None:
+            vals = faults.apply(
+                STAR_SENSOR, float(t_rel[i]), dict(zip(STAR_CHANNELS, e.tolist(), strict=True))
+            )
+            e = np.array([vals[c] for c in STAR_CHANNELS])
+        rpy = rpy_true[i] + e * earth.ARCSEC
+        roll = float(np.degrees(earth.wrap_pi(rpy[0])))
+        msg = StarAttitude(
+            t=float(traj.t_s[k]),
+            rpy_deg=(roll, float(np.degrees(rpy[1])), earth.heading_deg_from_yaw(float(rpy[2]))),
+            rpy_std_deg=std_deg,
+        )
+        out.append((k, msg))
+    return out

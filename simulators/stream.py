@@ -1,0 +1,201 @@
+"""A scenario run as a time-ordered stream of ``(key, message)`` pairs, plus its truth.
+
+Order: ``InitialNav`` and ``Truth`` at ``t0``; then for every IMU sample ``k >= 1`` at ``t_k``:
+``Truth`` (at the truth rate, listing the active faults), the aiding measurements of that instant
+(``GnssFix``, then ``StarAttitude``, faults applied), and last the ``ImuSample`` ending at ``t_k``
+(the engine holds aiding until the INS reaches its time, so solutions at ``t_k`` are post-update).
+
+Randomness: one ``np.random.SeedSequence(seed)`` spawns independent streams for the IMU, GNSS,
+star tracker, initial errors and faults (in that order), so enabling one sensor never changes the
+noise of another. Every draw happens when the :class:`Simulation` is created; iteration only
+builds messages, and ``Simulation.truth`` (biases, initial errors) is available before iterating.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from service import earth, keys
+from service.messages import ImuSample, InitialNav, Truth, WireModel
+from simulators.faults import FaultSet
+from simulators.imu import ImuErrorTruth, apply_imu_errors
+from simulators.scenario import Scenario
+from simulators.sensors import epoch_step, simulate_gnss_fixes, simulate_star
+from simulators.trajectory import Trajectory, radii_vec
+
+ZERO_SIGMA_FLOOR = 1e-3  # std reported for a zero initial-error sigma, in the field's units
+
+
+@dataclass
+class SimulationTruth:
+    """What a run really did (for evaluation; never given to filters).
+
+    Attributes
+    ----------
+    seed : int
+    trajectory : Trajectory
+    imu_errors : ImuErrorTruth (biases, scale factors, Gauss-Markov states)
+    initial_pos_error_enu_m, initial_vel_error_enu_mps : (3,)
+    initial_rpy_error_rad : (3,) roll, pitch, yaw (west positive) errors added to the truth
+    """
+
+    seed: int
+    trajectory: Trajectory
+    imu_errors: ImuErrorTruth
+    initial_pos_error_enu_m: np.ndarray
+    initial_vel_error_enu_mps: np.ndarray
+    initial_rpy_error_rad: np.ndarray
+
+
+def _deg_msg(llh: np.ndarray, rpy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vectorised message forms: lat_deg, lon_deg (wrapped), rpy_deg [roll, pitch, heading]."""
+    lat = np.degrees(llh[:, 0])
+    lon = np.degrees(earth.wrap_pi(llh[:, 1]))
+    roll = np.degrees(earth.wrap_pi(rpy[:, 0]))
+    pitch = np.degrees(rpy[:, 1])
+    heading = (-np.degrees(rpy[:, 2])) % 360.0
+    return lat, lon, llh[:, 2], np.stack([roll, pitch, heading], axis=-1)
+
+
+class Simulation(Iterator[tuple[str, WireModel]]):
+    """Iterator over the messages of one run; ``truth`` holds what the run really did.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    seed : int, optional
+        Defaults to ``scenario.seed``.
+    vehicle : str
+        Vehicle name in the keys.
+    trajectory : Trajectory, optional
+        ``scenario.build_trajectory()`` built once and shared across runs (must match the scenario).
+    prefix : str
+        Key prefix.
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        seed: int | None = None,
+        vehicle: str = "v1",
+        trajectory: Trajectory | None = None,
+        prefix: str = keys.DEFAULT_PREFIX,
+    ):
+        sc = scenario
+        seed = sc.seed if seed is None else int(seed)
+        traj = sc.build_trajectory() if trajectory is None else trajectory
+        n_expected = int(round(sc.duration_s * sc.imu.rate_hz)) + 1
+        if traj.imu_rate_hz != sc.imu.rate_hz or traj.t_s.size != n_expected or traj.t0_gps_s != sc.t0_gps_s:
+            raise ValueError("trajectory does not match the scenario (rate, duration or t0 differ)")
+        self.scenario = sc
+        self.vehicle = vehicle
+        rng_imu, rng_gnss, rng_star, rng_init, rng_faults = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
+        )
+        self._dth, self._dv, imu_truth = apply_imu_errors(sc.imu, traj.dtheta_rad, traj.dvel_mps, rng_imu)
+        self.faults = FaultSet(sc.faults, rng_faults)
+        self._gnss = simulate_gnss_fixes(sc.gnss, traj, rng_gnss, self.faults) if sc.gnss else []
+        self._star = simulate_star(sc.star, traj, rng_star, self.faults) if sc.star else []
+
+        ie = sc.initial_errors
+        if ie.mode == "random":
+            z = rng_init.standard_normal(9)
+            dp = z[0:3] * np.asarray(ie.pos_enu_m)
+            dv = z[3:6] * np.asarray(ie.vel_enu_mps)
+            da = z[6:9] * np.asarray(ie.rpy_arcsec) * earth.ARCSEC
+        else:
+            dp, dv = np.asarray(ie.pos_enu_m, float), np.asarray(ie.vel_enu_mps, float)
+            da = np.asarray(ie.rpy_arcsec, float) * earth.ARCSEC
+        self.truth = SimulationTruth(seed, traj, imu_truth, dp, dv, da)
+
+        def floor(v) -> tuple[float, float, float]:
+            return tuple(float(abs(x)) if x != 0.0 else ZERO_SIGMA_FLOOR for x in v)
+
+        lat, lon, h = traj.llh[0]
+        r_m, r_n = radii_vec(lat)
+        llh0 = np.array([[lat + dp[1] / (r_m + h), lon + dp[0] / ((r_n + h) * np.cos(lat)), h + dp[2]]])
+        la, lo, hh, rpy_deg = _deg_msg(llh0, (traj.rpy_rad[0] + da)[None, :])
+        self.initial_nav = InitialNav(
+            t=float(traj.t_s[0]),
+            lat_deg=float(la[0]),
+            lon_deg=float(lo[0]),
+            height_m=float(hh[0]),
+            vel_enu_mps=tuple((traj.vel_enu_mps[0] + dv).tolist()),
+            rpy_deg=tuple(rpy_deg[0].tolist()),
+            pos_std_enu_m=floor(ie.pos_enu_m),
+            vel_std_enu_mps=floor(ie.vel_enu_mps),
+            rpy_std_deg=floor([a / 3600.0 for a in ie.rpy_arcsec]),
+        )
+        self._truth_step = epoch_step(sc.imu.rate_hz, sc.truth_rate_hz, "truth_rate_hz")
+        self._keys = {
+            "imu": keys.sensor(vehicle, "imu", sc.imu.id, prefix),
+            "gnss": keys.sensor(vehicle, "gnss_fix", sc.gnss.id, prefix) if sc.gnss else "",
+            "star": keys.sensor(vehicle, "star", sc.star.id, prefix) if sc.star else "",
+            "init": keys.init(vehicle, prefix),
+            "truth": keys.truth(vehicle, prefix),
+        }
+        self._gen = self._messages()
+
+    @property
+    def trajectory(self) -> Trajectory:
+        return self.truth.trajectory
+
+    def __iter__(self) -> Simulation:
+        return self
+
+    def __next__(self) -> tuple[str, WireModel]:
+        return next(self._gen)
+
+    def _messages(self) -> Iterator[tuple[str, WireModel]]:
+        traj = self.truth.trajectory
+        # Truth rows in message units, converted once (row j is sample k = j * truth_step).
+        kt = np.arange(0, traj.t_s.size, self._truth_step)
+        lat, lon, h, rpy = (x.tolist() for x in _deg_msg(traj.llh[kt], traj.rpy_rad[kt]))
+        vel = traj.vel_enu_mps[kt].tolist()
+        t_list = traj.t_s.tolist()
+
+        def truth_msg(k: int) -> Truth:
+            j = k // self._truth_step
+            return Truth(
+                t=t_list[k],
+                lat_deg=lat[j],
+                lon_deg=lon[j],
+                height_m=h[j],
+                vel_enu_mps=tuple(vel[j]),
+                rpy_deg=tuple(rpy[j]),
+                faults=self.faults.active(k / traj.imu_rate_hz),
+            )
+
+        k_imu, k_init, k_truth = self._keys["imu"], self._keys["init"], self._keys["truth"]
+        yield k_init, self.initial_nav
+        yield k_truth, truth_msg(0)
+        dt = 1.0 / traj.imu_rate_hz
+        dth, dv = self._dth.tolist(), self._dv.tolist()
+        gnss, star = self._gnss, self._star
+        ig = istar = 0
+        for k in range(1, traj.t_s.size):
+            # Truth and aiding of instant t_k come before the IMU sample ending at t_k: the engine
+            # queues aiding until the INS reaches t_k, so the solution at t_k is post-update.
+            if k % self._truth_step == 0:
+                yield k_truth, truth_msg(k)
+            if ig < len(gnss) and gnss[ig][0] == k:
+                yield self._keys["gnss"], gnss[ig][1]
+                ig += 1
+            if istar < len(star) and star[istar][0] == k:
+                yield self._keys["star"], star[istar][1]
+                istar += 1
+            yield k_imu, ImuSample(t=t_list[k], dt_s=dt, dtheta_rad=tuple(dth[k]), dvel_mps=tuple(dv[k]))
+
+
+def simulate(
+    scenario: Scenario, seed: int | None = None, vehicle: str = "v1", trajectory: Trajectory | None = None
+) -> Simulation:
+    """Messages of one run of ``scenario`` as an iterator of ``(key, message)``; see :class:`Simulation`.
+
+    The returned object's ``truth`` attribute (a :class:`SimulationTruth`) holds the IMU biases and
+    initial errors the run drew.
+    """
+    return Simulation(scenario, seed, vehicle, trajectory)
