@@ -46,6 +46,22 @@ def classify(err: ValidationError) -> str:
     return "schema"
 
 
+def _blueprint_plugin(pipelines: dict[str, str]):
+    """A blueprint factory from the ``fednav.blueprints`` entry point (dashboards registers one).
+
+    Discovered by entry point so the service never imports dashboards (dependency direction);
+    without the plugin the recording is still complete, only without an embedded layout.
+    """
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="fednav.blueprints"):
+        try:
+            return ep.load()(pipelines)
+        except Exception as exc:  # a broken plugin must not stop the service
+            log.warning("blueprint plugin %s failed: %s", ep.name, exc)
+    return None
+
+
 class _RateLimitedLog:
     def __init__(self, period_s: float = 5.0):
         self.period_s = period_s
@@ -85,7 +101,7 @@ class OutputSink:
                 bounds = {n: float(3.0 * sd[i] * scale[i]) for i, n in enumerate(errors)}
                 self.rr.log_errors(vehicle, sol.pipeline, sol.t, errors, bounds)
 
-    def on_output(self, vehicle: str, msg: WireModel) -> None:
+    def on_output(self, vehicle: str, msg: WireModel, err9=None) -> None:
         what = "faults" if isinstance(msg, Faults) else "integrity" if isinstance(msg, Integrity) else None
         if what is None:
             return
@@ -94,7 +110,9 @@ class OutputSink:
             if what == "faults":
                 self.rr.log_faults(vehicle, msg)
             else:
-                self.rr.log_integrity(vehicle, msg)
+                h_err = float(np.hypot(err9[0], err9[1])) if err9 is not None else None
+                v_err = float(abs(err9[2])) if err9 is not None else None
+                self.rr.log_integrity(vehicle, msg, h_error_m=h_err, v_error_m=v_err)
 
     def on_truth(self, vehicle: str, truth: Truth) -> None:
         if self.rr is not None:
@@ -233,14 +251,7 @@ class Service:
             from service.transport.rerun_sink import RerunSink
 
             Path(self.rrd_path).parent.mkdir(parents=True, exist_ok=True)
-            blueprint = None
-            try:
-                from dashboards.blueprints import build_blueprint  # optional: dashboards installed
-
-                vehicles = [v for v in cfg.vehicles if v != "*"] or ["v1"]
-                blueprint = build_blueprint(vehicles[0], {p.name: p.kind for p in cfg.pipelines})
-            except ImportError:
-                blueprint = None
+            blueprint = _blueprint_plugin({p.name: p.kind for p in cfg.pipelines})
             self.rr = RerunSink(self.rrd_path, viewer_addr=self.viewer, blueprint=blueprint)
         self.session = zenoh.open(zenoh_io.make_config(cfg.zenoh, self.listen, self.connect, self.zenoh_config_file))
         self.pubs = zenoh_io.Publishers(self.session, block=True)

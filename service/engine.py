@@ -46,7 +46,7 @@ class EngineSink(Protocol):
 
     def on_solution(self, vehicle: str, sol: Solution, err9: np.ndarray | None, P9: np.ndarray) -> None: ...
 
-    def on_output(self, vehicle: str, msg: WireModel) -> None: ...
+    def on_output(self, vehicle: str, msg: WireModel, err9: np.ndarray | None = None) -> None: ...
 
     def on_truth(self, vehicle: str, truth: Truth) -> None: ...
 
@@ -179,21 +179,21 @@ class VehicleEngine:
             t_m, kind, sid, amsg = self.pending.pop(0)
             f = min(max((t_m - cur) / (t - cur), 0.0), 1.0) if t > cur else 1.0
             if f > 0.0:
-                self._push([a * f for a in dth], [a * f for a in dv], (t_m - cur))
+                self._push([a * f for a in dth], [a * f for a in dv], (t_m - cur), t_m)
                 dth = [a * (1.0 - f) for a in dth]
                 dv = [a * (1.0 - f) for a in dv]
                 cur = t_m
             self._apply(kind, sid, amsg, dt_late=0.0)
         if t - cur > 1e-12:
-            self._push(dth, dv, t - cur)
+            self._push(dth, dv, t - cur, t)
         self.last_imu_t = t
         self.last_t = t
         self._maybe_output(t)
         return True
 
-    def _push(self, dth, dv, dt) -> None:
+    def _push(self, dth, dv, dt, t_end) -> None:
         for p in self.pipelines:
-            p.push_imu(dth, dv, dt)
+            p.push_imu(dth, dv, dt, t_end)
 
     def _imu_gap(self, t: float) -> None:
         self.rejected["imu_gap"] += 1
@@ -215,8 +215,9 @@ class VehicleEngine:
                 self.rejected["numerical"] += 1
                 p.status = "fault"
                 continue
+            err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:
-                self.sink.on_output(self.vehicle, out)
+                self.sink.on_output(self.vehicle, out, err9)
 
     # --- outputs --------------------------------------------------------------------------------
     def _maybe_output(self, t: float) -> None:
@@ -231,13 +232,17 @@ class VehicleEngine:
             p.sync()
             sol = p.solution()
             est = p.estimate()
-            truth = self._truth.get(self._tkey(sol.t))
-            err9 = None
-            if truth is not None:
-                llh = np.array([math.radians(truth.lat_deg), math.radians(truth.lon_deg), truth.height_m])
-                c_nb = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(truth.rpy_deg))
-                err9 = nav_errors(est.nav, llh, np.asarray(truth.vel_enu_mps), c_nb)
-            self.sink.on_solution(self.vehicle, sol, err9, est.P9)
+            self.sink.on_solution(self.vehicle, sol, self._errors(p, sol.t, est), est.P9)
+
+    def _errors(self, p: Pipeline, t: float, est=None) -> np.ndarray | None:
+        """Errors of a pipeline's estimate against truth at t (None without truth at t)."""
+        truth = self._truth.get(self._tkey(t))
+        if truth is None:
+            return None
+        est = est or p.estimate()
+        llh = np.array([math.radians(truth.lat_deg), math.radians(truth.lon_deg), truth.height_m])
+        c_nb = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(truth.rpy_deg))
+        return nav_errors(est.nav, llh, np.asarray(truth.vel_enu_mps), c_nb)
 
     # --- initialisation ---------------------------------------------------------------------------
     def _start(self, nav: NavState, std: InitStd) -> None:

@@ -34,6 +34,7 @@ class RunRecord:
     nees: list[float] = field(default_factory=list)
     solutions: list[Solution] = field(default_factory=list)
     outputs: list[WireModel] = field(default_factory=list)
+    output_errors: list = field(default_factory=list)  # err9 at each output's time (None: no truth)
 
 
 class CollectingSink:
@@ -57,8 +58,10 @@ class CollectingSink:
             except np.linalg.LinAlgError:
                 r.nees.append(float("nan"))
 
-    def on_output(self, vehicle, msg) -> None:
-        self._rec(msg.pipeline).outputs.append(msg)
+    def on_output(self, vehicle, msg, err9=None) -> None:
+        r = self._rec(msg.pipeline)
+        r.outputs.append(msg)
+        r.output_errors.append(err9)
 
     def on_truth(self, vehicle, truth: Truth) -> None:
         pass

@@ -100,9 +100,10 @@ def query_status(port: int, vehicle: str = "v1", prefix: str = "fednav", timeout
     """Ask the service's status queryable (a plain Zenoh client)."""
     import zenoh
 
+    from service.config import ZenohConfig
     from service.transport.zenoh_io import make_config
 
-    with zenoh.open(make_config(listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as s:
+    with zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as s:
         for reply in s.get(f"{prefix}/{vehicle}/service/status", timeout=timeout_s):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())

@@ -12,6 +12,7 @@ from collections.abc import Iterable
 
 import zenoh
 
+from service.config import ZenohConfig
 from service.messages import WireModel
 from service.transport.zenoh_io import make_config
 
@@ -24,7 +25,10 @@ def publish_stream(stream: Iterable[tuple[str, WireModel]], *, speed: float = 1.
                    listen: list[str] | None = None, zenoh_config: str | None = None,
                    match_timeout_s: float = 30.0, linger_s: float = 0.5) -> dict:
     """Publish (key, message) pairs in order; returns counts and timing."""
-    cfg = make_config(listen=listen or [], connect=connect or ["tcp/127.0.0.1:7447"], config_file=zenoh_config)
+    # client mode: the service (a peer) routes our samples to its other clients (dashboards,
+    # subscribers); two peers connected only through the service would not see each other
+    cfg = make_config(ZenohConfig(mode="client"), listen=listen or [], connect=connect or ["tcp/127.0.0.1:7447"],
+                      config_file=zenoh_config)
     session = zenoh.open(cfg)
     pubs: dict[str, zenoh.Publisher] = {}
 

@@ -50,11 +50,12 @@ class InsFilterBank:
     def t(self) -> float:
         return self.ins.time
 
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
+        T = self.ins.pending_s + dt_s
         t_before = self.ins.state.t
-        self.ins.push(dtheta_rad, dvel_mps, dt_s)
+        self.ins.push(dtheta_rad, dvel_mps, dt_s, t_end)
         if self.ins.state.t != t_before:
-            self.propagate(self.ins.state.t - t_before)
+            self.propagate(T)
 
     def sync(self) -> None:
         """Bring the state to the INS time (apply pending minor-loop increments and propagate)."""

@@ -3,7 +3,7 @@
 Each pipeline owns its INS (closed loop makes references differ per pipeline), so several run
 side by side on one input stream. The engine calls, in sensor-time order:
   ``initialise(nav, std)`` once (and again on re-initialisation),
-  ``push_imu(dtheta, dvel, dt)`` per (possibly split) IMU interval,
+  ``push_imu(dtheta, dvel, dt, t_end)`` per (possibly split) IMU interval,
   ``sync()`` before reading the state at an aiding or output epoch,
   ``apply(kind, sensor_id, msg, dt_late)`` per aiding measurement -> extra outputs (Faults, ...),
   ``solution(t)`` at output epochs, ``estimate()`` for errors/NEES against truth.
@@ -65,7 +65,7 @@ class Pipeline(ABC):
     def initialise(self, nav: NavState, std: InitStd) -> None: ...
 
     @abstractmethod
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None: ...
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None: ...
 
     @abstractmethod
     def sync(self) -> None: ...

@@ -3,13 +3,15 @@
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from service.config import ImuModel, LooselyCoupledConfig
 from service.estimation import kalman, measurements
 from service.estimation.ins_filter import InsFilterBank
 from service.ins.mechanisation import NavState
-from service.messages import GnssFix, StarAttitude, WireModel
+from service.messages import WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
@@ -21,6 +23,7 @@ class LooselyCoupled(Pipeline):
         self.cfg = cfg
         self.bank: InsFilterBank | None = None
         self.last_nis: float | None = None
+        self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
         if self.bank is not None:
@@ -29,8 +32,8 @@ class LooselyCoupled(Pipeline):
                                   major_interval_s=self.major_interval_s)
         self.status = "aligned"
 
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
-        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s)
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
+        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
 
     def sync(self) -> None:
         self.bank.sync()
@@ -44,7 +47,6 @@ class LooselyCoupled(Pipeline):
             meas = measurements.star_attitude(nav, msg)
         else:
             return []
-        assert isinstance(msg, GnssFix | StarAttitude)
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
         if self.cfg.innovation_gate_sigma is not None and np.max(np.abs(res.standardised)) > self.cfg.innovation_gate_sigma:
             return []
@@ -55,6 +57,7 @@ class LooselyCoupled(Pipeline):
         bank.x, bank.P = x, P
         bank.feedback(bank.x[0].copy())
         self.last_nis = float(res.nis[0])
+        self.nis_history.append((nav.t, kind, self.last_nis, int(res.dof[0])))
         self.updates += 1
         self.status = "aided"
         return []

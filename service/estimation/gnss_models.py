@@ -1,0 +1,263 @@
+"""Receiver-side GNSS ranging model and the tightly coupled measurement rows (seed 001).
+
+Ranging model (must equal the simulator's ``simulators/gnss/orbits.range_geometry``; the service
+does not import simulators, so the model is written out here and a test compares the two)
+--------------------------------------------------------------------------------------------
+A ``SatObservation`` carries the satellite position/velocity at its *transmit* time, expressed in
+the ECEF frame *of the transmit time* (as an ephemeris gives it), and the message time ``t`` is
+the GPS time of reception. The geometric range solves
+
+    rho = | R3(omega_e rho / c) r_s - r_r |                          (exact earth rotation, Sagnac)
+
+by fixed-point iteration from ``rho_0 = |r_s - r_r|`` (``RANGE_ITERATIONS`` passes; to first order
+this is ``|r_s - r_r| + (omega_e / c)(x_s y_r - y_s x_r)``). With ``u`` the unit line of sight
+from the receiver to the rotated satellite position (ECEF of the receive time), the range rate is
+the exact receive-time derivative
+
+    rho_dot = u . (R3 v_s - v_r) / (1 + u . R3 (v_s + omega_e x r_s) / c)
+
+(the denominator is the light-time "Doppler factor", 1 +- 1e-5). Predicted observables:
+
+    pseudorange = rho + b - sat_clock_m                    b: receiver clock bias, m
+    range_rate  = rho_dot + d - sat_clock_drift_mps        d: receiver clock drift, m/s
+
+No atmosphere, no lever arm (antenna at the IMU), one receiver clock for every constellation.
+
+Measurement rows (z = INS-predicted minus measured, error state x = computed minus true)
+-------------------------------------------------------------------------------------
+State order: the 15 INS error states of :mod:`service.ins.error_model` (position error in ENU
+metres), then the clock bias error (m) and drift error (m/s) at indices 15, 16.
+
+    d rho / d r_r = -u (ECEF)  and  dp_ecef = C_en dp_enu   =>   H_pos = -(C_ne u)' = -u_enu'
+
+i.e. rho grows when the receiver moves away from the satellite (dp along -u). The clock error
+enters with +1. Range rate: ``d rho_dot / d v_r = -f u`` (f the Doppler factor) so
+``H_vel = -f u_enu'`` and +1 on the drift error. The dependence of rho_dot on the receiver
+*position* (through u; ~|v_s - v_r| / rho ~ 1e-4 per metre) and the frame error of C_en due to
+the INS position error (~|v| |dp| / R) are neglected, as in seed 001 and the standard form.
+
+Late aiding (``dt_late_s`` > 0, INS ahead of the measurement): the receiver position and clock
+bias are carried back to the measurement time with the INS velocity and the clock drift.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service import earth
+from service.ins import error_model as em
+from service.messages import GnssRaw
+
+RANGE_ITERATIONS = 3  # light-time fixed point; each pass shrinks the error by ~omega r / c ~ 1e-5
+CLK_BIAS, CLK_DRIFT = 15, 16
+N_STATES_TC = 17
+CLOCK = slice(15, 17)
+
+
+def earth_rotation_matrices(angle_rad: np.ndarray) -> np.ndarray:
+    """R3(angle) for (N,) angles -> (N, 3, 3): coordinates of an inertially fixed point in an ECEF
+    frame that has turned by ``angle`` since are ``R3 @ r``."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+@dataclass(frozen=True)
+class RangeGeometry:
+    """Geometry of N receiver-satellite links (module docstring).
+
+    range_m (N,); los_ecef (N, 3) unit vectors receiver -> satellite at receive time
+    (``d rho / d r_r = -los_ecef``); sat_pos_rx_frame_m (N, 3); light_time_s (N,);
+    range_rate_mps (N,) or None; doppler_factor (N,) or None.
+    """
+
+    range_m: np.ndarray
+    los_ecef: np.ndarray
+    sat_pos_rx_frame_m: np.ndarray
+    light_time_s: np.ndarray
+    range_rate_mps: np.ndarray | None = None
+    doppler_factor: np.ndarray | None = None
+
+
+def range_geometry(
+    rx_pos_ecef_m: np.ndarray,
+    sat_pos_ecef_m: np.ndarray,
+    rx_vel_ecef_mps: np.ndarray | None = None,
+    sat_vel_ecef_mps: np.ndarray | None = None,
+) -> RangeGeometry:
+    """Geometric range (and range rate) to satellites given at their transmit time (module docstring).
+
+    Parameters
+    ----------
+    rx_pos_ecef_m : (3,) receiver position at receive time, ECEF.
+    sat_pos_ecef_m : (N, 3) satellite positions at transmit time, ECEF of the transmit time.
+    rx_vel_ecef_mps : (3,) receiver ECEF velocity (optional).
+    sat_vel_ecef_mps : (N, 3) satellite ECEF velocities at transmit time (optional).
+    """
+    r_rx = np.asarray(rx_pos_ecef_m, dtype=float).reshape(3)
+    r_s = np.atleast_2d(np.asarray(sat_pos_ecef_m, dtype=float))
+    rho = np.linalg.norm(r_s - r_rx, axis=1)
+    rot = earth_rotation_matrices(np.zeros(len(r_s)))
+    r_rot = r_s
+    d = r_s - r_rx
+    for _ in range(RANGE_ITERATIONS):
+        rot = earth_rotation_matrices(earth.OMEGA_IE_RPS * rho / earth.C_MPS)
+        r_rot = np.einsum("nij,nj->ni", rot, r_s)
+        d = r_rot - r_rx
+        rho = np.linalg.norm(d, axis=1)
+    los = d / rho[:, None]
+    rate = factor = None
+    if rx_vel_ecef_mps is not None and sat_vel_ecef_mps is not None:
+        v_rx = np.asarray(rx_vel_ecef_mps, dtype=float).reshape(3)
+        v_s = np.atleast_2d(np.asarray(sat_vel_ecef_mps, dtype=float))
+        # inertial velocity of the satellite (ECEF velocity + omega x r), then rotated like r
+        v_in = v_s + earth.OMEGA_IE_RPS * np.stack([-r_s[:, 1], r_s[:, 0], np.zeros(len(r_s))], axis=-1)
+        v_rot = np.einsum("nij,nj->ni", rot, v_s)
+        v_in_rot = np.einsum("nij,nj->ni", rot, v_in)
+        factor = 1.0 / (1.0 + np.sum(los * v_in_rot, axis=1) / earth.C_MPS)
+        rate = np.sum(los * (v_rot - v_rx), axis=1) * factor
+    return RangeGeometry(rho, los, r_rot, rho / earth.C_MPS, rate, factor)
+
+
+@dataclass(frozen=True)
+class SatArrays:
+    """One GnssRaw epoch as arrays, in message order. Shapes (N,) or (N, 3)."""
+
+    ids: tuple[str, ...]
+    pseudorange_m: np.ndarray
+    range_rate_mps: np.ndarray
+    pseudorange_sigma_m: np.ndarray
+    range_rate_sigma_mps: np.ndarray
+    sat_pos_ecef_m: np.ndarray
+    sat_vel_ecef_mps: np.ndarray
+    sat_clock_m: np.ndarray
+    sat_clock_drift_mps: np.ndarray
+
+    def take(self, idx) -> SatArrays:
+        idx = np.asarray(idx, dtype=int)
+        return SatArrays(
+            tuple(self.ids[i] for i in idx), self.pseudorange_m[idx], self.range_rate_mps[idx],
+            self.pseudorange_sigma_m[idx], self.range_rate_sigma_mps[idx], self.sat_pos_ecef_m[idx].reshape(-1, 3),
+            self.sat_vel_ecef_mps[idx].reshape(-1, 3), self.sat_clock_m[idx], self.sat_clock_drift_mps[idx],
+        )
+
+
+def sat_arrays(msg: GnssRaw) -> SatArrays:
+    s = msg.sats
+    return SatArrays(
+        tuple(o.id for o in s),
+        np.array([o.pseudorange_m for o in s], dtype=float),
+        np.array([o.range_rate_mps for o in s], dtype=float),
+        np.array([o.pseudorange_sigma_m for o in s], dtype=float),
+        np.array([o.range_rate_sigma_mps for o in s], dtype=float),
+        np.array([o.sat_pos_ecef_m for o in s], dtype=float).reshape(-1, 3),
+        np.array([o.sat_vel_ecef_mps for o in s], dtype=float).reshape(-1, 3),
+        np.array([o.sat_clock_m for o in s], dtype=float),
+        np.array([o.sat_clock_drift_mps for o in s], dtype=float),
+    )
+
+
+@dataclass(frozen=True)
+class Receiver:
+    """Receiver state the rows are linearised about (INS position/velocity + clock reference)."""
+
+    pos_ecef_m: np.ndarray  # (3,)
+    vel_ecef_mps: np.ndarray  # (3,)
+    mat_en: np.ndarray  # (3, 3) ENU -> ECEF at the INS position
+    clock_bias_m: float
+    clock_drift_mps: float
+
+
+def receiver_from_nav(nav, clock_bias_m: float, clock_drift_mps: float, dt_late_s: float = 0.0) -> Receiver:
+    """Receiver at the measurement time ``nav.t - dt_late_s`` from an INS NavState."""
+    c_en = earth.mat_en(nav.lat_rad, nav.lon_rad)
+    pos = earth.llh_to_ecef(np.array([nav.lat_rad, nav.lon_rad, nav.h_m]))
+    vel = c_en @ np.asarray(nav.vel_enu_mps, dtype=float)
+    if dt_late_s:
+        pos = pos - vel * dt_late_s
+        clock_bias_m = clock_bias_m - clock_drift_mps * dt_late_s
+    return Receiver(pos, vel, c_en, float(clock_bias_m), float(clock_drift_mps))
+
+
+@dataclass(frozen=True)
+class Predicted:
+    """Predicted observables and line-of-sight data of N satellites."""
+
+    pseudorange_m: np.ndarray  # (N,)
+    range_rate_mps: np.ndarray  # (N,)
+    los_enu: np.ndarray  # (N, 3) receiver -> satellite, ENU at the receiver
+    doppler_factor: np.ndarray  # (N,)
+    elevation_rad: np.ndarray  # (N,)
+
+
+def predict(rx: Receiver, sats: SatArrays) -> Predicted:
+    g = range_geometry(rx.pos_ecef_m, sats.sat_pos_ecef_m, rx.vel_ecef_mps, sats.sat_vel_ecef_mps)
+    los_enu = g.los_ecef @ rx.mat_en  # C_ne u  (rows)
+    pr = g.range_m + rx.clock_bias_m - sats.sat_clock_m
+    rr = g.range_rate_mps + rx.clock_drift_mps - sats.sat_clock_drift_mps
+    el = np.arcsin(np.clip(los_enu[:, 2], -1.0, 1.0))
+    return Predicted(pr, rr, los_enu, g.doppler_factor, el)
+
+
+@dataclass(frozen=True)
+class RawRows:
+    """Tightly coupled rows of N satellites: z = H x + v, R = diag(r_var).
+
+    z (m,); H (m, n_states); r_var (m,); row_sat (m,) satellite index of each row (into ``ids``);
+    labels (m,) like ``"C03.pr"``/``"C03.rr"``. Pseudorange rows first, then range-rate rows.
+    """
+
+    z: np.ndarray
+    H: np.ndarray
+    r_var: np.ndarray
+    row_sat: np.ndarray
+    labels: tuple[str, ...]
+    ids: tuple[str, ...]
+
+
+def raw_rows(pred: Predicted, sats: SatArrays, use_range_rate: bool = True, n_states: int = N_STATES_TC) -> RawRows:
+    """Rows of the tightly coupled EKF (module docstring for the derivation and signs)."""
+    n = len(sats.ids)
+    H_pr = np.zeros((n, n_states))
+    H_pr[:, em.POS] = -pred.los_enu
+    H_pr[:, CLK_BIAS] = 1.0
+    z = [pred.pseudorange_m - sats.pseudorange_m]
+    H = [H_pr]
+    r = [np.square(sats.pseudorange_sigma_m)]
+    row_sat = [np.arange(n)]
+    labels = [f"{s}.pr" for s in sats.ids]
+    if use_range_rate:
+        H_rr = np.zeros((n, n_states))
+        H_rr[:, em.VEL] = -pred.doppler_factor[:, None] * pred.los_enu
+        H_rr[:, CLK_DRIFT] = 1.0
+        z.append(pred.range_rate_mps - sats.range_rate_mps)
+        H.append(H_rr)
+        r.append(np.square(sats.range_rate_sigma_mps))
+        row_sat.append(np.arange(n))
+        labels += [f"{s}.rr" for s in sats.ids]
+    return RawRows(np.concatenate(z), np.concatenate(H), np.concatenate(r), np.concatenate(row_sat),
+                   tuple(labels), sats.ids)
+
+
+def clock_from_residuals(rx: Receiver, sats: SatArrays) -> tuple[float, float]:
+    """Receiver clock bias (m) and drift (m/s) as the mean residual of all satellites with the
+    receiver clock set to zero (first-epoch initialisation; the INS position/velocity errors and
+    any fault go into it, which the clock prior's sigma must cover)."""
+    rx0 = Receiver(rx.pos_ecef_m, rx.vel_ecef_mps, rx.mat_en, 0.0, 0.0)
+    p = predict(rx0, sats)
+    return float(np.mean(sats.pseudorange_m - p.pseudorange_m)), float(np.mean(sats.range_rate_mps - p.range_rate_mps))
+
+
+def elevation_mask(pred: Predicted, mask_deg: float) -> np.ndarray:
+    """(N,) bool: satellites at or above the elevation mask seen from the INS position."""
+    return pred.elevation_rad >= math.radians(mask_deg) - 1e-12
+
+
+__all__ = [
+    "CLK_BIAS", "CLK_DRIFT", "CLOCK", "N_STATES_TC", "RANGE_ITERATIONS", "Predicted", "RangeGeometry", "RawRows",
+    "Receiver", "SatArrays", "clock_from_residuals", "earth_rotation_matrices", "elevation_mask", "predict",
+    "range_geometry", "raw_rows", "receiver_from_nav", "sat_arrays",
+]

@@ -1,0 +1,482 @@
+"""MHSS: multiple-hypothesis solution separation on ONE Kalman filter bank (seed 001, DESIGN.md).
+
+Members (one bank, B = 1 + N + N(N-1)/2 at depth 2)
+---------------------------------------------------
+Each member is identified by the tuple of satellite indices it excludes: ``()`` the main filter
+F00, ``(n,)`` sub-filter F0n, ``(n, m)`` (n < m) sub-sub filter Fnm. All members share the
+linearisation point (the main filter's INS), one Phi, one Q and one R model; exclusion is the row
+mask of the batched update (an excluded row gets exactly zero gain). Layout: index 0 main,
+1..N subs, then the pairs in lexicographic order.
+
+Cross-covariances (what MHSS needs, and nothing more)
+-----------------------------------------------------
+Detection compares the main with every sub: needs P_0n (N blocks). Exclusion of satellite r
+compares sub r with its sub-subs (r, m): needs P_{r,(r,m)} for every ordered (r, m), m != r
+(N(N-1) blocks; each sub-sub appears under both of its satellites). The bank stores member
+covariances and these cross blocks together as ``blocks`` (B + C, n, n) with pair indices
+(pa, pb): block k = Cov(e_pa[k], e_pb[k]), members being the pairs (a, a). One recursion serves
+all of them (DESIGN.md "MHSS on a Kalman filter bank"):
+
+    predict:  P_ab <- Phi P_ab Phi' + Q                 full Q: the same process noise drives both
+    update:   P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b'
+    init:     P_ab = P(0) for members started from the same prior
+
+For a = b this is the Joseph form. K_b is member b's gain with zero columns on its masked rows, so
+full H and the true (unsubstituted) R are used in the recursion. The shortcut
+dP = P_nn - P_00 holds only when every member is optimal for the truth model (then P_0n = P_00 by
+orthogonality); tests show the recursion matches Monte Carlo where the shortcut does not.
+
+Closed loop: only the main filter's correction dx_0 is fed back; every member shifts by it,
+x_i <- x_i - dx_0 (covariances unchanged), so after feedback x_0 = 0 and dx_0n = -x_n.
+
+Tests and protection levels (seed 001 eq 27-32, read per SEEDS.md)
+-------------------------------------------------------------------
+    dx_0n = x_0 - x_n;   dP_0n = P_00 - P_0n - P_0n' + P_nn                       (eq 27)
+    horizontal: d_n = |dx_0n[h]|,  T_n = K_fa sqrt(lambda_max(dP_0n[h, h]))         (eq 28-29)
+                a_n = K_md sqrt(lambda_max(P_nn[h, h])),   HPL = max_n (T_n + a_n)  (eq 30-32)
+    vertical:   the same with the up component (1-D, no eigenvalue): VPL = max_n (T_v,n + a_v,n)
+    K_fa = Q^-1(P_FA / (2 N)),  K_md = Q^-1(P_MD)    (standard two-sided form, not the paper's erfinv)
+A fault-free term K_md sqrt(lambda_max(P_00[h, h])) also enters the max; it never binds while
+P_nn >= P_00 but gives a protection level when N = 0.
+Note: for the 2-D statistic the per-test false-alarm probability P(|d| > K sqrt(lambda_max)) lies
+between 2 Q(K) = P_FA/N (one dominant axis) and exp(-K^2/2) (circular dP); the seed's horizontal
+test can therefore exceed P_FA by up to that ratio. :func:`horizontal_false_alarm_probability`
+gives the exact value for a given dP, and the tests compare against it.
+
+Exclusion (Brenner / Vanderwerf solution-separation FDE)
+---------------------------------------------------------
+On a detection, sub-filter r is a candidate when its own main-level test failed (d_0r > T_0r) and
+all its sub-sub tests (r vs (r, m), threshold with K_fa = Q^-1(P_FA / (2 (N - 1)))) pass. A unique
+candidate is excluded; among several, the one with the largest normalised main-level statistic
+d_0r / T_0r. No candidate: the detection is unresolved (an alarm for the integrity logic).
+
+Rebuilding the bank (satellite set changes and exclusions): :meth:`MhssBank.rebuild`
+-----------------------------------------------------------------------------------
+Each new member E' (excluded set) takes the state, covariance and cross-covariances of an old
+member ("source"): (E' U X) restricted to the old satellites, X being the satellites purged by
+an exclusion; if that member does not exist (its set would need three exclusions, or sub-subs are
+off), the source is X itself (the old sub-filter of the excluded satellite = the new main), else
+the old main. Every needed new block then maps to an old block (or a member covariance), so:
+- rising satellites (X empty) are EXACT: the new sub j IS the old main (P_0j = P_00 at entry:
+  identical estimates), sub-sub (n, j) IS the old sub n, and all blocks are old blocks;
+- setting satellites (X empty) are EXACT: every member continues, the set just loses a row;
+- an exclusion of r is exact for the main (old sub r) and the subs (old sub-subs (r, n)); the new
+  sub-subs restart as copies of the new main (their own separation history restarts at zero:
+  the approximation, consistent in covariance since the blocks are the exact ones of the copies).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import integrate, special
+
+from service.estimation.kalman import NotPositiveDefinite, symmetrise
+
+H_IDX = (0, 1)  # east, north position error (ENU metres) in the INS error state
+V_IDX = 2  # up
+
+
+# --- multipliers ------------------------------------------------------------------------------------
+def q_inv(p: float) -> float:
+    """Q^-1(p): the upper-tail standard normal quantile (Q(k) = P(z > k))."""
+    return float(-special.ndtri(p))
+
+
+def k_fa(p_fa: float, n_tests: int) -> float:
+    """K_fa = Q^-1(P_FA / (2 N)): two-sided multiplier of each of N tests (seed 001 eq 29, standard form)."""
+    return q_inv(p_fa / (2.0 * max(n_tests, 1)))
+
+
+def k_md(p_md: float) -> float:
+    """K_md = Q^-1(P_MD) (seed 001 eq 31)."""
+    return q_inv(p_md)
+
+
+def lambda_max_2x2(M: np.ndarray) -> np.ndarray:
+    """Largest eigenvalue of symmetric 2x2 matrices (..., 2, 2), closed form."""
+    a, b, c = M[..., 0, 0], 0.5 * (M[..., 0, 1] + M[..., 1, 0]), M[..., 1, 1]
+    return 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
+
+
+def horizontal_false_alarm_probability(dP_h: np.ndarray, k: float) -> float:
+    """Exact P(|d| > k sqrt(lambda_max)) for d ~ N(0, dP_h), dP_h (2, 2): the false-alarm
+    probability of one horizontal solution-separation test (generalised chi-square, by quadrature)."""
+    lam = np.linalg.eigvalsh(0.5 * (dP_h + dP_h.T))
+    rho = max(lam[0], 0.0) / lam[1]
+
+    def f(z2: float) -> float:
+        rest = k * k - rho * z2 * z2
+        return math.exp(-0.5 * z2 * z2) / math.sqrt(2.0 * math.pi) * (2.0 * special.ndtr(-math.sqrt(rest)) if rest > 0 else 1.0)
+
+    val, _ = integrate.quad(f, -np.inf, np.inf, limit=200, epsabs=1e-13)
+    return float(val)
+
+
+# --- the recursion ----------------------------------------------------------------------------------------
+def cross_predict(blocks: np.ndarray, Phi: np.ndarray, Qd: np.ndarray) -> np.ndarray:
+    """P_ab <- Phi P_ab Phi' + Q for blocks (K, n, n) (full Q: one process noise drives all members)."""
+    return Phi @ blocks @ Phi.T + Qd
+
+
+def cross_update(P_ab: np.ndarray, IKH_a: np.ndarray, IKH_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
+                 r_var: np.ndarray) -> np.ndarray:
+    """P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b' with R = diag(r_var) (the true noise).
+
+    Shapes: P_ab (..., n, n); IKH_* (..., n, n); K_* (..., n, m); r_var (m,).
+    """
+    return IKH_a @ P_ab @ np.swapaxes(IKH_b, -1, -2) + (K_a * r_var[..., None, :]) @ np.swapaxes(K_b, -1, -2)
+
+
+def _solve_lower(L: np.ndarray, Y: np.ndarray, inv_diag: np.ndarray) -> np.ndarray:
+    """X = L^-1 Y for lower-triangular L (B, m, m), Y (B, m, k): forward substitution vectorised
+    over the bank (numpy has no batched triangular solve; this beats a batched LU by ~3x)."""
+    m = L.shape[1]
+    X = np.empty_like(Y)
+    X[:, 0] = Y[:, 0] * inv_diag[:, 0, None]
+    for i in range(1, m):
+        X[:, i] = (Y[:, i] - (L[:, i, None, :i] @ X[:, :i])[:, 0]) * inv_diag[:, i, None]
+    return X
+
+
+def _solve_upper_from_lower(L: np.ndarray, Y: np.ndarray, inv_diag: np.ndarray) -> np.ndarray:
+    """X = L'^-1 Y (back substitution with the transpose of lower-triangular L)."""
+    m = L.shape[1]
+    X = np.empty_like(Y)
+    X[:, m - 1] = Y[:, m - 1] * inv_diag[:, m - 1, None]
+    for i in range(m - 2, -1, -1):
+        X[:, i] = (Y[:, i] - (L[:, None, i + 1:, i] @ X[:, i + 1:])[:, 0]) * inv_diag[:, i, None]
+    return X
+
+
+# --- results ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class BankUpdate:
+    """Per-member statistics of one bank update.
+
+    innovation (B, m) r = z - H x (zero on masked rows); whitened (B, m) L^-1 r; nis (B,);
+    dof (B,) rows used; K (B, n, m) gains; IKH (B, n, n) = I - K H.
+    """
+
+    innovation: np.ndarray
+    whitened: np.ndarray
+    nis: np.ndarray
+    dof: np.ndarray
+    K: np.ndarray
+    IKH: np.ndarray
+
+
+@dataclass(frozen=True)
+class SeparationTests:
+    """Solution-separation tests of one reference filter against its N children, all (N,).
+
+    d_h / T_h / a_h: horizontal statistic, threshold, missed-detection term; d_v / T_v / a_v the
+    vertical ones; hpl / vpl the protection levels; k_fa / k_md the multipliers used.
+    """
+
+    d_h: np.ndarray
+    T_h: np.ndarray
+    a_h: np.ndarray
+    d_v: np.ndarray
+    T_v: np.ndarray
+    a_v: np.ndarray
+    hpl: float
+    vpl: float
+    k_fa: float
+    k_md: float
+
+    @property
+    def flagged_h(self) -> np.ndarray:
+        return self.d_h > self.T_h
+
+    @property
+    def flagged_v(self) -> np.ndarray:
+        return self.d_v > self.T_v
+
+    def flagged(self, use_vertical: bool) -> np.ndarray:
+        return self.flagged_h | self.flagged_v if use_vertical else self.flagged_h
+
+    def normalised(self, use_vertical: bool) -> np.ndarray:
+        r = self.d_h / np.maximum(self.T_h, 1e-300)
+        if use_vertical:
+            r = np.maximum(r, self.d_v / np.maximum(self.T_v, 1e-300))
+        return r
+
+
+def solution_separation(x_ref: np.ndarray, P_ref: np.ndarray, x_sub: np.ndarray, P_sub: np.ndarray,
+                        P_cross: np.ndarray, kfa: float, kmd: float,
+                        h_idx: Sequence[int] = H_IDX, v_idx: int = V_IDX) -> SeparationTests:
+    """Tests of a reference filter against N children (seed 001 eq 27-32).
+
+    x_ref (n,), P_ref (n, n); x_sub (N, n), P_sub (N, n, n); P_cross (N, n, n) = Cov(e_ref, e_sub).
+    """
+    h = np.asarray(h_idx)
+    dx = x_ref[None, :] - x_sub
+    dP = P_ref[None] - P_cross - np.swapaxes(P_cross, 1, 2) + P_sub  # eq 27
+    dPh = dP[:, h[:, None], h[None, :]]
+    Psh = P_sub[:, h[:, None], h[None, :]]
+    d_h = np.linalg.norm(dx[:, h], axis=1)  # eq 28
+    T_h = kfa * np.sqrt(np.maximum(lambda_max_2x2(dPh), 0.0))  # eq 29
+    a_h = kmd * np.sqrt(np.maximum(lambda_max_2x2(Psh), 0.0))  # eq 31
+    d_v = np.abs(dx[:, v_idx])
+    T_v = kfa * np.sqrt(np.maximum(dP[:, v_idx, v_idx], 0.0))
+    a_v = kmd * np.sqrt(np.maximum(P_sub[:, v_idx, v_idx], 0.0))
+    # fault-free term (binds only when N = 0 or a child is better than the reference)
+    hpl0 = kmd * math.sqrt(max(float(lambda_max_2x2(P_ref[h[:, None], h[None, :]])), 0.0))
+    vpl0 = kmd * math.sqrt(max(float(P_ref[v_idx, v_idx]), 0.0))
+    hpl = max(hpl0, float(np.max(T_h + a_h))) if len(T_h) else hpl0  # eq 32
+    vpl = max(vpl0, float(np.max(T_v + a_v))) if len(T_v) else vpl0
+    return SeparationTests(d_h, T_h, a_h, d_v, T_v, a_v, hpl, vpl, kfa, kmd)
+
+
+# --- the bank ---------------------------------------------------------------------------------------------
+def _layout(N: int, depth: int):
+    members: list[tuple[int, ...]] = [()]
+    if depth >= 1:
+        members += [(n,) for n in range(N)]
+    if depth >= 2:
+        members += list(itertools.combinations(range(N), 2))
+    index = {e: i for i, e in enumerate(members)}
+    B = len(members)
+    pa, pb = list(range(B)), list(range(B))
+    main_blocks = np.zeros(0, dtype=int)
+    sub_blocks = np.zeros((N, max(N - 1, 0)), dtype=int)
+    subsub_members = np.zeros((N, max(N - 1, 0)), dtype=int)
+    if depth >= 1:
+        main_blocks = np.arange(B, B + N)
+        pa += [0] * N
+        pb += [1 + n for n in range(N)]
+    if depth >= 2:
+        k = B + N
+        for n in range(N):
+            for j, m in enumerate(x for x in range(N) if x != n):
+                pa.append(1 + n)
+                pb.append(index[(min(n, m), max(n, m))])
+                sub_blocks[n, j] = k
+                subsub_members[n, j] = index[(min(n, m), max(n, m))]
+                k += 1
+    excl = np.zeros((B, N), dtype=bool)
+    for i, e in enumerate(members):
+        excl[i, list(e)] = True
+    return members, index, np.array(pa), np.array(pb), main_blocks, sub_blocks, subsub_members, excl
+
+
+class MhssBank:
+    """Main + sub + sub-sub filters over one satellite set, with the cross-covariances MHSS needs.
+
+    Parameters
+    ----------
+    sats : satellite ids, in the order of the exclusion columns.
+    x : (B, n) member states; blocks : (B + C, n, n) member covariances then cross blocks
+        (layout in the module docstring); use :meth:`initial` or :meth:`rebuild` to make one.
+    depth : 0 main only, 1 + sub-filters, 2 + sub-sub filters.
+    h_idx, v_idx : horizontal (2) and vertical state indices of the tests.
+    """
+
+    def __init__(self, sats: Sequence[str], x: np.ndarray, blocks: np.ndarray, depth: int,
+                 h_idx: Sequence[int] = H_IDX, v_idx: int = V_IDX):
+        self.sats = tuple(sats)
+        self.depth = int(depth)
+        self.h_idx = tuple(h_idx)
+        self.v_idx = int(v_idx)
+        N = len(self.sats)
+        (self.members, self.index, self.pa, self.pb, self.main_blocks, self.sub_blocks, self.subsub_members,
+         self.excl) = _layout(N, self.depth if N > 0 else 0)
+        B = len(self.members)
+        if x.shape[0] != B or blocks.shape[0] != len(self.pa):
+            raise ValueError(f"bank of {N} satellites at depth {depth} needs {B} members and {len(self.pa)} blocks")
+        self.x = np.array(x, dtype=float)
+        self.blocks = np.array(blocks, dtype=float)
+        self.n = self.x.shape[1]
+
+    # --- construction -----------------------------------------------------------------------------
+    @classmethod
+    def initial(cls, x0: np.ndarray, P0: np.ndarray, sats: Sequence[str] = (), depth: int = 2,
+                h_idx: Sequence[int] = H_IDX, v_idx: int = V_IDX) -> MhssBank:
+        """Every member starts from the same prior (x0, P0): all blocks = P0 (DESIGN init)."""
+        N = len(sats)
+        members, _, pa, *_ = _layout(N, depth if N > 0 else 0)
+        x = np.broadcast_to(np.asarray(x0, dtype=float), (len(members), len(x0))).copy()
+        blocks = np.broadcast_to(np.asarray(P0, dtype=float), (len(pa),) + np.shape(P0)).copy()
+        return cls(sats, x, blocks, depth, h_idx, v_idx)
+
+    @property
+    def N(self) -> int:
+        return len(self.sats)
+
+    @property
+    def B(self) -> int:
+        return len(self.members)
+
+    @property
+    def P(self) -> np.ndarray:
+        """(B, n, n) member covariances (a view of ``blocks``)."""
+        return self.blocks[: self.B]
+
+    def member(self, excluded_ids: Sequence[str]) -> int:
+        """Index of the member that excludes exactly these satellites."""
+        pos = {s: i for i, s in enumerate(self.sats)}
+        return self.index[tuple(sorted(pos[s] for s in excluded_ids))]
+
+    def cross(self, a: int, b: int) -> np.ndarray:
+        """Cov(e_a, e_b) for a stored pair (either orientation) or a member (a == b)."""
+        for k in range(len(self.pa)):
+            if self.pa[k] == a and self.pb[k] == b:
+                return self.blocks[k]
+            if self.pa[k] == b and self.pb[k] == a:
+                return self.blocks[k].T
+        raise KeyError(f"cross-covariance ({a}, {b}) is not kept by the bank")
+
+    def rebuild(self, new_sats: Sequence[str], purge: Sequence[str] = ()) -> MhssBank:
+        """The bank over ``new_sats`` (module docstring "Rebuilding the bank").
+
+        ``purge``: satellites removed because they are faulty (exclusion); their contamination is
+        removed by taking the members that never used them. Other satellites absent from
+        ``new_sats`` simply stop being used; satellites new to the bank enter as copies.
+        """
+        new_sats = tuple(new_sats)
+        if set(purge) & set(new_sats):
+            raise ValueError("a purged satellite cannot stay in the bank")
+        old_pos = {s: i for i, s in enumerate(self.sats)}
+        X = tuple(sorted(old_pos[s] for s in purge if s in old_pos))
+        x_fallback = self.index.get(X, 0)
+        members, _, pa, pb, *_ = _layout(len(new_sats), self.depth if new_sats else 0)
+
+        def source(excluded: tuple[int, ...]) -> int:
+            cand = tuple(sorted({old_pos[new_sats[i]] for i in excluded if new_sats[i] in old_pos} | set(X)))
+            return self.index.get(cand, x_fallback)
+
+        src = np.array([source(e) for e in members], dtype=int)
+        lookup = {(int(a), int(b)): k for k, (a, b) in enumerate(zip(self.pa, self.pb, strict=True))}
+        idx = np.empty(len(pa), dtype=int)
+        trans = np.zeros(len(pa), dtype=bool)
+        for k, (a, b) in enumerate(zip(src[pa], src[pb], strict=True)):
+            key = (int(a), int(b))
+            if key in lookup:
+                idx[k] = lookup[key]
+            elif key[::-1] in lookup:
+                idx[k], trans[k] = lookup[key[::-1]], True
+            else:  # cannot happen with the source rule above; keep the failure loud
+                raise RuntimeError(f"rebuild: no cross-covariance for old members {key}")
+        blocks = self.blocks[idx]
+        blocks[trans] = np.swapaxes(blocks[trans], 1, 2)
+        return MhssBank(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx)
+
+    # --- filtering ---------------------------------------------------------------------------------
+    def predict(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
+        """Time update of every member and cross block (one batched product)."""
+        self.x = self.x @ Phi.T
+        # batched 17x17 products (numpy loops small GEMMs; one big GEMM would wake BLAS threads)
+        blocks = Phi @ self.blocks @ Phi.T + Qd
+        B = self.B
+        blocks[:B] = symmetrise(blocks[:B])
+        self.blocks = blocks
+
+    def update(self, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, row_sat: np.ndarray) -> BankUpdate:
+        """Measurement update of every member (row mask per member) and every cross block.
+
+        Parameters
+        ----------
+        z : (m,) measurements; H : (m, n); r_var : (m,) noise variances (R diagonal);
+        row_sat : (m,) index into ``sats`` of each row's satellite.
+        """
+        B, n = self.x.shape
+        m = len(z)
+        keep_b = ~self.excl[:, np.asarray(row_sat, dtype=int)] if self.N else np.ones((B, m), dtype=bool)
+        keep = keep_b.astype(float)
+        P = self.blocks[:B]
+        PHt = (P @ H.T) * keep[:, None, :]  # P H_b'  (B, n, m)
+        HPHt = H @ PHt  # (B, m, m); masked columns already zero
+        S = HPHt * keep[:, :, None] + (np.where(keep_b, r_var, 1.0)[:, :, None] * np.eye(m))  # S = H P H' + R
+        S = 0.5 * (S + np.swapaxes(S, 1, 2))
+        try:
+            L = np.linalg.cholesky(S)
+        except np.linalg.LinAlgError as exc:
+            raise NotPositiveDefinite("innovation covariance S is not positive definite") from exc
+        r = (z[None, :] - self.x @ H.T) * keep  # innovations
+        inv_d = 1.0 / np.diagonal(L, axis1=1, axis2=2)
+        # [L^-1 H P | L^-1 r] by one forward substitution, then K' = L'^-1 (L^-1 H P)
+        W = _solve_lower(L, np.concatenate([np.swapaxes(PHt, 1, 2), r[:, :, None]], axis=2), inv_d)
+        Kt = _solve_upper_from_lower(L, W[:, :, :n], inv_d)
+        w = W[:, :, n]
+        K = np.swapaxes(Kt, 1, 2)  # (B, n, m), zero columns on masked rows
+        self.x = self.x + np.einsum("bij,bj->bi", K, r)
+        IKH = np.eye(n) - K @ H
+        self.blocks = self._joseph_all(IKH, K, r_var)
+        return BankUpdate(r, w, np.einsum("bi,bi->b", w, w), keep_b.sum(axis=1), K, IKH)
+
+    def _joseph_all(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> np.ndarray:
+        """:func:`cross_update` of every block, by segment: members (a = b), main-sub (a = 0,
+        broadcast), sub-subsub (a = sub n, broadcast over its N-1 sub-subs; b gathered).
+        Right factors are pre-transposed into contiguous arrays (numpy's matmul is ~3x slower on
+        transposed views)."""
+        B, N, n = self.B, self.N, self.n
+        IKHt = np.ascontiguousarray(np.swapaxes(IKH, 1, 2))
+        Kt = np.ascontiguousarray(np.swapaxes(K, 1, 2))
+        KR = K * r_var
+        out = np.empty_like(self.blocks)
+        out[:B] = symmetrise(IKH @ self.blocks[:B] @ IKHt + KR @ Kt)
+        if self.depth >= 1 and N:
+            subs = slice(1, 1 + N)
+            out[B:B + N] = IKH[0] @ self.blocks[B:B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
+            if self.depth >= 2 and N > 1:
+                mem = self.subsub_members  # (N, N-1)
+                blk = self.blocks[B + N:].reshape(N, N - 1, n, n)
+                a, ka = IKH[subs][:, None], KR[subs][:, None]
+                out[B + N:] = (a @ blk @ IKHt[mem] + ka @ Kt[mem]).reshape(-1, n, n)
+        return out
+
+    def shift(self, dx: np.ndarray) -> None:
+        """Closed-loop feedback of the main correction: every member x_i <- x_i - dx."""
+        self.x -= np.asarray(dx, dtype=float)[None, :]
+
+    # --- tests ----------------------------------------------------------------------------------------
+    def main_tests(self, kfa: float, kmd: float) -> SeparationTests:
+        """Main filter against every sub-filter (detection and protection levels)."""
+        if self.depth < 1 or self.N == 0:
+            none = np.zeros((0, self.n, self.n))
+            return solution_separation(self.x[0], self.P[0], np.zeros((0, self.n)), none, none, kfa, kmd,
+                                       self.h_idx, self.v_idx)
+        subs = 1 + np.arange(self.N)
+        return solution_separation(self.x[0], self.P[0], self.x[subs], self.P[subs], self.blocks[self.main_blocks],
+                                   kfa, kmd, self.h_idx, self.v_idx)
+
+    def sub_tests(self, r: int, kfa: float, kmd: float) -> SeparationTests:
+        """Sub-filter r against its sub-sub filters (r, m), m != r (in satellite order, skipping r)."""
+        if self.depth < 2:
+            raise ValueError("sub-sub filters are off (depth < 2)")
+        s = 1 + r
+        mem = self.subsub_members[r]
+        return solution_separation(self.x[s], self.P[s], self.x[mem], self.P[mem], self.blocks[self.sub_blocks[r]],
+                                   kfa, kmd, self.h_idx, self.v_idx)
+
+    def find_exclusion(self, tests: SeparationTests, p_fa: float, kmd: float, use_vertical: bool,
+                       n_families: int = 1) -> int | None:
+        """Satellite index to exclude after a detection, or None (module docstring "Exclusion")."""
+        if self.depth < 2 or self.N < 2:
+            return None
+        kfa_sub = k_fa(p_fa, (self.N - 1) * n_families)
+        failed = np.flatnonzero(tests.flagged(use_vertical))
+        cands = [int(r) for r in failed if not np.any(self.sub_tests(int(r), kfa_sub, kmd).flagged(use_vertical))]
+        if not cands:
+            return None
+        score = tests.normalised(use_vertical)
+        return max(cands, key=lambda r: score[r])
+
+
+def residual_test(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray) -> np.ndarray:
+    """Standardised innovations (m,) of rows (z, H, r_var) against a filter (x, P):
+    (z - H x) / sqrt(H P H' + r), one per row (used to re-admit an excluded satellite)."""
+    s = np.einsum("ij,jk,ik->i", H, P, H) + r_var
+    return (z - H @ x) / np.sqrt(s)
+
+
+__all__ = [
+    "BankUpdate", "H_IDX", "MhssBank", "SeparationTests", "V_IDX", "cross_predict", "cross_update",
+    "horizontal_false_alarm_probability", "k_fa", "k_md", "lambda_max_2x2", "q_inv", "residual_test",
+    "solution_separation",
+]

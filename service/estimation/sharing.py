@@ -1,0 +1,312 @@
+"""Information-sharing strategies of the federated filter: local covariances -> per-state shares.
+
+Interface (STYLE.md 2): ``SharingStrategy.shares(P_locals, context) -> G``
+
+    P_locals : (N, c, c)  the N local filters' covariances over the c common states, taken after
+                          their measurement updates and before the master fusion;
+    G        : (N, c)     G[i, j] = beta_{j,i}, the share of common state j given to local i,
+                          i.e. G_i = diag(G[i]).
+
+Invariants (tested): every share is > 0 (the reset divides by it) and, for every state j,
+``sum_i G[i, j] + master_share = 1`` (information conservation, seed 000 eq (12); DESIGN.md).
+The federated core (``federated.py``) then resets local i to
+
+    P_i = G_i^-1/2 P_g G_i^-1/2,   Q_i = G_i^-1/2 Q G_i^-1/2        seed 000 eq (14)-(15), (25)-(26)
+
+Theory every user of this module should know (SEEDS.md, seed 000 "warning from theory"):
+
+* Scalar shares (G_i = beta_i I): with fusion and reset every cycle and Q_i = Q / beta_i, the
+  fused information is sum_i beta_i P_g^-1 = P_g^-1 exactly, so *any* scalar beta reproduces the
+  centralised Kalman filter (Carlson 1990). Fault-free differences between fixed, trace, EDOP,
+  norm-weighted, eigen-trace (either direction) cannot come from beta under a consistent model;
+  beta only changes each local's own prior (its innovation covariance, hence its fault tests'
+  sensitivity, and its linearisation in nonlinear models).
+* Diagonal (per-state, "vector") shares are *not* information preserving when P_g has
+  cross-correlations: the fused information becomes Y_g o C with C_jk = sum_i sqrt(g_ij g_ik) <= 1
+  (Cauchy-Schwarz, equality iff the share columns j and k are proportional), so off-diagonal
+  information is lost while diagonal information is kept, and the result can be overconfident
+  (tests/test_sharing.py measures it). ``vector_conservative`` is the recommended fix.
+
+Units: trace- and norm-based strategies add variances of different units (m^2, (m/s)^2, rad^2,
+(rad/s)^2); in the 15-state INS model the position block dominates them. That is how the papers
+define them; the per-state strategies (vector, diagonal, vector_conservative) are unit-free.
+
+Strategies (registry names = ``service.config.SharingName``):
+  fixed, trace (seed 000 eq 36), vector (seed 000 eq 13 read per SEEDS.md + eq 22 floor),
+  vector_conservative (ours), eigen_trace (seed 004 5.1 as printed), eigen_trace_inverse,
+  diagonal (seed 004 5.2 as printed), edop (seed 004 5.3), norm_weighted (seed 002 eq 18-21).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+# Smallest share any strategy may hand out (numerical guard, not a modelling choice): the reset
+# divides by the share, so it must never be 0.
+MIN_SHARE = 1e-9
+
+
+@dataclass(frozen=True)
+class SharingContext:
+    """What a strategy may use besides the covariances.
+
+    flagged_only : (N, c) bool, optional
+        True where common state j of local i was directly observed this epoch only through
+        observations its fault test flagged (no used row of local i observed it). Used by the
+        seed 000 eq (22) reading (vector strategies).
+    floor_share : float
+        The share such a state gets in that local (fraction of the locals' total).
+    master_share : float
+        Share kept by the master filter; the locals' shares sum to ``1 - master_share``.
+    """
+
+    flagged_only: np.ndarray | None = None
+    floor_share: float = 1e-3
+    master_share: float = 0.0
+
+
+class SharingStrategy(ABC):
+    """Base: subclasses return un-normalised weights; the base normalises, guards and scales.
+
+    ``scalar`` is True when the strategy gives one share per local for all states (and hence, with
+    fusion-reset every cycle, reproduces the centralised filter exactly).
+    """
+
+    name: ClassVar[str]
+    scalar: ClassVar[bool]
+
+    def shares(self, P_locals: np.ndarray, context: SharingContext | None = None) -> np.ndarray:
+        """Per-state shares G (N, c) of the N locals; columns sum to ``1 - master_share``."""
+        P = np.asarray(P_locals, dtype=float)
+        if P.ndim != 3 or P.shape[1] != P.shape[2]:
+            raise ValueError(f"P_locals must be (N, c, c), got {P.shape}")
+        ctx = context if context is not None else SharingContext()
+        N, c, _ = P.shape
+        if N == 1:
+            w = np.ones((1, c))
+        else:
+            w = np.broadcast_to(np.asarray(self._weights(P, ctx), dtype=float).reshape(N, -1), (N, c))
+            if not np.all(np.isfinite(w)) or np.any(w < 0.0):
+                raise ValueError(f"sharing strategy {self.name!r} produced invalid weights")
+            w = _normalise(w)
+        return (1.0 - ctx.master_share) * w
+
+    @abstractmethod
+    def _weights(self, P: np.ndarray, ctx: SharingContext) -> np.ndarray:
+        """(N,) scalar or (N, c) per-state non-negative weights (normalised by the base)."""
+
+
+def _normalise(w: np.ndarray) -> np.ndarray:
+    """Columns to sum 1, then lift anything below MIN_SHARE and renormalise (never 0)."""
+    w = w / np.sum(w, axis=0, keepdims=True)
+    w = np.maximum(w, MIN_SHARE)
+    return w / np.sum(w, axis=0, keepdims=True)
+
+
+def _diag(P: np.ndarray) -> np.ndarray:
+    return np.diagonal(P, axis1=1, axis2=2)
+
+
+def _trace(P: np.ndarray) -> np.ndarray:
+    return np.trace(P, axis1=1, axis2=2)
+
+
+def _frobenius(P: np.ndarray) -> np.ndarray:
+    # sqrt(tr(P P')) = sqrt(tr(P^2)) for symmetric P = Frobenius norm
+    return np.sqrt(np.einsum("bij,bij->b", P, P))
+
+
+# --- scalar strategies -----------------------------------------------------------------------------
+class Fixed(SharingStrategy):
+    """Fixed equal shares beta_i = 1/N (seed 000's "1:1" comparator for N = 2)."""
+
+    name = "fixed"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        return np.ones(P.shape[0])
+
+
+class Trace(SharingStrategy):
+    """Adaptive scalar sharing, seed 000 eq (36): beta_i = (1/tr P_i) / sum_k (1/tr P_k)."""
+
+    name = "trace"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        return 1.0 / _trace(P)  # seed 000 eq (36)
+
+
+class EigenTrace(SharingStrategy):
+    """Seed 004 section 5.1 AS PRINTED: beta_i = tr(Lambda_i) / sum_k tr(Lambda_k).
+
+    Lambda_i = eigenvalues of P_i, so tr(Lambda_i) = tr(P_i). WARNING (flagged per SEEDS.md): as
+    printed this gives MORE share (smaller reset covariance P_g / beta_i) to the LESS accurate
+    local filter, the opposite of the usual intent. Kept as printed for reproduction; see
+    ``eigen_trace_inverse``. Being scalar, with fusion-reset every cycle it still reproduces the
+    centralised filter (SEEDS.md warning), so the inversion shows only in fault-test sensitivity.
+    """
+
+    name = "eigen_trace"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        return _trace(P)  # tr(Lambda_i) = tr(P_i); seed 004 5.1 as printed
+
+
+class EigenTraceInverse(SharingStrategy):
+    """Seed 004 section 5.1 inverted: beta_i = (1/tr Lambda_i) / sum_k (1/tr Lambda_k).
+
+    Since tr(Lambda_i) = tr(P_i) this is numerically the same as ``trace`` (seed 000 eq 36); it is
+    kept as its own name so seed 004 configurations read as the paper's method family.
+    """
+
+    name = "eigen_trace_inverse"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        return 1.0 / _trace(P)
+
+
+class Edop(SharingStrategy):
+    """Seed 004 section 5.3: EDOP_i = sqrt(tr(P_i P_i')), beta_1 = EDOP_2 / (EDOP_1 + EDOP_2).
+
+    Generalised to N locals as beta_i = (1/EDOP_i) / sum_k (1/EDOP_k), which is exactly the
+    printed formula for N = 2 (EDOP_2 / (EDOP_1 + EDOP_2) = (1/EDOP_1) / (1/EDOP_1 + 1/EDOP_2)).
+    EDOP is the Frobenius norm of P_i (dominated by the largest-variance states).
+    """
+
+    name = "edop"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        return 1.0 / _frobenius(P)
+
+
+class NormWeighted(SharingStrategy):
+    """Seed 002 eq (18)-(21): A_j = sqrt(tr(P_j^2)), alpha_j = sum_{i != j} A_i / ((N-1) sum_i A_i).
+
+    The paper prints the denominator as ``2 sum_i A_i`` for its N = 3 wing IMUs; 2 = N - 1, which
+    is what makes the shares sum to 1: sum_j (S - A_j) = (N - 1) S. We use N - 1 for any N >= 2.
+    A larger norm (less accurate local) gives a smaller share.
+    """
+
+    name = "norm_weighted"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        A = _frobenius(P)  # seed 002 eq (18)
+        S = A.sum()
+        return (S - A) / ((P.shape[0] - 1) * S)  # seed 002 eq (19)-(21), generalised to N
+
+
+# --- per-state (vector) strategies ---------------------------------------------------------------
+def vector_shares(P: np.ndarray, ctx: SharingContext) -> np.ndarray:
+    """Seed 000 eq (13) read per SEEDS.md, plus the eq (22) floor; (N, c), columns sum to 1.
+
+    beta_{j,i} = (1/P_i,jj) / sum_k (1/P_k,jj)   (normalised over locals k, not states)
+    Eq (22) reading: where ``ctx.flagged_only[i, j]``, local i gets exactly ``floor_share`` of
+    state j and the other locals share the rest in proportion to their eq (13) weights.
+    """
+    inv = 1.0 / _diag(P)  # 1/lambda_{j,i}, lambda = diagonal of P_i (SEEDS.md default)
+    w = inv / inv.sum(axis=0, keepdims=True)  # seed 000 eq (13), read per SEEDS.md
+    fl = ctx.flagged_only
+    if fl is None or not np.any(fl):
+        return w
+    fl = np.asarray(fl, dtype=bool)
+    N = w.shape[0]
+    n_fl = fl.sum(axis=0)  # (c,) how many locals have state j flagged-only
+    cols = (n_fl > 0) & (n_fl < N)  # if every local is flagged there is nothing to prefer
+    if not np.any(cols):
+        return w
+    floor = np.minimum(ctx.floor_share, 0.5 / np.maximum(n_fl, 1))  # keep the healthy rest > 0
+    rest = np.where(fl, 0.0, w)
+    rest_sum = rest.sum(axis=0)
+    healthy = rest * ((1.0 - n_fl * floor) / np.where(rest_sum > 0.0, rest_sum, 1.0))
+    floored = np.where(fl, floor, healthy)  # seed 000 eq (22), read per SEEDS.md
+    return np.where(cols, floored, w)
+
+
+class Vector(SharingStrategy):
+    """Vector information sharing, seed 000 eq (11)-(15), (22), as read in SEEDS.md.
+
+    Per state j: beta_{j,i} = (1/P_i,jj) / sum_k (1/P_k,jj); a state of local i observed this
+    epoch only through flagged observations gets the floor share (``SharingContext``).
+
+    Known defect (SEEDS.md; measured in tests/test_sharing.py): with the reset
+    P_i = G_i^-1/2 P_g G_i^-1/2 the fused information loses off-diagonal terms (factor
+    sum_i sqrt(g_ij g_ik) <= 1) while keeping the diagonal, which makes the federated filter
+    overconfident (NEES above the state dimension). Also note the floor makes local i's prior of
+    that state ~1/floor times wider, so its next fault test on that state is less sensitive.
+    """
+
+    name = "vector"
+    scalar = False
+
+    def _weights(self, P, ctx):
+        return vector_shares(P, ctx)
+
+
+class VectorConservative(SharingStrategy):
+    """Our recommended fix for ``vector``: one scalar share per local, from the vector shares.
+
+    beta_i = mean_j beta_{j,i} over the c common states, with beta_{j,i} the ``vector`` shares
+    (eq (13) as read, eq (22) floor included). The mean of columns that each sum to 1 again sums to
+    1, so conservation holds; and because the share is a scalar, the reset
+    P_i = P_g / beta_i, Q_i = Q / beta_i is information-consistent: sum_i P_i^-1 = P_g^-1 exactly,
+    so fault free it reproduces the centralised filter (Carlson 1990) and cannot be overconfident.
+    What it keeps from ``vector``: the weighting is unit-free (each state compares like with
+    like, unlike tr P which is dominated by position variances) and a local with flagged states
+    gets a smaller share.
+
+    Alternative considered and not chosen: keep diagonal G and inflate the reset covariances by
+    kappa = lambda_max(Y_g^-1/2 (Y_g o C) Y_g^-1/2) >= 1 (covariance-intersection style). It is
+    consistent but conservative: the shares then sum to 1/kappa < 1, i.e. information is thrown
+    away every cycle, and it costs a generalised eigenproblem per epoch; under fusion-reset every
+    cycle per-state shares buy nothing in fused accuracy anyway.
+    """
+
+    name = "vector_conservative"
+    scalar = True
+
+    def _weights(self, P, ctx):
+        return vector_shares(P, ctx).mean(axis=1)
+
+
+class Diagonal(SharingStrategy):
+    """Seed 004 section 5.2 AS PRINTED: a_j = P1_jj / (P1_jj + P2_jj), beta_1 = diag(a), beta_2 =
+    diag(b), b_j = P2_jj / (P1_jj + P2_jj); generalised to N as beta_{j,i} = P_i,jj / sum_k P_k,jj.
+
+    WARNING (flagged per SEEDS.md): as printed, the local with the LARGER variance of state j gets
+    the LARGER share of it (the opposite of ``vector``). Per-state, so it has the same
+    information-loss defect as ``vector`` (see module docstring).
+    """
+
+    name = "diagonal"
+    scalar = False
+
+    def _weights(self, P, ctx):
+        d = _diag(P)
+        return d / d.sum(axis=0, keepdims=True)  # seed 004 5.2 as printed
+
+
+STRATEGIES: dict[str, type[SharingStrategy]] = {
+    cls.name: cls
+    for cls in (Fixed, Trace, Vector, VectorConservative, EigenTrace, EigenTraceInverse, Diagonal, Edop,
+                NormWeighted)
+}
+
+
+def get_strategy(name: str) -> SharingStrategy:
+    """Registry: a strategy instance by its config name (``service.config.SharingName``)."""
+    try:
+        return STRATEGIES[name]()
+    except KeyError:
+        raise ValueError(f"unknown sharing strategy {name!r}; known: {sorted(STRATEGIES)}") from None
+
+
+__all__ = ["SharingStrategy", "SharingContext", "STRATEGIES", "get_strategy", "vector_shares", "MIN_SHARE"]

@@ -1,0 +1,194 @@
+"""Federated (seed 000/002/004) and centralised INS pipelines on the federated core.
+
+Both own ONE INS and ONE ``InsFilterBank`` around it (all members share the INS linearisation
+point, closed loop) driven by ``service.estimation.federated.FederatedCore``:
+
+* ``Federated``: one local filter per configured subsystem (e.g. INS/BDS on ``gnss_fix``,
+  INS/CNS on ``star``), plus a master member when ``master_share`` > 0. Each aiding message
+  updates only its subsystem's local (fault-tested by the configured plug-in), then the master
+  fuses and resets (seed 000 algorithm 2) and the fused correction is fed back to the INS.
+  ``apply`` returns a ``Faults`` message per aiding epoch (the tested subsystem's per-observation
+  statistics, thresholds, flags, isolation, and every local's 15 sharing coefficients).
+* ``Centralized``: the comparator, a single filter (bank of one) on every supported sensor's
+  rows with optional fault handling (one test per sensor kind); it returns ``Faults`` only when
+  fault handling is on.
+
+Solutions come from the fused estimate: ``Estimate(nav = INS state, P9 = P_g[:9, :9])`` (after
+the feedback the fused error state is zero with fusion-reset, ~zero with no_reset).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.config import CentralizedConfig, FederatedConfig, ImuModel
+from service.estimation import measurements
+from service.estimation.fault_tests import FaultTest, make_fault_test
+from service.estimation.federated import FederatedCore
+from service.estimation.ins_filter import InsFilterBank
+from service.estimation.sharing import get_strategy
+from service.ins.mechanisation import NavState
+from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
+from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+
+# Measurement models by sensor kind: (nav, msg, n_states, dt_late_s) -> Measurement.
+# A sensor kind without an entry cannot be configured in a federated/centralised pipeline.
+MeasurementModel = Callable[[NavState, WireModel, int, float], measurements.Measurement]
+MEASUREMENT_MODELS: dict[str, MeasurementModel] = {
+    "gnss_fix": lambda nav, msg, n, dt_late: measurements.gnss_fix(nav, msg, n_states=n, dt_late_s=dt_late),
+    "star": lambda nav, msg, n, dt_late: measurements.star_attitude(nav, msg, n_states=n),
+}
+
+
+@dataclass
+class _Channel:
+    """Where one sensor kind goes: the owning local, the report name and its fault test."""
+
+    owner: int
+    name: str
+    test: FaultTest
+
+
+class _CorePipeline(Pipeline):
+    """Shared machinery of Federated and Centralized (one core, two configurations)."""
+
+    family = "federated"
+
+    def __init__(self, name: str, imu: ImuModel, major_interval_s: float, *,
+                 subsystems: list[tuple[str, list[str]]], sharing: str, fault_handling: str,
+                 false_alarm_prob: float, reset: str = "fusion_reset", master_share: float = 0.0,
+                 floor_share: float = 1e-3, report_faults: bool = True):
+        super().__init__(name, imu, major_interval_s)
+        self.local_names = [s for s, _ in subsystems]
+        self.strategy = get_strategy(sharing)
+        self.reset_mode = reset
+        self.master_share = float(master_share)
+        self.floor_share = float(floor_share)
+        self.report_faults = report_faults
+        self.channels: dict[str, _Channel] = {}
+        for i, (sub_name, kinds) in enumerate(subsystems):
+            for kind in kinds:
+                if kind not in MEASUREMENT_MODELS:
+                    raise ValueError(f"pipeline {name!r}: no measurement model for sensor kind {kind!r} "
+                                     f"(subsystem {sub_name!r}); supported: {sorted(MEASUREMENT_MODELS)}")
+                if kind in self.channels:
+                    raise ValueError(f"pipeline {name!r}: sensor kind {kind!r} is in two subsystems "
+                                     f"({self.channels[kind].name!r}, {sub_name!r}); it would be counted twice")
+                self.channels[kind] = _Channel(i, sub_name, make_fault_test(fault_handling, false_alarm_prob))
+        self.bank: InsFilterBank | None = None
+        self.core: FederatedCore | None = None
+        self._version = 0
+        self._fused_key: tuple | None = None
+        self._fused_P: np.ndarray | None = None
+
+    # --- Pipeline interface ---------------------------------------------------------------------
+    def initialise(self, nav: NavState, std: InitStd) -> None:
+        if self.bank is not None:
+            self.reinitialisations += 1
+        n_locals = len(self.local_names)
+        self.bank = InsFilterBank(nav, initial_covariance(std, self.imu), self.imu.noise(),
+                                  bank_size=FederatedCore.bank_size(n_locals, self.master_share),
+                                  major_interval_s=self.major_interval_s)
+        self.core = FederatedCore(self.bank, n_locals, self.strategy, reset=self.reset_mode,
+                                  master_share=self.master_share, floor_share=self.floor_share)
+        self.core.start()
+        for ch in self.channels.values():
+            ch.test.reset()
+        self._version += 1
+        self.status = "aligned"
+
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
+        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s)
+
+    def sync(self) -> None:
+        self.bank.sync()
+
+    def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
+        ch = self.channels.get(kind)
+        if ch is None:
+            return []
+        bank, core = self.bank, self.core
+        meas = MEASUREMENT_MODELS[kind](bank.nav(), msg, bank.n, dt_late_s)
+        self._version += 1
+        upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
+        core.fuse_and_reset()
+        self._version += 1
+        if upd.rows_used:
+            self.updates += 1
+            self.status = "aided"
+        if not self.report_faults:
+            return []
+        d = upd.decision
+        obs = [
+            ObservationFault(label=label, statistic=float(d.statistic[j]), threshold=float(d.threshold[j]),
+                             flagged=bool(d.flagged[j]), isolated=bool(d.isolated[j]))
+            for j, label in enumerate(meas.labels)
+        ]
+        return [Faults(t=float(bank.t), pipeline=self.name,
+                       subsystems=[SubsystemFaults(name=ch.name, isolated=d.subsystem_isolated, observations=obs)],
+                       sharing=self.sharing_report())]
+
+    def estimate(self) -> Estimate:
+        return Estimate(self.bank.nav(), self.fused_covariance()[:9, :9])
+
+    # --- federated outputs ------------------------------------------------------------------------
+    def fused_covariance(self) -> np.ndarray:
+        """(15, 15) master-fused covariance of the current bank (cached per state change)."""
+        key = (self.bank.ins.state.t, self._version)
+        if key != self._fused_key:
+            self._fused_P = self.core.fuse()[1]
+            self._fused_key = key
+        return self._fused_P
+
+    def sharing_report(self) -> dict[str, list[float]]:
+        """{local name: its 15 common-state shares} (+ "master" when it keeps a share)."""
+        G = self.core.shares
+        out = {name: [float(g) for g in G[i]] for i, name in enumerate(self.local_names)}
+        if G.shape[0] > len(self.local_names):
+            out["master"] = [float(g) for g in G[-1]]
+        return out
+
+
+class Federated(_CorePipeline):
+    """Federated filter: one local per ``FederatedConfig.subsystems`` entry (see module doc)."""
+
+    family = "federated"
+
+    def __init__(self, cfg: FederatedConfig, imu: ImuModel, major_interval_s: float):
+        super().__init__(
+            cfg.name, imu, major_interval_s,
+            subsystems=[(s.name, list(s.sensors)) for s in cfg.subsystems],
+            sharing=cfg.sharing, fault_handling=cfg.fault_handling, false_alarm_prob=cfg.false_alarm_prob,
+            reset=cfg.reset, master_share=cfg.master_share, floor_share=cfg.floor_share, report_faults=True,
+        )
+        self.cfg = cfg
+
+
+class Centralized(_CorePipeline):
+    """Centralised comparator: one filter on all supported sensors (one fault test per kind).
+
+    Family "loosely_coupled" for dashboards: a single INS/GNSS(/CNS) filter, no sharing.
+    """
+
+    family = "loosely_coupled"
+
+    def __init__(self, cfg: CentralizedConfig, imu: ImuModel, major_interval_s: float):
+        super().__init__(
+            cfg.name, imu, major_interval_s,
+            subsystems=[("central", list(MEASUREMENT_MODELS))],
+            sharing="fixed", fault_handling=cfg.fault_handling, false_alarm_prob=cfg.false_alarm_prob,
+            report_faults=cfg.fault_handling != "none",
+        )
+        self.cfg = cfg
+        # report per sensor kind (one test each), all owned by the single filter
+        for kind, ch in self.channels.items():
+            ch.name = kind
+
+    def sharing_report(self) -> dict[str, list[float]]:
+        return {}
+
+
+__all__ = ["Federated", "Centralized", "MEASUREMENT_MODELS"]

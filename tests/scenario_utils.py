@@ -1,0 +1,29 @@
+"""Shortened variants of the shipped scenarios for fast tests."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from simulators.scenario import parse_scenario
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "simulators" / "scenarios"
+
+
+def shortened(name: str, duration_s: float, **overrides):
+    """The scenario ``name`` cut to ``duration_s`` (segments truncated), with top-level overrides."""
+    data = tomllib.loads((SCENARIOS / name).read_text())
+    data["duration_s"] = duration_s
+    segs, total = [], 0.0
+    for seg in data.get("segments", []):
+        if total >= duration_s:
+            break
+        seg = dict(seg)
+        if total + seg["duration_s"] > duration_s:
+            break
+        segs.append(seg)
+        total += seg["duration_s"]
+    data["segments"] = segs
+    for k, v in overrides.items():
+        data[k] = v
+    return parse_scenario(data, f"{name} shortened to {duration_s} s")
