@@ -123,7 +123,10 @@ class VehicleEngine:
                     del self._truth[k]
             self.sink.on_truth(self.vehicle, msg)
             return True
-        # aiding
+        # aiding: older than the INS by more than the tolerance is "late" (checked first: it is
+        # the more useful reason); older than the same sensor's previous message is "time_backwards"
+        if self.initialised and msg.t < self.last_imu_t - self.config.intake.late_tolerance_s:
+            return self._reject("late")
         if prev is not None and msg.t < prev:
             return self._reject("time_backwards")
         if kind == "gnss_fix":
