@@ -94,7 +94,6 @@ class VehicleEngine:
         self._truth: dict[int, Truth] = {}
         self._last_fix: GnssFix | None = None
         self._align = _Align()
-        self._t_origin = 0.0
         self._last_out_k = -1
         self._lost = False
         self.last_t: float | None = None
@@ -224,7 +223,9 @@ class VehicleEngine:
 
     # --- outputs --------------------------------------------------------------------------------
     def _maybe_output(self, t: float) -> None:
-        k = math.floor((t - self._t_origin) * self.config.output.solution_rate_hz + 1e-6)
+        # output epochs on absolute multiples of the output period (aligned with truth and other
+        # services); the 1e-3 period tolerance absorbs float resolution at GPS-second magnitudes
+        k = math.floor(t * self.config.output.solution_rate_hz + 1e-3)
         if k <= self._last_out_k:
             return
         self._last_out_k = k
@@ -257,7 +258,6 @@ class VehicleEngine:
         self._lost = False
         self.last_imu_t = nav.t
         self.last_t = nav.t
-        self._t_origin = nav.t
         self._last_out_k = -1
         self.pending.clear()
 
@@ -328,10 +328,13 @@ class VehicleEngine:
             self._start(nav, std)
 
     def _nav_at_fix(self, fix: GnssFix, rpy: np.ndarray) -> NavState:
+        """State at the INS time from a fix, carried back/forward with the fix's velocity."""
+        vel = np.array(fix.vel_enu_mps, dtype=float)
+        llh = np.array([math.radians(fix.lat_deg), math.radians(fix.lon_deg), fix.height_m])
+        dllh = earth.enu_m_to_llh_delta(vel * (self.last_imu_t - fix.t), llh[0], llh[2])
         return NavState(
-            t=self.last_imu_t, lat_rad=math.radians(fix.lat_deg), lon_rad=math.radians(fix.lon_deg),
-            h_m=fix.height_m, vel_enu_mps=np.array(fix.vel_enu_mps, dtype=float),
-            q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
+            t=self.last_imu_t, lat_rad=float(llh[0] + dllh[0]), lon_rad=float(llh[1] + dllh[1]),
+            h_m=float(llh[2] + dllh[2]), vel_enu_mps=vel, q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
         )
 
     # --- state for health ---------------------------------------------------------------------------
