@@ -35,8 +35,14 @@ def bench_eval_rtf(runs: int) -> dict:
     t0 = time.perf_counter()
     res = evaluate(sc, runs=runs)
     wall = time.perf_counter() - t0
-    return {"scenario": sc.name, "runs": runs, "sensor_s": runs * sc.duration_s, "wall_s": wall,
-            "realtime_factor": runs * sc.duration_s / wall, "h_rms_m": res["pipelines"]["lc"]["h_rms_m"]}
+    return {
+        "scenario": sc.name,
+        "runs": runs,
+        "sensor_s": runs * sc.duration_s,
+        "wall_s": wall,
+        "realtime_factor": runs * sc.duration_s / wall,
+        "h_rms_m": res["pipelines"]["lc"]["h_rms_m"],
+    }
 
 
 def _client(port: int) -> zenoh.Session:
@@ -77,8 +83,11 @@ def bench_latency(duration_s: float) -> dict:
         for key, msg in Simulation(sc, seed=1):
             p = pubs.get(key)
             if p is None:
-                p = pubs[key] = s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                    reliability=zenoh.Reliability.RELIABLE)
+                p = pubs[key] = s.declare_publisher(
+                    key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
                 while not p.matching_status.matching:
                     time.sleep(0.01)
             if t_first is None:
@@ -99,8 +108,14 @@ def bench_latency(duration_s: float) -> dict:
         svc.signal(signal.SIGINT)
         svc.wait(timeout=60)
     a = np.array(lat) * 1e3
-    return {"solutions": int(a.size), "p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)),
-            "max_ms": float(a.max()), "imu_hz": 100, "gnss_hz": 1}
+    return {
+        "solutions": int(a.size),
+        "p50_ms": float(np.percentile(a, 50)),
+        "p99_ms": float(np.percentile(a, 99)),
+        "max_ms": float(a.max()),
+        "imu_hz": 100,
+        "gnss_hz": 1,
+    }
 
 
 def bench_throughput() -> dict:
@@ -120,9 +135,14 @@ def bench_throughput() -> dict:
     h = st["health"]
     imu_samples = 30000
     rate = imu_samples / wall
-    return {"messages_received": h["received"], "imu_samples": imu_samples, "wall_s": wall,
-            "imu_rate_hz": rate, "multiple_of_200hz": rate / 200.0,
-            "latency_p99_ms_under_load": h["latency_ms"]["p99"]}
+    return {
+        "messages_received": h["received"],
+        "imu_samples": imu_samples,
+        "wall_s": wall,
+        "imu_rate_hz": rate,
+        "multiple_of_200hz": rate / 200.0,
+        "latency_p99_ms_under_load": h["latency_ms"]["p99"],
+    }
 
 
 def main() -> int:

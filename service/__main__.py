@@ -42,8 +42,15 @@ def main(argv: list[str] | None = None) -> int:
     listen = args.listen
     if args.connect and not args.listen:
         listen = []
-    svc = Service(cfg, rrd=args.rrd, viewer=args.viewer, listen=listen, connect=args.connect,
-                  zenoh_config_file=args.zenoh_config, record=not args.no_record)
+    svc = Service(
+        cfg,
+        rrd=args.rrd,
+        viewer=args.viewer,
+        listen=listen,
+        connect=args.connect,
+        zenoh_config_file=args.zenoh_config,
+        record=not args.no_record,
+    )
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

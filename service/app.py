@@ -23,7 +23,16 @@ from pydantic import ValidationError
 from service import earth, keys
 from service.config import ServiceConfig
 from service.engine import VehicleEngine
-from service.messages import SENSOR_MESSAGES, Faults, Health, Integrity, PipelineHealth, Solution, Truth, WireModel
+from service.messages import (
+    SENSOR_MESSAGES,
+    Faults,
+    Health,
+    Integrity,
+    PipelineHealth,
+    Solution,
+    Truth,
+    WireModel,
+)
 from service.pipelines.base import error_dict
 
 log = logging.getLogger("fednav.service")
@@ -92,9 +101,14 @@ class OutputSink:
                 e = error_dict(err9)
                 sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
                 errors = {
-                    "east_m": e["lon_m"], "north_m": e["lat_m"], "up_m": e["h_m"],
-                    "ve_mps": e["ve_mps"], "vn_mps": e["vn_mps"], "vu_mps": e["vu_mps"],
-                    "phi_e_arcsec": e["phi_e_arcsec"], "phi_n_arcsec": e["phi_n_arcsec"],
+                    "east_m": e["lon_m"],
+                    "north_m": e["lat_m"],
+                    "up_m": e["h_m"],
+                    "ve_mps": e["ve_mps"],
+                    "vn_mps": e["vn_mps"],
+                    "vu_mps": e["vu_mps"],
+                    "phi_e_arcsec": e["phi_e_arcsec"],
+                    "phi_n_arcsec": e["phi_n_arcsec"],
                     "phi_u_arcsec": e["phi_u_arcsec"],
                 }
                 scale = np.r_[np.ones(6), np.full(3, 1.0 / earth.ARCSEC)]  # phi in arcsec
@@ -205,8 +219,11 @@ class VehicleWorker:
             rejected=dict(self.counters),
             dropped_overload=self.dropped,
             queue_depth=self.q.qsize(),
-            latency_ms={"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                        "max": float(lat.max())},
+            latency_ms={
+                "p50": float(np.percentile(lat, 50)),
+                "p99": float(np.percentile(lat, 99)),
+                "max": float(lat.max()),
+            },
             pipelines={k: PipelineHealth(**v) for k, v in states.items()},
         )
 
@@ -226,9 +243,16 @@ class VehicleWorker:
 
 
 class Service:
-    def __init__(self, config: ServiceConfig, rrd: Path | None = None, viewer: str | None = None,
-                 listen: list[str] | None = None, connect: list[str] | None = None,
-                 zenoh_config_file: str | None = None, record: bool = True):
+    def __init__(
+        self,
+        config: ServiceConfig,
+        rrd: Path | None = None,
+        viewer: str | None = None,
+        listen: list[str] | None = None,
+        connect: list[str] | None = None,
+        zenoh_config_file: str | None = None,
+        record: bool = True,
+    ):
         self.config = config
         self.rrd_path = rrd or config.rrd or Path("recordings") / f"fednav-{datetime.now():%Y%m%d-%H%M%S}.rrd"
         self.viewer = viewer or config.viewer
@@ -253,19 +277,25 @@ class Service:
             Path(self.rrd_path).parent.mkdir(parents=True, exist_ok=True)
             blueprint = _blueprint_plugin({p.name: p.kind for p in cfg.pipelines})
             self.rr = RerunSink(self.rrd_path, viewer_addr=self.viewer, blueprint=blueprint)
-        self.session = zenoh.open(zenoh_io.make_config(cfg.zenoh, self.listen, self.connect, self.zenoh_config_file))
+        self.session = zenoh.open(
+            zenoh_io.make_config(cfg.zenoh, self.listen, self.connect, self.zenoh_config_file)
+        )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
         self.sink = OutputSink(cfg.prefix, self.pubs, self.rr)
         sel = "*" if "*" in cfg.vehicles else None
         exprs = []
-        for v in ([sel] if sel else cfg.vehicles):
+        for v in [sel] if sel else cfg.vehicles:
             exprs += keys.inputs_selector(v, cfg.prefix)
         self.intake = zenoh_io.Intake(self.session, exprs, self._deliver)
         qexprs = [f"{cfg.prefix}/{v}/service/status" for v in ([sel] if sel else cfg.vehicles)]
         qexprs += [f"{cfg.prefix}/{v}/service/config" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
-        log.info("fednav-service up: vehicles=%s pipelines=%s rrd=%s", cfg.vehicles,
-                 [p.name for p in cfg.pipelines], self.rrd_path if self.record else None)
+        log.info(
+            "fednav-service up: vehicles=%s pipelines=%s rrd=%s",
+            cfg.vehicles,
+            [p.name for p in cfg.pipelines],
+            self.rrd_path if self.record else None,
+        )
 
     def _worker(self, vehicle: str) -> VehicleWorker:
         w = self.workers.get(vehicle)
@@ -299,9 +329,12 @@ class Service:
         if key.endswith("/config"):
             return self.config.model_dump_json().encode()
         w = self.workers.get(vehicle)
-        state = {"vehicle": vehicle, "running": True,
-                 "pipelines": [p.name for p in self.config.pipelines],
-                 "health": json.loads(w.health().model_dump_json()) if w else None}
+        state = {
+            "vehicle": vehicle,
+            "running": True,
+            "pipelines": [p.name for p in self.config.pipelines],
+            "health": json.loads(w.health().model_dump_json()) if w else None,
+        }
         return json.dumps(state).encode()
 
     def stop(self) -> None:

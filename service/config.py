@@ -52,8 +52,15 @@ class LooselyCoupledConfig(Model):
 
 
 SharingName = Literal[
-    "fixed", "trace", "vector", "vector_conservative", "eigen_trace", "eigen_trace_inverse", "diagonal",
-    "edop", "norm_weighted",
+    "fixed",
+    "trace",
+    "vector",
+    "vector_conservative",
+    "eigen_trace",
+    "eigen_trace_inverse",
+    "diagonal",
+    "edop",
+    "norm_weighted",
 ]
 FaultHandlingName = Literal["none", "per_observation", "subsystem", "chi2_reconfig"]
 
@@ -66,7 +73,10 @@ class SubsystemConfig(Model):
 
 
 def _default_subsystems() -> list[SubsystemConfig]:
-    return [SubsystemConfig(name="INS/BDS", sensors=["gnss_fix"]), SubsystemConfig(name="INS/CNS", sensors=["star"])]
+    return [
+        SubsystemConfig(name="INS/BDS", sensors=["gnss_fix"]),
+        SubsystemConfig(name="INS/CNS", sensors=["star"]),
+    ]
 
 
 class FederatedConfig(Model):
@@ -79,7 +89,9 @@ class FederatedConfig(Model):
     fault_handling: FaultHandlingName = Field("per_observation", description="Fault handling plug-in")
     reset: Literal["fusion_reset", "no_reset"] = Field("fusion_reset", description="Master reset mode")
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5, description="Per-test false-alarm probability")
-    floor_share: float = Field(1e-3, gt=0, lt=0.5, description="Share floor of a state seen only by a flagged row")
+    floor_share: float = Field(
+        1e-3, gt=0, lt=0.5, description="Share floor of a state seen only by a flagged row"
+    )
     master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
 
 
@@ -115,12 +127,15 @@ class TightlyCoupledConfig(Model):
     p_fa: float = Field(1e-4, gt=0, lt=0.5, description="Total false-alarm probability per epoch")
     p_md: float = Field(1e-3, gt=0, lt=0.5, description="Missed-detection probability")
     exclusion: bool = True
-    readmit_after_s: float = Field(60.0, gt=0, description="Healthy time before an excluded satellite returns")
+    readmit_after_s: float = Field(
+        60.0, gt=0, description="Healthy time before an excluded satellite returns"
+    )
     elevation_mask_deg: float = Field(5.0, ge=0, lt=90)
 
 
 PipelineConfig = Annotated[
-    LooselyCoupledConfig | FederatedConfig | CentralizedConfig | TightlyCoupledConfig, Field(discriminator="kind")
+    LooselyCoupledConfig | FederatedConfig | CentralizedConfig | TightlyCoupledConfig,
+    Field(discriminator="kind"),
 ]
 
 

@@ -119,13 +119,17 @@ def llh_delta_to_enu_m(dllh: np.ndarray, lat_rad: float, h_m: float) -> np.ndarr
     """Small geodetic differences (dlat_rad, dlon_rad, dh_m), shape (..., 3) -> ENU metres."""
     r_m, r_n = radii(lat_rad)
     d = np.asarray(dllh, dtype=float)
-    return np.stack([d[..., 1] * (r_n + h_m) * math.cos(lat_rad), d[..., 0] * (r_m + h_m), d[..., 2]], axis=-1)
+    return np.stack(
+        [d[..., 1] * (r_n + h_m) * math.cos(lat_rad), d[..., 0] * (r_m + h_m), d[..., 2]], axis=-1
+    )
 
 
 def enu_m_to_llh_delta(enu: np.ndarray, lat_rad: float, h_m: float) -> np.ndarray:
     r_m, r_n = radii(lat_rad)
     e = np.asarray(enu, dtype=float)
-    return np.stack([e[..., 1] / (r_m + h_m), e[..., 0] / ((r_n + h_m) * math.cos(lat_rad)), e[..., 2]], axis=-1)
+    return np.stack(
+        [e[..., 1] / (r_m + h_m), e[..., 0] / ((r_n + h_m) * math.cos(lat_rad)), e[..., 2]], axis=-1
+    )
 
 
 # --- rotations --------------------------------------------------------------------------------------

@@ -81,7 +81,9 @@ class _Align:
 class VehicleEngine:
     """Drives all configured pipelines of one vehicle from a time-ordered event stream."""
 
-    def __init__(self, vehicle: str, config: ServiceConfig, sink: EngineSink, counters: Counter | None = None):
+    def __init__(
+        self, vehicle: str, config: ServiceConfig, sink: EngineSink, counters: Counter | None = None
+    ):
         self.vehicle = vehicle
         self.config = config
         self.sink = sink
@@ -266,11 +268,17 @@ class VehicleEngine:
             return
         rpy = earth.rpy_from_msg_deg(msg.rpy_deg)
         nav = NavState(
-            t=msg.t, lat_rad=math.radians(msg.lat_deg), lon_rad=math.radians(msg.lon_deg), h_m=msg.height_m,
-            vel_enu_mps=np.array(msg.vel_enu_mps, dtype=float), q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
+            t=msg.t,
+            lat_rad=math.radians(msg.lat_deg),
+            lon_rad=math.radians(msg.lon_deg),
+            h_m=msg.height_m,
+            vel_enu_mps=np.array(msg.vel_enu_mps, dtype=float),
+            q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
         )
         rs = np.radians(msg.rpy_std_deg)
-        std = InitStd(np.array(msg.pos_std_enu_m), np.array(msg.vel_std_enu_mps), np.array([rs[1], rs[0], rs[2]]))
+        std = InitStd(
+            np.array(msg.pos_std_enu_m), np.array(msg.vel_std_enu_mps), np.array([rs[1], rs[0], rs[2]])
+        )
         if self.initialised:
             for p in self.pipelines:
                 p.reinitialisations += 1
@@ -301,12 +309,18 @@ class VehicleEngine:
             heading = math.degrees(math.atan2(ve, vn))
             pitch = math.atan2(vu, math.hypot(ve, vn))
             rpy = np.array([0.0, pitch, earth.yaw_from_heading_deg(heading)])
-            std = InitStd(np.array(fix.pos_std_enu_m), np.array(fix.vel_std_enu_mps),
-                          np.radians([2.0, 2.0, 5.0]))
+            std = InitStd(
+                np.array(fix.pos_std_enu_m), np.array(fix.vel_std_enu_mps), np.radians([2.0, 2.0, 5.0])
+            )
             self._start(self._nav_at_fix(fix, rpy), std)
             return
-        if mode in ("auto", "static") and a.n > 0 and a.t_start is not None \
-                and self.last_imu_t - a.t_start >= self.config.init.align_time_s and speed < 0.5:
+        if (
+            mode in ("auto", "static")
+            and a.n > 0
+            and a.t_start is not None
+            and self.last_imu_t - a.t_start >= self.config.init.align_time_s
+            and speed < 0.5
+        ):
             f = a.sum_f / a.n
             var_f = np.maximum(a.sum_f2 / a.n - f * f, 0.0)
             if float(np.sqrt(var_f.sum())) > 0.5:  # not static: wait for motion initialisation
@@ -320,8 +334,13 @@ class VehicleEngine:
             yaw = math.atan2(w_l[0], w_l[1])
             sg, sa = self.config.imu.bias_sigmas()
             lat = math.radians(fix.lat_deg)
-            att_std = np.array([max(sa / g, 1e-4), max(sa / g, 1e-4),
-                                max(sg / (earth.OMEGA_IE_RPS * math.cos(lat)), math.radians(0.5))])
+            att_std = np.array(
+                [
+                    max(sa / g, 1e-4),
+                    max(sa / g, 1e-4),
+                    max(sg / (earth.OMEGA_IE_RPS * math.cos(lat)), math.radians(0.5)),
+                ]
+            )
             std = InitStd(np.array(fix.pos_std_enu_m), np.array([0.05, 0.05, 0.05]), att_std)
             nav = self._nav_at_fix(fix, np.array([roll, pitch, yaw]))
             nav.vel_enu_mps = np.zeros(3)
@@ -333,14 +352,22 @@ class VehicleEngine:
         llh = np.array([math.radians(fix.lat_deg), math.radians(fix.lon_deg), fix.height_m])
         dllh = earth.enu_m_to_llh_delta(vel * (self.last_imu_t - fix.t), llh[0], llh[2])
         return NavState(
-            t=self.last_imu_t, lat_rad=float(llh[0] + dllh[0]), lon_rad=float(llh[1] + dllh[1]),
-            h_m=float(llh[2] + dllh[2]), vel_enu_mps=vel, q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
+            t=self.last_imu_t,
+            lat_rad=float(llh[0] + dllh[0]),
+            lon_rad=float(llh[1] + dllh[1]),
+            h_m=float(llh[2] + dllh[2]),
+            vel_enu_mps=vel,
+            q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
         )
 
     # --- state for health ---------------------------------------------------------------------------
     def pipeline_states(self) -> dict[str, dict]:
         return {
-            p.name: {"status": p.status, "last_t": self.last_t, "updates": p.updates,
-                     "reinitialisations": p.reinitialisations}
+            p.name: {
+                "status": p.status,
+                "last_t": self.last_t,
+                "updates": p.updates,
+                "reinitialisations": p.reinitialisations,
+            }
             for p in self.pipelines
         }

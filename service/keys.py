@@ -1,18 +1,18 @@
 """Key expressions of the wire contract (DESIGN.md): builders and a parser.
 
-    {prefix}/{vehicle}/sensor/imu/{id}            ImuSample
-    {prefix}/{vehicle}/sensor/gnss/{id}/fix       GnssFix
-    {prefix}/{vehicle}/sensor/gnss/{id}/raw       GnssRaw
-    {prefix}/{vehicle}/sensor/star/{id}           StarAttitude
-    {prefix}/{vehicle}/sensor/dvl/{id}            DvlVelocity
-    {prefix}/{vehicle}/sensor/usbl/{id}           UsblFix
-    {prefix}/{vehicle}/sensor/init                InitialNav
-    {prefix}/{vehicle}/truth                      Truth
-    {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
-    {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
-    {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
-    {prefix}/{vehicle}/service/health             Health
-    {prefix}/{vehicle}/service/status             queryable (and .../service/config)
+{prefix}/{vehicle}/sensor/imu/{id}            ImuSample
+{prefix}/{vehicle}/sensor/gnss/{id}/fix       GnssFix
+{prefix}/{vehicle}/sensor/gnss/{id}/raw       GnssRaw
+{prefix}/{vehicle}/sensor/star/{id}           StarAttitude
+{prefix}/{vehicle}/sensor/dvl/{id}            DvlVelocity
+{prefix}/{vehicle}/sensor/usbl/{id}           UsblFix
+{prefix}/{vehicle}/sensor/init                InitialNav
+{prefix}/{vehicle}/truth                      Truth
+{prefix}/{vehicle}/nav/{pipeline}/solution    Solution
+{prefix}/{vehicle}/nav/{pipeline}/faults      Faults
+{prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
+{prefix}/{vehicle}/service/health             Health
+{prefix}/{vehicle}/service/status             queryable (and .../service/config)
 """
 
 from __future__ import annotations

@@ -52,8 +52,9 @@ class WireModel(BaseModel):
 Time = Annotated[float, Field(ge=0.0, le=T_MAX_S, description="Sensor time, s of GPS time")]
 Vec3 = tuple[float, float, float]
 PosStd3 = tuple[
-    Annotated[float, Field(gt=0.0, le=1e7)], Annotated[float, Field(gt=0.0, le=1e7)],
-    Annotated[float, Field(gt=0.0, le=1e7)]
+    Annotated[float, Field(gt=0.0, le=1e7)],
+    Annotated[float, Field(gt=0.0, le=1e7)],
+    Annotated[float, Field(gt=0.0, le=1e7)],
 ]
 Lat = Annotated[float, Field(ge=-90.0, le=90.0, description="Geodetic latitude, deg")]
 Lon = Annotated[float, Field(ge=-180.0, le=180.0, description="Longitude, deg")]
@@ -330,8 +331,18 @@ SENSOR_MESSAGES: dict[str, type[WireModel]] = {
 }
 
 ALL_MESSAGES: list[type[WireModel]] = [
-    ImuSample, GnssFix, GnssRaw, StarAttitude, DvlVelocity, UsblFix, InitialNav, Truth,
-    Solution, Faults, Integrity, Health,
+    ImuSample,
+    GnssFix,
+    GnssRaw,
+    StarAttitude,
+    DvlVelocity,
+    UsblFix,
+    InitialNav,
+    Truth,
+    Solution,
+    Faults,
+    Integrity,
+    Health,
 ]
 
 

@@ -23,8 +23,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     e.add_argument("--runs", type=int, default=1)
     e.add_argument("--seed", type=int)
     e.add_argument("--json", action="store_true")
-    e.add_argument("--window", type=float, nargs=2, metavar=("T0", "T1"),
-                   help="also report metrics inside [T0, T1] s from the scenario start")
+    e.add_argument(
+        "--window",
+        type=float,
+        nargs=2,
+        metavar=("T0", "T1"),
+        help="also report metrics inside [T0, T1] s from the scenario start",
+    )
     return ap.parse_args(argv)
 
 
@@ -43,7 +48,9 @@ def main(argv: list[str] | None = None) -> int:
 
         sim = Simulation(scenario, seed=args.seed, vehicle=args.vehicle, prefix=args.prefix)
         try:
-            stats = publish_stream(sim, speed=args.speed, connect=args.connect, zenoh_config=args.zenoh_config)
+            stats = publish_stream(
+                sim, speed=args.speed, connect=args.connect, zenoh_config=args.zenoh_config
+            )
         except MatchTimeout as exc:
             print(f"fednav-sim: {exc}", file=sys.stderr)
             return 3
@@ -56,8 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         print("--runs must be >= 1", file=sys.stderr)
         return 2
     try:
-        result = evaluate(scenario, runs=args.runs, seed=args.seed,
-                          window=tuple(args.window) if args.window else None)
+        result = evaluate(
+            scenario, runs=args.runs, seed=args.seed, window=tuple(args.window) if args.window else None
+        )
     except ConfigError as exc:
         print(exc, file=sys.stderr)
         return 2

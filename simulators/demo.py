@@ -42,8 +42,11 @@ def main(argv: list[str] | None = None) -> int:
         status = wait_idle(port)
         if status and status.get("health"):
             h = status["health"]
-            print(f"service: received {h['received']}, accepted {h['accepted']}, rejected {h['rejected']}, "
-                  f"latency p50 {h['latency_ms']['p50']:.2f} ms p99 {h['latency_ms']['p99']:.2f} ms", flush=True)
+            print(
+                f"service: received {h['received']}, accepted {h['accepted']}, rejected {h['rejected']}, "
+                f"latency p50 {h['latency_ms']['p50']:.2f} ms p99 {h['latency_ms']['p99']:.2f} ms",
+                flush=True,
+            )
     finally:
         svc.signal()
         svc.wait(timeout=60)

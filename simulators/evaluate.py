@@ -72,8 +72,14 @@ def service_config(scenario: Scenario) -> config_mod.ServiceConfig:
     return config_mod.from_dict(dict(scenario.service), f"scenario {scenario.name} [service]")
 
 
-def run_once(scenario: Scenario, seed: int, cfg: config_mod.ServiceConfig | None = None, trajectory=None,
-             keep_solutions: bool = False, vehicle: str = "v1") -> tuple[CollectingSink, Simulation]:
+def run_once(
+    scenario: Scenario,
+    seed: int,
+    cfg: config_mod.ServiceConfig | None = None,
+    trajectory=None,
+    keep_solutions: bool = False,
+    vehicle: str = "v1",
+) -> tuple[CollectingSink, Simulation]:
     cfg = cfg or service_config(scenario)
     sink = CollectingSink(keep_solutions)
     engine = VehicleEngine(vehicle, cfg, sink)
@@ -91,8 +97,9 @@ def _stats(err: np.ndarray) -> tuple[dict, dict]:
     return rms, mx
 
 
-def evaluate(scenario: Scenario, runs: int = 1, seed: int | None = None,
-             window: tuple[float, float] | None = None) -> dict:
+def evaluate(
+    scenario: Scenario, runs: int = 1, seed: int | None = None, window: tuple[float, float] | None = None
+) -> dict:
     """Monte Carlo evaluation; returns the JSON-ready result dict."""
     seed = scenario.seed if seed is None else seed
     cfg = service_config(scenario)
@@ -108,8 +115,13 @@ def evaluate(scenario: Scenario, runs: int = 1, seed: int | None = None,
             p["err"] += rec.err
             p["nees"] += rec.nees
     wall = time.perf_counter() - wall0
-    out = {"scenario": scenario.name, "runs": runs, "seed": seed, "pipelines": {},
-           "timing": {"wall_s": wall, "realtime_factor": runs * scenario.duration_s / wall}}
+    out = {
+        "scenario": scenario.name,
+        "runs": runs,
+        "seed": seed,
+        "pipelines": {},
+        "timing": {"wall_s": wall, "realtime_factor": runs * scenario.duration_s / wall},
+    }
     for name, p in pooled.items():
         if not p["err"]:
             continue
@@ -117,7 +129,9 @@ def evaluate(scenario: Scenario, runs: int = 1, seed: int | None = None,
         rms, mx = _stats(err)
         nees_arr = np.array(p["nees"])
         entry = {
-            "rms": rms, "max": mx, "epochs": len(err),
+            "rms": rms,
+            "max": mx,
+            "epochs": len(err),
             "h_rms_m": float(math.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
@@ -134,8 +148,12 @@ def evaluate(scenario: Scenario, runs: int = 1, seed: int | None = None,
 def format_table(result: dict) -> str:
     cols = ERROR_KEYS
     head = f"{'pipeline':<22}{'':6}" + "".join(f"{c:>13}" for c in cols) + f"{'NEES/9':>9}"
-    lines = [f"scenario {result['scenario']}: {result['runs']} run(s), seed {result['seed']}, "
-             f"{result['timing']['realtime_factor']:.0f}x real time", head, "-" * len(head)]
+    lines = [
+        f"scenario {result['scenario']}: {result['runs']} run(s), seed {result['seed']}, "
+        f"{result['timing']['realtime_factor']:.0f}x real time",
+        head,
+        "-" * len(head),
+    ]
     for name, e in result["pipelines"].items():
         for stat in ("rms", "max"):
             nees_s = f"{e['nees']['mean']:9.2f}" if stat == "rms" else ""
@@ -143,7 +161,9 @@ def format_table(result: dict) -> str:
         if "window" in e:
             w = e["window"]
             for stat in ("rms", "max"):
-                lines.append(f"{'  window ' + str(w['t0']) + '-' + str(w['t1']):<22}{stat:6}"
-                             + "".join(f"{w[stat][c]:13.4f}" for c in cols))
+                lines.append(
+                    f"{'  window ' + str(w['t0']) + '-' + str(w['t1']):<22}{stat:6}"
+                    + "".join(f"{w[stat][c]:13.4f}" for c in cols)
+                )
     lines.append("units: lat_m/lon_m/h_m metres (north/east/up), v m/s, phi arcsec")
     return "\n".join(lines)

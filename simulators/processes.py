@@ -73,8 +73,14 @@ class Proc:
             self.p.wait()
 
 
-def start_service(port: int, *, config: Path | None = None, table: str | None = None, rrd: Path | None = None,
-                  extra: list[str] | None = None) -> Proc:
+def start_service(
+    port: int,
+    *,
+    config: Path | None = None,
+    table: str | None = None,
+    rrd: Path | None = None,
+    extra: list[str] | None = None,
+) -> Proc:
     args = [sys.executable, "-m", "service", "--listen", f"tcp/127.0.0.1:{port}"]
     if config:
         args += ["--config", str(config)]
@@ -88,22 +94,39 @@ def start_service(port: int, *, config: Path | None = None, table: str | None = 
     return proc
 
 
-def start_sim(port: int, scenario: Path, *, speed: float = 0.0, seed: int | None = None, vehicle: str = "v1") -> Proc:
-    args = [sys.executable, "-m", "simulators", "run", str(scenario), "--speed", str(speed),
-            "--connect", f"tcp/127.0.0.1:{port}", "--vehicle", vehicle]
+def start_sim(
+    port: int, scenario: Path, *, speed: float = 0.0, seed: int | None = None, vehicle: str = "v1"
+) -> Proc:
+    args = [
+        sys.executable,
+        "-m",
+        "simulators",
+        "run",
+        str(scenario),
+        "--speed",
+        str(speed),
+        "--connect",
+        f"tcp/127.0.0.1:{port}",
+        "--vehicle",
+        vehicle,
+    ]
     if seed is not None:
         args += ["--seed", str(seed)]
     return Proc(args, "fednav-sim")
 
 
-def query_status(port: int, vehicle: str = "v1", prefix: str = "fednav", timeout_s: float = 5.0) -> dict | None:
+def query_status(
+    port: int, vehicle: str = "v1", prefix: str = "fednav", timeout_s: float = 5.0
+) -> dict | None:
     """Ask the service's status queryable (a plain Zenoh client)."""
     import zenoh
 
     from service.config import ZenohConfig
     from service.transport.zenoh_io import make_config
 
-    with zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"])) as s:
+    with zenoh.open(
+        make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    ) as s:
         for reply in s.get(f"{prefix}/{vehicle}/service/status", timeout=timeout_s):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())

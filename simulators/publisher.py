@@ -21,14 +21,25 @@ class MatchTimeout(RuntimeError):
     pass
 
 
-def publish_stream(stream: Iterable[tuple[str, WireModel]], *, speed: float = 1.0, connect: list[str] | None = None,
-                   listen: list[str] | None = None, zenoh_config: str | None = None,
-                   match_timeout_s: float = 30.0, linger_s: float = 0.5) -> dict:
+def publish_stream(
+    stream: Iterable[tuple[str, WireModel]],
+    *,
+    speed: float = 1.0,
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    zenoh_config: str | None = None,
+    match_timeout_s: float = 30.0,
+    linger_s: float = 0.5,
+) -> dict:
     """Publish (key, message) pairs in order; returns counts and timing."""
     # client mode: the service (a peer) routes our samples to its other clients (dashboards,
     # subscribers); two peers connected only through the service would not see each other
-    cfg = make_config(ZenohConfig(mode="client"), listen=listen or [], connect=connect or ["tcp/127.0.0.1:7447"],
-                      config_file=zenoh_config)
+    cfg = make_config(
+        ZenohConfig(mode="client"),
+        listen=listen or [],
+        connect=connect or ["tcp/127.0.0.1:7447"],
+        config_file=zenoh_config,
+    )
     session = zenoh.open(cfg)
     pubs: dict[str, zenoh.Publisher] = {}
 
@@ -36,8 +47,10 @@ def publish_stream(stream: Iterable[tuple[str, WireModel]], *, speed: float = 1.
         p = pubs.get(key)
         if p is None:
             p = session.declare_publisher(
-                key, encoding=zenoh.Encoding(type(msg).encoding()),
-                congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE,
+                key,
+                encoding=zenoh.Encoding(type(msg).encoding()),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
             )
             pubs[key] = p
         return p

@@ -21,7 +21,7 @@ import zenoh
 from service import keys
 from service.messages import GnssFix, ImuSample
 from simulators.evaluate import run_once
-from simulators.processes import free_port, query_status, start_service, start_sim, wait_idle
+from simulators.processes import free_port, start_service, start_sim, wait_idle
 from simulators.stream import Simulation
 
 from .scenario_utils import SCENARIOS, shortened
@@ -46,14 +46,17 @@ def test_bad_input_is_counted_and_never_reaches_the_filter(tmp_path):
     svc = start_service(port, config=cfg_path, table="service")
     session = _client(port)
     sols: list[dict] = []
-    session.declare_subscriber("fednav/v1/nav/lc/solution", lambda s: sols.append(json.loads(s.payload.to_bytes())))
+    session.declare_subscriber(
+        "fednav/v1/nav/lc/solution", lambda s: sols.append(json.loads(s.payload.to_bytes()))
+    )
     pubs: dict[str, zenoh.Publisher] = {}
 
     def put(key: str, payload: bytes | str) -> None:
         p = pubs.get(key)
         if p is None:
-            p = pubs[key] = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                      reliability=zenoh.Reliability.RELIABLE)
+            p = pubs[key] = session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
+            )
             deadline = time.monotonic() + 10
             while not p.matching_status.matching and time.monotonic() < deadline:
                 time.sleep(0.01)
@@ -61,8 +64,16 @@ def test_bad_input_is_counted_and_never_reaches_the_filter(tmp_path):
 
     imu_key = keys.sensor("v1", "imu", "main")
     gnss_key = keys.sensor("v1", "gnss_fix", "main")
-    expected = {"malformed_json": 0, "schema": 0, "non_finite": 0, "absurd_value": 0, "time_backwards": 0,
-                "duplicate": 0, "late": 0, "unknown_key": 0}
+    expected = {
+        "malformed_json": 0,
+        "schema": 0,
+        "non_finite": 0,
+        "absurd_value": 0,
+        "time_backwards": 0,
+        "duplicate": 0,
+        "late": 0,
+        "unknown_key": 0,
+    }
     try:
         last_imu = last_fix = None
         for key, msg in Simulation(sc, seed=5):
@@ -80,11 +91,24 @@ def test_bad_input_is_counted_and_never_reaches_the_filter(tmp_path):
                 expected["schema"] += 1
                 put(gnss_key, last_fix.to_json().replace(b'"height_m":', b'"height_m":NaN,"x":'))
                 expected["non_finite"] += 1  # NaN plus an unknown field: NaN is the reason given
-                put(imu_key, json.dumps({"t": t + 0.001, "dt_s": 0.01, "dtheta_rad": [float("nan"), 0, 0],
-                                         "dvel_mps": [0, 0, 0]}))
+                put(
+                    imu_key,
+                    json.dumps(
+                        {
+                            "t": t + 0.001,
+                            "dt_s": 0.01,
+                            "dtheta_rad": [float("nan"), 0, 0],
+                            "dvel_mps": [0, 0, 0],
+                        }
+                    ),
+                )
                 expected["non_finite"] += 1
-                put(imu_key, json.dumps({"t": t + 0.001, "dt_s": 0.01, "dtheta_rad": [0, 0, 0],
-                                         "dvel_mps": [1e6, 0, 0]}))
+                put(
+                    imu_key,
+                    json.dumps(
+                        {"t": t + 0.001, "dt_s": 0.01, "dtheta_rad": [0, 0, 0], "dvel_mps": [1e6, 0, 0]}
+                    ),
+                )
                 expected["absurd_value"] += 1
                 put(imu_key, last_imu.model_copy(update={"t": t - 0.5}).to_json())
                 expected["time_backwards"] += 1
@@ -112,8 +136,11 @@ def test_bad_input_is_counted_and_never_reaches_the_filter(tmp_path):
     clean = {round(s.t, 6): s for s in sink.records["lc"].solutions}
     got = {round(d["t"], 6): d for d in sols}
     assert len(got) >= len(clean) - 1 and len(clean) > 350
-    worst = max(max(abs(clean[t].lat_deg - got[t]["lat_deg"]), abs(clean[t].lon_deg - got[t]["lon_deg"]))
-                for t in clean if t in got)
+    worst = max(
+        max(abs(clean[t].lat_deg - got[t]["lat_deg"]), abs(clean[t].lon_deg - got[t]["lon_deg"]))
+        for t in clean
+        if t in got
+    )
     assert worst < 1e-12, worst
 
 
@@ -124,7 +151,9 @@ def test_sigterm_mid_run_leaves_a_complete_recording(tmp_path):
     svc = start_service(port, config=demo, table="service", rrd=rrd)
     session = _client(port)
     sols: list[float] = []
-    session.declare_subscriber("fednav/v1/nav/lc/solution", lambda s: sols.append(json.loads(s.payload.to_bytes())["t"]))
+    session.declare_subscriber(
+        "fednav/v1/nav/lc/solution", lambda s: sols.append(json.loads(s.payload.to_bytes())["t"])
+    )
     sim = start_sim(port, demo, speed=20.0)
     try:
         deadline = time.monotonic() + 60

@@ -10,8 +10,8 @@ uses a 100 s cut of the demo scenario (N = 6 seeds) to stay fast.
 import numpy as np
 from scipy.stats import chi2
 
-from service.engine import VehicleEngine
 from service import keys
+from service.engine import VehicleEngine
 from simulators.evaluate import CollectingSink, service_config
 from simulators.stream import Simulation
 

@@ -32,7 +32,9 @@ def test_llh_ecef_round_trip_and_known_points():
     np.testing.assert_allclose(earth.llh_to_ecef([0.0, 0.0, 0.0]), [earth.A_M, 0, 0], atol=1e-9)
     np.testing.assert_allclose(earth.llh_to_ecef([math.pi / 2, 0.0, 0.0]), [0, 0, earth.B_M], atol=1e-6)
     rng = np.random.default_rng(1)
-    llh = np.column_stack([rng.uniform(-1.5, 1.5, 200), rng.uniform(-3.1, 3.1, 200), rng.uniform(-5e3, 5e4, 200)])
+    llh = np.column_stack(
+        [rng.uniform(-1.5, 1.5, 200), rng.uniform(-3.1, 3.1, 200), rng.uniform(-5e3, 5e4, 200)]
+    )
     back = earth.ecef_to_llh(earth.llh_to_ecef(llh))
     np.testing.assert_allclose(back[:, :2], llh[:, :2], atol=1e-12)
     np.testing.assert_allclose(back[:, 2], llh[:, 2], atol=1e-6)
@@ -79,7 +81,9 @@ def test_quaternions_against_scipy():
         np.testing.assert_allclose(earth.mat_to_quat(ref.as_matrix()), q * np.sign(q[0]), atol=1e-12)
         rv2 = rng.normal(size=3)
         prod = earth.quat_mul(q, earth.rotvec_to_quat(rv2))
-        np.testing.assert_allclose(earth.quat_to_mat(prod), (ref * Rotation.from_rotvec(rv2)).as_matrix(), atol=1e-13)
+        np.testing.assert_allclose(
+            earth.quat_to_mat(prod), (ref * Rotation.from_rotvec(rv2)).as_matrix(), atol=1e-13
+        )
     np.testing.assert_allclose(earth.skew([1, 2, 3]) @ [4, 5, 6], np.cross([1, 2, 3], [4, 5, 6]))
 
 

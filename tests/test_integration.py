@@ -101,7 +101,9 @@ def test_service_publishes_solutions_and_health(demo_run):
 def test_horizontal_error_against_truth_below_5m(demo_run):
     col = demo_run["collector"]
     truth = _truth_by_t(col)
-    errs = [_h_err_m(s, truth[round(s["t"], 6)]) for s in col.of("/nav/lc/solution") if round(s["t"], 6) in truth]
+    errs = [
+        _h_err_m(s, truth[round(s["t"], 6)]) for s in col.of("/nav/lc/solution") if round(s["t"], 6) in truth
+    ]
     assert len(errs) > 2500
     rms = math.sqrt(np.mean(np.square(errs)))
     assert rms < 5.0, f"horizontal RMS {rms:.2f} m"
@@ -136,6 +138,11 @@ def test_in_process_eval_equals_over_zenoh(demo_run):
     worst = 0.0
     for t in common:
         a, b = local[t], remote[t]
-        worst = max(worst, abs(a.lat_deg - b["lat_deg"]), abs(a.lon_deg - b["lon_deg"]),
-                    abs(a.height_m - b["height_m"]) * 1e-5, *(abs(x - y) for x, y in zip(a.vel_enu_mps, b["vel_enu_mps"])))
+        worst = max(
+            worst,
+            abs(a.lat_deg - b["lat_deg"]),
+            abs(a.lon_deg - b["lon_deg"]),
+            abs(a.height_m - b["height_m"]) * 1e-5,
+            *(abs(x - y) for x, y in zip(a.vel_enu_mps, b["vel_enu_mps"], strict=True)),
+        )
     assert worst < 1e-9, worst

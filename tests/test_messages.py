@@ -15,7 +15,9 @@ SCHEMAS = Path(__file__).resolve().parents[1] / "docs" / "schemas"
 
 def test_committed_schemas_match_models():
     expected = json_schemas()
-    on_disk = {p.name.removesuffix(".schema.json"): json.loads(p.read_text()) for p in SCHEMAS.glob("*.schema.json")}
+    on_disk = {
+        p.name.removesuffix(".schema.json"): json.loads(p.read_text()) for p in SCHEMAS.glob("*.schema.json")
+    }
     assert set(on_disk) == {m.__name__ for m in ALL_MESSAGES}, "run `make schemas` and commit docs/schemas"
     for name, schema in expected.items():
         assert on_disk[name] == json.loads(json.dumps(schema)), f"{name} schema drifted: run `make schemas`"

@@ -139,9 +139,15 @@ class SatArrays:
     def take(self, idx) -> SatArrays:
         idx = np.asarray(idx, dtype=int)
         return SatArrays(
-            tuple(self.ids[i] for i in idx), self.pseudorange_m[idx], self.range_rate_mps[idx],
-            self.pseudorange_sigma_m[idx], self.range_rate_sigma_mps[idx], self.sat_pos_ecef_m[idx].reshape(-1, 3),
-            self.sat_vel_ecef_mps[idx].reshape(-1, 3), self.sat_clock_m[idx], self.sat_clock_drift_mps[idx],
+            tuple(self.ids[i] for i in idx),
+            self.pseudorange_m[idx],
+            self.range_rate_mps[idx],
+            self.pseudorange_sigma_m[idx],
+            self.range_rate_sigma_mps[idx],
+            self.sat_pos_ecef_m[idx].reshape(-1, 3),
+            self.sat_vel_ecef_mps[idx].reshape(-1, 3),
+            self.sat_clock_m[idx],
+            self.sat_clock_drift_mps[idx],
         )
 
 
@@ -218,7 +224,9 @@ class RawRows:
     ids: tuple[str, ...]
 
 
-def raw_rows(pred: Predicted, sats: SatArrays, use_range_rate: bool = True, n_states: int = N_STATES_TC) -> RawRows:
+def raw_rows(
+    pred: Predicted, sats: SatArrays, use_range_rate: bool = True, n_states: int = N_STATES_TC
+) -> RawRows:
     """Rows of the tightly coupled EKF (module docstring for the derivation and signs)."""
     n = len(sats.ids)
     H_pr = np.zeros((n, n_states))
@@ -238,8 +246,14 @@ def raw_rows(pred: Predicted, sats: SatArrays, use_range_rate: bool = True, n_st
         r.append(np.square(sats.range_rate_sigma_mps))
         row_sat.append(np.arange(n))
         labels += [f"{s}.rr" for s in sats.ids]
-    return RawRows(np.concatenate(z), np.concatenate(H), np.concatenate(r), np.concatenate(row_sat),
-                   tuple(labels), sats.ids)
+    return RawRows(
+        np.concatenate(z),
+        np.concatenate(H),
+        np.concatenate(r),
+        np.concatenate(row_sat),
+        tuple(labels),
+        sats.ids,
+    )
 
 
 def clock_from_residuals(rx: Receiver, sats: SatArrays) -> tuple[float, float]:
@@ -248,7 +262,9 @@ def clock_from_residuals(rx: Receiver, sats: SatArrays) -> tuple[float, float]:
     any fault go into it, which the clock prior's sigma must cover)."""
     rx0 = Receiver(rx.pos_ecef_m, rx.vel_ecef_mps, rx.mat_en, 0.0, 0.0)
     p = predict(rx0, sats)
-    return float(np.mean(sats.pseudorange_m - p.pseudorange_m)), float(np.mean(sats.range_rate_mps - p.range_rate_mps))
+    return float(np.mean(sats.pseudorange_m - p.pseudorange_m)), float(
+        np.mean(sats.range_rate_mps - p.range_rate_mps)
+    )
 
 
 def elevation_mask(pred: Predicted, mask_deg: float) -> np.ndarray:
@@ -257,7 +273,22 @@ def elevation_mask(pred: Predicted, mask_deg: float) -> np.ndarray:
 
 
 __all__ = [
-    "CLK_BIAS", "CLK_DRIFT", "CLOCK", "N_STATES_TC", "RANGE_ITERATIONS", "Predicted", "RangeGeometry", "RawRows",
-    "Receiver", "SatArrays", "clock_from_residuals", "earth_rotation_matrices", "elevation_mask", "predict",
-    "range_geometry", "raw_rows", "receiver_from_nav", "sat_arrays",
+    "CLK_BIAS",
+    "CLK_DRIFT",
+    "CLOCK",
+    "N_STATES_TC",
+    "RANGE_ITERATIONS",
+    "Predicted",
+    "RangeGeometry",
+    "RawRows",
+    "Receiver",
+    "SatArrays",
+    "clock_from_residuals",
+    "earth_rotation_matrices",
+    "elevation_mask",
+    "predict",
+    "range_geometry",
+    "raw_rows",
+    "receiver_from_nav",
+    "sat_arrays",
 ]

@@ -32,8 +32,15 @@ class InsFilterBank:
         Discrete model of the private states (block diagonal with the INS states).
     """
 
-    def __init__(self, nav: NavState, P0: np.ndarray, noise: em.ImuNoise, bank_size: int = 1,
-                 major_interval_s: float = 0.1, private_model=None):
+    def __init__(
+        self,
+        nav: NavState,
+        P0: np.ndarray,
+        noise: em.ImuNoise,
+        bank_size: int = 1,
+        major_interval_s: float = 0.1,
+        private_model=None,
+    ):
         self.ins = Ins(nav, major_interval_s)
         self.noise = noise
         P0 = np.asarray(P0, dtype=float)

@@ -127,4 +127,13 @@ class ExclusionBook:
         self.entries.clear()
 
 
-__all__ = ["PHASES", "Assessment", "ExclusionBook", "PhaseLimits", "assess", "limits", "n_families", "uses_vertical"]
+__all__ = [
+    "PHASES",
+    "Assessment",
+    "ExclusionBook",
+    "PhaseLimits",
+    "assess",
+    "limits",
+    "n_families",
+    "uses_vertical",
+]

@@ -38,11 +38,16 @@ def gnss_fix(nav: NavState, msg: GnssFix, n_states: int = em.N_STATES, dt_late_s
     lat, lon = math.radians(msg.lat_deg), math.radians(msg.lon_deg)
     r_m, r_n = earth.radii(nav.lat_rad)
     vel = np.asarray(msg.vel_enu_mps, dtype=float)
-    dp = np.array([
-        (nav.lon_rad - lon) * (r_n + nav.h_m) * math.cos(nav.lat_rad),
-        (nav.lat_rad - lat) * (r_m + nav.h_m),
-        nav.h_m - msg.height_m,
-    ]) - vel * dt_late_s
+    dp = (
+        np.array(
+            [
+                (nav.lon_rad - lon) * (r_n + nav.h_m) * math.cos(nav.lat_rad),
+                (nav.lat_rad - lat) * (r_m + nav.h_m),
+                nav.h_m - msg.height_m,
+            ]
+        )
+        - vel * dt_late_s
+    )
     z = np.concatenate([dp, nav.vel_enu_mps - vel])
     H = np.zeros((6, n_states))
     H[0:3, em.POS] = np.eye(3)

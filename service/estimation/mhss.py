@@ -111,7 +111,11 @@ def horizontal_false_alarm_probability(dP_h: np.ndarray, k: float) -> float:
 
     def f(z2: float) -> float:
         rest = k * k - rho * z2 * z2
-        return math.exp(-0.5 * z2 * z2) / math.sqrt(2.0 * math.pi) * (2.0 * special.ndtr(-math.sqrt(rest)) if rest > 0 else 1.0)
+        return (
+            math.exp(-0.5 * z2 * z2)
+            / math.sqrt(2.0 * math.pi)
+            * (2.0 * special.ndtr(-math.sqrt(rest)) if rest > 0 else 1.0)
+        )
 
     val, _ = integrate.quad(f, -np.inf, np.inf, limit=200, epsabs=1e-13)
     return float(val)
@@ -123,8 +127,14 @@ def cross_predict(blocks: np.ndarray, Phi: np.ndarray, Qd: np.ndarray) -> np.nda
     return Phi @ blocks @ Phi.T + Qd
 
 
-def cross_update(P_ab: np.ndarray, IKH_a: np.ndarray, IKH_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray,
-                 r_var: np.ndarray) -> np.ndarray:
+def cross_update(
+    P_ab: np.ndarray,
+    IKH_a: np.ndarray,
+    IKH_b: np.ndarray,
+    K_a: np.ndarray,
+    K_b: np.ndarray,
+    r_var: np.ndarray,
+) -> np.ndarray:
     """P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b' with R = diag(r_var) (the true noise).
 
     Shapes: P_ab (..., n, n); IKH_* (..., n, n); K_* (..., n, m); r_var (m,).
@@ -149,7 +159,7 @@ def _solve_upper_from_lower(L: np.ndarray, Y: np.ndarray, inv_diag: np.ndarray) 
     X = np.empty_like(Y)
     X[:, m - 1] = Y[:, m - 1] * inv_diag[:, m - 1, None]
     for i in range(m - 2, -1, -1):
-        X[:, i] = (Y[:, i] - (L[:, None, i + 1:, i] @ X[:, i + 1:])[:, 0]) * inv_diag[:, i, None]
+        X[:, i] = (Y[:, i] - (L[:, None, i + 1 :, i] @ X[:, i + 1 :])[:, 0]) * inv_diag[:, i, None]
     return X
 
 
@@ -207,9 +217,17 @@ class SeparationTests:
         return r
 
 
-def solution_separation(x_ref: np.ndarray, P_ref: np.ndarray, x_sub: np.ndarray, P_sub: np.ndarray,
-                        P_cross: np.ndarray, kfa: float, kmd: float,
-                        h_idx: Sequence[int] = H_IDX, v_idx: int = V_IDX) -> SeparationTests:
+def solution_separation(
+    x_ref: np.ndarray,
+    P_ref: np.ndarray,
+    x_sub: np.ndarray,
+    P_sub: np.ndarray,
+    P_cross: np.ndarray,
+    kfa: float,
+    kmd: float,
+    h_idx: Sequence[int] = H_IDX,
+    v_idx: int = V_IDX,
+) -> SeparationTests:
     """Tests of a reference filter against N children (seed 001 eq 27-32).
 
     x_ref (n,), P_ref (n, n); x_sub (N, n), P_sub (N, n, n); P_cross (N, n, n) = Cov(e_ref, e_sub).
@@ -277,26 +295,51 @@ class MhssBank:
     h_idx, v_idx : horizontal (2) and vertical state indices of the tests.
     """
 
-    def __init__(self, sats: Sequence[str], x: np.ndarray, blocks: np.ndarray, depth: int,
-                 h_idx: Sequence[int] = H_IDX, v_idx: int = V_IDX):
+    def __init__(
+        self,
+        sats: Sequence[str],
+        x: np.ndarray,
+        blocks: np.ndarray,
+        depth: int,
+        h_idx: Sequence[int] = H_IDX,
+        v_idx: int = V_IDX,
+    ):
         self.sats = tuple(sats)
         self.depth = int(depth)
         self.h_idx = tuple(h_idx)
         self.v_idx = int(v_idx)
         N = len(self.sats)
-        (self.members, self.index, self.pa, self.pb, self.main_blocks, self.sub_blocks, self.subsub_members,
-         self.excl) = _layout(N, self.depth if N > 0 else 0)
+        (
+            self.members,
+            self.index,
+            self.pa,
+            self.pb,
+            self.main_blocks,
+            self.sub_blocks,
+            self.subsub_members,
+            self.excl,
+        ) = _layout(N, self.depth if N > 0 else 0)
         B = len(self.members)
         if x.shape[0] != B or blocks.shape[0] != len(self.pa):
-            raise ValueError(f"bank of {N} satellites at depth {depth} needs {B} members and {len(self.pa)} blocks")
+            raise ValueError(
+                f"bank of {N} satellites at depth {depth} needs {B} members and {len(self.pa)} blocks"
+            )
         self.x = np.array(x, dtype=float)
         self.blocks = np.array(blocks, dtype=float)
         self.n = self.x.shape[1]
+        self.sources: np.ndarray | None = None  # after rebuild: old member index of each member
 
     # --- construction -----------------------------------------------------------------------------
     @classmethod
-    def initial(cls, x0: np.ndarray, P0: np.ndarray, sats: Sequence[str] = (), depth: int = 2,
-                h_idx: Sequence[int] = H_IDX, v_idx: int = V_IDX) -> MhssBank:
+    def initial(
+        cls,
+        x0: np.ndarray,
+        P0: np.ndarray,
+        sats: Sequence[str] = (),
+        depth: int = 2,
+        h_idx: Sequence[int] = H_IDX,
+        v_idx: int = V_IDX,
+    ) -> MhssBank:
         """Every member starts from the same prior (x0, P0): all blocks = P0 (DESIGN init)."""
         N = len(sats)
         members, _, pa, *_ = _layout(N, depth if N > 0 else 0)
@@ -364,7 +407,9 @@ class MhssBank:
                 raise RuntimeError(f"rebuild: no cross-covariance for old members {key}")
         blocks = self.blocks[idx]
         blocks[trans] = np.swapaxes(blocks[trans], 1, 2)
-        return MhssBank(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx)
+        out = MhssBank(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx)
+        out.sources = src
+        return out
 
     # --- filtering ---------------------------------------------------------------------------------
     def predict(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
@@ -422,12 +467,12 @@ class MhssBank:
         out[:B] = symmetrise(IKH @ self.blocks[:B] @ IKHt + KR @ Kt)
         if self.depth >= 1 and N:
             subs = slice(1, 1 + N)
-            out[B:B + N] = IKH[0] @ self.blocks[B:B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
+            out[B : B + N] = IKH[0] @ self.blocks[B : B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
             if self.depth >= 2 and N > 1:
                 mem = self.subsub_members  # (N, N-1)
-                blk = self.blocks[B + N:].reshape(N, N - 1, n, n)
+                blk = self.blocks[B + N :].reshape(N, N - 1, n, n)
                 a, ka = IKH[subs][:, None], KR[subs][:, None]
-                out[B + N:] = (a @ blk @ IKHt[mem] + ka @ Kt[mem]).reshape(-1, n, n)
+                out[B + N :] = (a @ blk @ IKHt[mem] + ka @ Kt[mem]).reshape(-1, n, n)
         return out
 
     def shift(self, dx: np.ndarray) -> None:
@@ -439,11 +484,21 @@ class MhssBank:
         """Main filter against every sub-filter (detection and protection levels)."""
         if self.depth < 1 or self.N == 0:
             none = np.zeros((0, self.n, self.n))
-            return solution_separation(self.x[0], self.P[0], np.zeros((0, self.n)), none, none, kfa, kmd,
-                                       self.h_idx, self.v_idx)
+            return solution_separation(
+                self.x[0], self.P[0], np.zeros((0, self.n)), none, none, kfa, kmd, self.h_idx, self.v_idx
+            )
         subs = 1 + np.arange(self.N)
-        return solution_separation(self.x[0], self.P[0], self.x[subs], self.P[subs], self.blocks[self.main_blocks],
-                                   kfa, kmd, self.h_idx, self.v_idx)
+        return solution_separation(
+            self.x[0],
+            self.P[0],
+            self.x[subs],
+            self.P[subs],
+            self.blocks[self.main_blocks],
+            kfa,
+            kmd,
+            self.h_idx,
+            self.v_idx,
+        )
 
     def sub_tests(self, r: int, kfa: float, kmd: float) -> SeparationTests:
         """Sub-filter r against its sub-sub filters (r, m), m != r (in satellite order, skipping r)."""
@@ -451,24 +506,38 @@ class MhssBank:
             raise ValueError("sub-sub filters are off (depth < 2)")
         s = 1 + r
         mem = self.subsub_members[r]
-        return solution_separation(self.x[s], self.P[s], self.x[mem], self.P[mem], self.blocks[self.sub_blocks[r]],
-                                   kfa, kmd, self.h_idx, self.v_idx)
+        return solution_separation(
+            self.x[s],
+            self.P[s],
+            self.x[mem],
+            self.P[mem],
+            self.blocks[self.sub_blocks[r]],
+            kfa,
+            kmd,
+            self.h_idx,
+            self.v_idx,
+        )
 
-    def find_exclusion(self, tests: SeparationTests, p_fa: float, kmd: float, use_vertical: bool,
-                       n_families: int = 1) -> int | None:
+    def find_exclusion(
+        self, tests: SeparationTests, p_fa: float, kmd: float, use_vertical: bool, n_families: int = 1
+    ) -> int | None:
         """Satellite index to exclude after a detection, or None (module docstring "Exclusion")."""
         if self.depth < 2 or self.N < 2:
             return None
         kfa_sub = k_fa(p_fa, (self.N - 1) * n_families)
         failed = np.flatnonzero(tests.flagged(use_vertical))
-        cands = [int(r) for r in failed if not np.any(self.sub_tests(int(r), kfa_sub, kmd).flagged(use_vertical))]
+        cands = [
+            int(r) for r in failed if not np.any(self.sub_tests(int(r), kfa_sub, kmd).flagged(use_vertical))
+        ]
         if not cands:
             return None
         score = tests.normalised(use_vertical)
         return max(cands, key=lambda r: score[r])
 
 
-def residual_test(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray) -> np.ndarray:
+def residual_test(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray
+) -> np.ndarray:
     """Standardised innovations (m,) of rows (z, H, r_var) against a filter (x, P):
     (z - H x) / sqrt(H P H' + r), one per row (used to re-admit an excluded satellite)."""
     s = np.einsum("ij,jk,ik->i", H, P, H) + r_var
@@ -476,7 +545,18 @@ def residual_test(x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_
 
 
 __all__ = [
-    "BankUpdate", "H_IDX", "MhssBank", "SeparationTests", "V_IDX", "cross_predict", "cross_update",
-    "horizontal_false_alarm_probability", "k_fa", "k_md", "lambda_max_2x2", "q_inv", "residual_test",
+    "BankUpdate",
+    "H_IDX",
+    "MhssBank",
+    "SeparationTests",
+    "V_IDX",
+    "cross_predict",
+    "cross_update",
+    "horizontal_false_alarm_probability",
+    "k_fa",
+    "k_md",
+    "lambda_max_2x2",
+    "q_inv",
+    "residual_test",
     "solution_separation",
 ]

@@ -1,7 +1,7 @@
 """15-state INS error model (phi-angle form, ENU) and its discretisation.
 
 State order (the papers' layout, seed 000):
-    x = [dp_e, dp_n, dp_u,  dv_e, dv_n, dv_u,  phi_e, phi_n, phi_u,  eps_x, eps_y, eps_z,  nab_x, nab_y, nab_z]
+    x = [dp_e, dp_n, dp_u, dv_e, dv_n, dv_u, phi_e, phi_n, phi_u, eps_x, eps_y, eps_z, nab_x, nab_y, nab_z]
     dp   position error, ENU metres (computed minus true). The papers use (dLat, dLon, dh) in
          radians; metres are the same model under the constant scaling diag((R_N+h)cos L, R_M+h, 1)
          and are far better conditioned numerically. Eval reports lat_m/lon_m/h_m from it.
@@ -36,8 +36,21 @@ from service import earth
 N_STATES = 15
 POS, VEL, ATT, GYRO, ACC = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 STATE_LABELS = (
-    "dp_e", "dp_n", "dp_u", "dv_e", "dv_n", "dv_u", "phi_e", "phi_n", "phi_u",
-    "eps_x", "eps_y", "eps_z", "nab_x", "nab_y", "nab_z",
+    "dp_e",
+    "dp_n",
+    "dp_u",
+    "dv_e",
+    "dv_n",
+    "dv_u",
+    "phi_e",
+    "phi_n",
+    "phi_u",
+    "eps_x",
+    "eps_y",
+    "eps_z",
+    "nab_x",
+    "nab_y",
+    "nab_z",
 )
 
 
@@ -55,8 +68,9 @@ class ImuNoise:
     accel_bias_rw: float = 0.0
 
 
-def continuous_F(lat_rad: float, h_m: float, vel_enu_mps: np.ndarray, mat_nb: np.ndarray,
-                 f_n_mps2: np.ndarray) -> np.ndarray:
+def continuous_F(
+    lat_rad: float, h_m: float, vel_enu_mps: np.ndarray, mat_nb: np.ndarray, f_n_mps2: np.ndarray
+) -> np.ndarray:
     """Continuous-time error dynamics matrix F (15x15) in the state order of this module."""
     sl, cl = math.sin(lat_rad), math.cos(lat_rad)
     tl, secl = sl / cl, 1.0 / cl
@@ -70,11 +84,13 @@ def continuous_F(lat_rad: float, h_m: float, vel_enu_mps: np.ndarray, mat_nb: np
 
     # PSINS etm blocks with position states (dL, dlon, dh) in radians
     Mp1 = np.array([[0.0, 0.0, 0.0], [-wie[2], 0.0, 0.0], [wie[1], 0.0, 0.0]])
-    Mp2 = np.array([
-        [0.0, 0.0, vn / rmh**2],
-        [0.0, 0.0, -ve / rnh**2],
-        [ve * secl**2 / rnh, 0.0, -ve * tl / rnh**2],
-    ])
+    Mp2 = np.array(
+        [
+            [0.0, 0.0, vn / rmh**2],
+            [0.0, 0.0, -ve / rnh**2],
+            [ve * secl**2 / rnh, 0.0, -ve * tl / rnh**2],
+        ]
+    )
     Maa = -earth.skew(win)
     Mav = np.array([[0.0, -1.0 / rmh, 0.0], [1.0 / rnh, 0.0, 0.0], [tl / rnh, 0.0, 0.0]])
     Map = Mp1 + Mp2
@@ -87,7 +103,9 @@ def continuous_F(lat_rad: float, h_m: float, vel_enu_mps: np.ndarray, mat_nb: np
     Mvp[2, 0] -= g0 * (5.27094e-3 * 2.0 * sl * cl + 2.32718e-5 * 4.0 * sl * sl * sl * cl)
     Mvp[2, 2] += 3.086e-6
     Mpv = np.array([[0.0, 1.0 / rmh, 0.0], [secl / rnh, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    Mpp = np.array([[0.0, 0.0, -vn / rmh**2], [ve * secl * tl / rnh, 0.0, -ve * secl / rnh**2], [0.0, 0.0, 0.0]])
+    Mpp = np.array(
+        [[0.0, 0.0, -vn / rmh**2], [ve * secl * tl / rnh, 0.0, -ve * secl / rnh**2], [0.0, 0.0, 0.0]]
+    )
 
     # Convert position blocks to ENU metres: dp = D dllh, D = [[0, rnh cl, 0], [rmh, 0, 0], [0, 0, 1]]
     D = np.array([[0.0, rnh * cl, 0.0], [rmh, 0.0, 0.0], [0.0, 0.0, 1.0]])

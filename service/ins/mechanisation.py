@@ -59,8 +59,14 @@ class NavState:
 
     def copy(self) -> NavState:
         return NavState(
-            self.t, self.lat_rad, self.lon_rad, self.h_m, self.vel_enu_mps.copy(), self.q_nb.copy(),
-            self.gyro_bias_rps.copy(), self.accel_bias_mps2.copy(),
+            self.t,
+            self.lat_rad,
+            self.lon_rad,
+            self.h_m,
+            self.vel_enu_mps.copy(),
+            self.q_nb.copy(),
+            self.gyro_bias_rps.copy(),
+            self.accel_bias_mps2.copy(),
         )
 
 
@@ -211,8 +217,14 @@ class Ins:
     _prev_T = 0.1
 
     # --- closed-loop feedback ----------------------------------------------------------------
-    def correct(self, dp_enu_m: np.ndarray, dv_enu_mps: np.ndarray, phi_rad: np.ndarray,
-                d_gyro_bias_rps: np.ndarray, d_accel_bias_mps2: np.ndarray) -> None:
+    def correct(
+        self,
+        dp_enu_m: np.ndarray,
+        dv_enu_mps: np.ndarray,
+        phi_rad: np.ndarray,
+        d_gyro_bias_rps: np.ndarray,
+        d_accel_bias_mps2: np.ndarray,
+    ) -> None:
         """Absorb estimated errors (computed minus true) into the state.
 
         Must be called with no pending minor-loop time (call :meth:`major_update` first).

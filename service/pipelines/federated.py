@@ -81,6 +81,7 @@ class _CorePipeline(Pipeline):
         self.bank: InsFilterBank | None = None
         self.core: FederatedCore | None = None
         self._version = 0
+        self._epoch_t: float | None = None  # time of an aiding epoch whose fusion is pending
         self._fused_key: tuple | None = None
         self._fused_P: np.ndarray | None = None
 
@@ -95,27 +96,37 @@ class _CorePipeline(Pipeline):
         self.core = FederatedCore(self.bank, n_locals, self.strategy, reset=self.reset_mode,
                                   master_share=self.master_share, floor_share=self.floor_share)
         self.core.start()
+        self._epoch_t = None
         for ch in self.channels.values():
             ch.test.reset()
         self._version += 1
         self.status = "aligned"
 
     def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
+        if self._epoch_t is not None:
+            self._end_epoch()  # time moves on: the aiding epoch is complete
         self.bank.push_imu(dtheta_rad, dvel_mps, dt_s)
 
     def sync(self) -> None:
         self.bank.sync()
+
+    def _end_epoch(self) -> None:
+        """Seed 000 algorithm 2 once per aiding epoch: master fusion, reset, feedback."""
+        self._epoch_t = None
+        self._version += 1
+        self.core.fuse_and_reset()
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         ch = self.channels.get(kind)
         if ch is None:
             return []
         bank, core = self.bank, self.core
+        if self._epoch_t is not None and bank.t != self._epoch_t:
+            self._end_epoch()
         meas = MEASUREMENT_MODELS[kind](bank.nav(), msg, bank.n, dt_late_s)
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
-        core.fuse_and_reset()
-        self._version += 1
+        self._epoch_t = bank.t  # fusion when the epoch ends (next IMU data, or an output request)
         if upd.rows_used:
             self.updates += 1
             self.status = "aided"
@@ -132,6 +143,8 @@ class _CorePipeline(Pipeline):
                        sharing=self.sharing_report())]
 
     def estimate(self) -> Estimate:
+        if self._epoch_t is not None:
+            self._end_epoch()
         return Estimate(self.bank.nav(), self.fused_covariance()[:9, :9])
 
     # --- federated outputs ------------------------------------------------------------------------

@@ -28,8 +28,9 @@ class LooselyCoupled(Pipeline):
     def initialise(self, nav: NavState, std: InitStd) -> None:
         if self.bank is not None:
             self.reinitialisations += 1
-        self.bank = InsFilterBank(nav, initial_covariance(std, self.imu), self.imu.noise(),
-                                  major_interval_s=self.major_interval_s)
+        self.bank = InsFilterBank(
+            nav, initial_covariance(std, self.imu), self.imu.noise(), major_interval_s=self.major_interval_s
+        )
         self.status = "aligned"
 
     def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
@@ -48,7 +49,10 @@ class LooselyCoupled(Pipeline):
         else:
             return []
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
-        if self.cfg.innovation_gate_sigma is not None and np.max(np.abs(res.standardised)) > self.cfg.innovation_gate_sigma:
+        if (
+            self.cfg.innovation_gate_sigma is not None
+            and np.max(np.abs(res.standardised)) > self.cfg.innovation_gate_sigma
+        ):
             return []
         if not kalman.is_positive_definite(P)[0]:
             # numerical health: flag and keep the prior rather than continue on a broken P

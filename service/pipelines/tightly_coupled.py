@@ -78,14 +78,22 @@ class TightInsBank(InsFilterBank):
     corrects the clock reference.
     """
 
-    def __init__(self, nav: NavState, P0: np.ndarray, noise: em.ImuNoise, clock: ClockModel,
-                 major_interval_s: float = 0.1, depth: int = 2):
+    def __init__(
+        self,
+        nav: NavState,
+        P0: np.ndarray,
+        noise: em.ImuNoise,
+        clock: ClockModel,
+        major_interval_s: float = 0.1,
+        depth: int = 2,
+    ):
         self.mhss = MhssBank.initial(np.zeros(N_STATES), P0, (), depth)
         self.clock = clock
         self.clock_ref = np.zeros(2)  # [bias_m, drift_mps]: the clock's linearisation point
         self._clock_cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
-        super().__init__(nav, P0, noise, bank_size=1, major_interval_s=major_interval_s,
-                         private_model=self.clock_model)
+        super().__init__(
+            nav, P0, noise, bank_size=1, major_interval_s=major_interval_s, private_model=self.clock_model
+        )
 
     # the members live in the MHSS bank (the base class assigns x/P once in __init__: ignored)
     @property
@@ -103,6 +111,14 @@ class TightInsBank(InsFilterBank):
 
     @P.setter
     def P(self, value: np.ndarray) -> None:
+        pass
+
+    @property
+    def B(self) -> int:
+        return self.mhss.B
+
+    @B.setter
+    def B(self, value: int) -> None:
         pass
 
     def clock_model(self, T: float) -> tuple[np.ndarray, np.ndarray]:
@@ -184,8 +200,8 @@ class TightlyCoupled(Pipeline):
         self.last = None
         self.status = "aligned"
 
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
-        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s)
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
+        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
 
     def sync(self) -> None:
         self.bank.sync()
@@ -226,17 +242,25 @@ class TightlyCoupled(Pipeline):
                 health[sid] = bool(np.all(np.abs(std) <= self.k_single))
         readmitted = tuple(self.book.observe(msg.t, health))
 
-        used = tuple(sid for i, sid in enumerate(sats.ids) if visible[i] and sid not in self.book)
+        # a satellite listed twice in one message: only its first observation is used
+        first = {sid: i for i, sid in reversed(list(enumerate(sats.ids)))}
+        used = tuple(
+            sid for i, sid in enumerate(sats.ids) if visible[i] and sid not in self.book and first[sid] == i
+        )
         if set(used) != set(mh.sats):
             mh = bank.mhss = mh.rebuild(used)
         upd = None
         if used:
             col = {sid: j for j, sid in enumerate(mh.sats)}
-            sat_col = np.array([col.get(sid, -1) for sid in sats.ids])
+            sat_col = np.array(
+                [col.get(sid, -1) if first[sid] == i else -1 for i, sid in enumerate(sats.ids)]
+            )
             sel = sat_col[rows.row_sat] >= 0
+            x_prior, blocks_prior = mh.x, mh.blocks  # update() replaces (never mutates) these arrays
             upd = mh.update(rows.z[sel], rows.H[sel], rows.r_var[sel], sat_col[rows.row_sat[sel]])
             if not is_positive_definite(mh.P[:1])[0]:
-                # numerical health: flag; the engine/operator re-initialises (DESIGN reliability rules)
+                # numerical health: keep the prior, flag the pipeline (DESIGN reliability rules)
+                mh.x, mh.blocks = x_prior, blocks_prior
                 self.status = "fault"
                 return []
             bank.feedback(mh.x[0].copy())
@@ -262,16 +286,36 @@ class TightlyCoupled(Pipeline):
                 resolved = not bool(np.any(tests.flagged(usev)))
         verdict = integrity.assess(tests.hpl, tests.vpl, cfg.phase, detected, resolved)
         self.last = EpochResult(msg.t, mh.sats, upd, tests, detected, excluded_now, resolved, readmitted)
-        sat_tests = [
-            SatelliteTest(id=sid, statistic_m=float(tests.d_h[j]), threshold_m=float(tests.T_h[j]),
-                          vertical_statistic_m=float(tests.d_v[j]), vertical_threshold_m=float(tests.T_v[j]))
-            for j, sid in enumerate(mh.sats)
-        ] if len(tests.d_h) else []
-        return [Integrity(
-            t=msg.t, pipeline=self.name, phase=cfg.phase, hpl_m=float(tests.hpl), vpl_m=float(tests.vpl),
-            hal_m=self.limits.hal_m, val_m=self.limits.val_m, alarm=verdict.alarm, available=verdict.available,
-            detected=detected, excluded=self.book.ids, satellites=sat_tests,
-        )]
+        sat_tests = (
+            [
+                SatelliteTest(
+                    id=sid,
+                    statistic_m=float(tests.d_h[j]),
+                    threshold_m=float(tests.T_h[j]),
+                    vertical_statistic_m=float(tests.d_v[j]),
+                    vertical_threshold_m=float(tests.T_v[j]),
+                )
+                for j, sid in enumerate(mh.sats)
+            ]
+            if len(tests.d_h)
+            else []
+        )
+        return [
+            Integrity(
+                t=msg.t,
+                pipeline=self.name,
+                phase=cfg.phase,
+                hpl_m=float(tests.hpl),
+                vpl_m=float(tests.vpl),
+                hal_m=self.limits.hal_m,
+                val_m=self.limits.val_m,
+                alarm=verdict.alarm,
+                available=verdict.available,
+                detected=detected,
+                excluded=self.book.ids,
+                satellites=sat_tests,
+            )
+        ]
 
 
 __all__ = ["EpochResult", "TightInsBank", "TightlyCoupled", "clock_transition"]

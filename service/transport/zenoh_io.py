@@ -19,8 +19,12 @@ from service.config import ZenohConfig
 from service.messages import WireModel
 
 
-def make_config(zc: ZenohConfig | None = None, listen: list[str] | None = None,
-                connect: list[str] | None = None, config_file: str | None = None) -> zenoh.Config:
+def make_config(
+    zc: ZenohConfig | None = None,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    config_file: str | None = None,
+) -> zenoh.Config:
     """Explicit endpoints, multicast scouting off unless asked; a json5 file overrides everything."""
     path = config_file or (str(zc.config_file) if zc and zc.config_file else None)
     if path:
@@ -48,7 +52,9 @@ class Publishers:
             pub = self._pubs.get(key)
             if pub is None:
                 pub = self.session.declare_publisher(
-                    key, encoding=zenoh.Encoding(msg_type.encoding()), congestion_control=self.cc,
+                    key,
+                    encoding=zenoh.Encoding(msg_type.encoding()),
+                    congestion_control=self.cc,
                     reliability=zenoh.Reliability.RELIABLE,
                 )
                 self._pubs[key] = pub
@@ -70,10 +76,17 @@ class Publishers:
 class Intake:
     """Subscribes to input keys and hands (wall_time, key, payload) to ``deliver`` from a thread."""
 
-    def __init__(self, session: zenoh.Session, key_exprs: list[str], deliver: Callable[[float, str, bytes], None],
-                 capacity: int = 4096):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_exprs: list[str],
+        deliver: Callable[[float, str, bytes], None],
+        capacity: int = 4096,
+    ):
         self._subs = [
-            session.declare_subscriber(k, zenoh.handlers.FifoChannel(capacity), allowed_origin=zenoh.Locality.REMOTE)
+            session.declare_subscriber(
+                k, zenoh.handlers.FifoChannel(capacity), allowed_origin=zenoh.Locality.REMOTE
+            )
             for k in key_exprs
         ]
         self._deliver = deliver
@@ -129,8 +142,9 @@ class QueryServer:
                     got = True
                     try:
                         key = str(query.key_expr)
-                        query.reply(query.key_expr, self._answer(key),
-                                    encoding=zenoh.Encoding("application/json"))
+                        query.reply(
+                            query.key_expr, self._answer(key), encoding=zenoh.Encoding("application/json")
+                        )
                     except Exception as exc:  # a bad query must not kill the server
                         try:
                             query.reply_err(str(exc))
