@@ -217,7 +217,7 @@ class VehicleEngine:
                 outputs = p.apply(kind, sensor_id, msg, dt_late)
             except np.linalg.LinAlgError:
                 self.rejected["numerical"] += 1
-                p.status = "fault"
+                p.recover_covariance()
                 continue
             err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:

@@ -65,6 +65,24 @@ class Pipeline(ABC):
         self.status = "initialising"
         self.updates = 0
         self.reinitialisations = 0
+        self.last_aiding_t: float | None = None
+
+    #: without aiding for longer than this, an aided pipeline reports ``ins_only``
+    ins_only_after_s: float = 3.0
+
+    def mark_aided(self, t: float) -> None:
+        self.last_aiding_t = t
+        self.updates += 1
+        self.status = "aided"
+
+    def current_status(self, t: float) -> str:
+        if (
+            self.status == "aided"
+            and self.last_aiding_t is not None
+            and t - self.last_aiding_t > self.ins_only_after_s
+        ):
+            return "ins_only"
+        return self.status
 
     @abstractmethod
     def initialise(self, nav: NavState, std: InitStd) -> None: ...
@@ -81,6 +99,14 @@ class Pipeline(ABC):
 
     @abstractmethod
     def estimate(self) -> Estimate: ...
+
+    def recover_covariance(self) -> None:
+        """Numerical-health recovery after a covariance lost positive definiteness.
+
+        Pipelines reset their covariances to the initial ones (keeping the INS) and set the
+        status ``reinitialised``; this default only flags the fault.
+        """
+        self.status = "fault"
 
     def solution(self) -> Solution:
         est = self.estimate()
@@ -102,7 +128,7 @@ class Pipeline(ABC):
             rpy_std_deg=tuple(float(v) for v in rpy_std),
             gyro_bias_dph=tuple(float(v) for v in nav.gyro_bias_rps / earth.DPH),
             accel_bias_ug=tuple(float(v) for v in nav.accel_bias_mps2 / earth.UG),
-            status=self.status,
+            status=self.current_status(nav.t),
         )
 
 

@@ -28,9 +28,8 @@ class LooselyCoupled(Pipeline):
     def initialise(self, nav: NavState, std: InitStd) -> None:
         if self.bank is not None:
             self.reinitialisations += 1
-        self.bank = InsFilterBank(
-            nav, initial_covariance(std, self.imu), self.imu.noise(), major_interval_s=self.major_interval_s
-        )
+        self._P0 = initial_covariance(std, self.imu)
+        self.bank = InsFilterBank(nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s)
         self.status = "aligned"
 
     def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
@@ -55,16 +54,22 @@ class LooselyCoupled(Pipeline):
         ):
             return []
         if not kalman.is_positive_definite(P)[0]:
-            # numerical health: flag and keep the prior rather than continue on a broken P
-            self.status = "fault"
+            # numerical health: never continue on a broken P; keep the INS, re-initialise the
+            # covariance to the initial one and flag it
+            self.recover_covariance()
             return []
         bank.x, bank.P = x, P
         bank.feedback(bank.x[0].copy())
         self.last_nis = float(res.nis[0])
         self.nis_history.append((nav.t, kind, self.last_nis, int(res.dof[0])))
-        self.updates += 1
-        self.status = "aided"
+        self.mark_aided(nav.t)
         return []
+
+    def recover_covariance(self) -> None:
+        self.bank.x[:] = 0.0
+        self.bank.P[:] = self._P0
+        self.reinitialisations += 1
+        self.status = "reinitialised"
 
     def estimate(self) -> Estimate:
         return Estimate(self.bank.nav(), self.bank.P[0, :9, :9])
