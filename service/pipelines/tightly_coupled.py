@@ -194,11 +194,20 @@ class TightlyCoupled(Pipeline):
         P0[:15, :15] = initial_covariance(std, self.imu)
         P0[gm.CLK_BIAS, gm.CLK_BIAS] = self.cfg.clock.init_bias_std_m**2
         P0[gm.CLK_DRIFT, gm.CLK_DRIFT] = self.cfg.clock.init_drift_std_mps**2
+        self._P0 = P0
         self.bank = TightInsBank(nav, P0, self.imu.noise(), self.cfg.clock, self.major_interval_s, self.depth)
         self.book.clear()
         self.clock_initialised = False
         self.last = None
         self.status = "aligned"
+
+    def recover_covariance(self) -> None:
+        """Lost positive definiteness: keep the INS, the clock reference and the exclusions; restart
+        every member and cross block from the initial covariance (all states zero)."""
+        mh = self.bank.mhss
+        self.bank.mhss = MhssBank.initial(np.zeros(N_STATES), self._P0, mh.sats, mh.depth)
+        self.reinitialisations += 1
+        self.status = "reinitialised"
 
     def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
         self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
@@ -256,16 +265,13 @@ class TightlyCoupled(Pipeline):
                 [col.get(sid, -1) if first[sid] == i else -1 for i, sid in enumerate(sats.ids)]
             )
             sel = sat_col[rows.row_sat] >= 0
-            x_prior, blocks_prior = mh.x, mh.blocks  # update() replaces (never mutates) these arrays
             upd = mh.update(rows.z[sel], rows.H[sel], rows.r_var[sel], sat_col[rows.row_sat[sel]])
             if not is_positive_definite(mh.P[:1])[0]:
-                # numerical health: keep the prior, flag the pipeline (DESIGN reliability rules)
-                mh.x, mh.blocks = x_prior, blocks_prior
-                self.status = "fault"
+                # numerical health: never continue on a broken P (DESIGN reliability rules)
+                self.recover_covariance()
                 return []
             bank.feedback(mh.x[0].copy())
-            self.updates += 1
-            self.status = "aided"
+            self.mark_aided(nav.t)
         if self.depth == 0:
             self.last = EpochResult(msg.t, used, upd, None, False, None, True, readmitted)
             return []
