@@ -45,7 +45,11 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from service.earth import A_M, C_MPS, GM_M3PS2, OMEGA_IE_RPS
+from service.earth import A_M, GM_M3PS2, OMEGA_IE_RPS
+
+# The ranging model is the receiver's (service.estimation.gnss_models), re-exported here: one copy
+# shared by the simulator and the filter, so simulated and predicted pseudoranges agree exactly.
+from service.estimation.gnss_models import RangeGeometry, range_geometry  # noqa: F401
 
 # --- time -----------------------------------------------------------------------------------------
 GPS_EPOCH = _dt.datetime(1980, 1, 6)
@@ -383,79 +387,6 @@ def inertial_orbit_geometry(pos_ecef_m: np.ndarray, vel_ecef_mps: np.ndarray) ->
 # Ranging model (shared with the service; depends only on numpy and service.earth)
 # ======================================================================================================
 RANGE_ITERATIONS = 3  # light-time fixed point: each iteration shrinks the error by ~omega r / c ~ 1e-5
-
-
-def earth_rotation_matrices(angle_rad: np.ndarray) -> np.ndarray:
-    """R3(angle) for (N,) angles -> (N, 3, 3): coordinates of an inertially fixed point, expressed in an
-    ECEF frame that has turned by ``angle`` since, are ``R3 @ r``."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
-
-
-@dataclass(frozen=True)
-class RangeGeometry:
-    """Geometry of N receiver-satellite links under the module's ranging model.
-
-    Attributes
-    ----------
-    range_m : (N,) geometric range rho (no clocks, no atmosphere).
-    los_ecef : (N, 3) unit vectors from the receiver to the satellite, ECEF at receive time;
-        ``d rho / d r_rx = -los_ecef`` (the paper's ``e_i`` is ``-los_ecef``).
-    sat_pos_rx_frame_m : (N, 3) satellite transmit-time position rotated into the receive-time ECEF.
-    light_time_s : (N,) rho / c.
-    range_rate_mps : (N,) d rho / d t_r, or None when velocities were not given.
-    doppler_factor : (N,) ``1 / (1 + los . v_sat_inertial / c)`` (1 +- 1e-5), or None; the range
-        rate is linear in the receiver velocity: ``d range_rate / d v_rx = -doppler_factor * los_ecef``.
-    """
-
-    range_m: np.ndarray
-    los_ecef: np.ndarray
-    sat_pos_rx_frame_m: np.ndarray
-    light_time_s: np.ndarray
-    range_rate_mps: np.ndarray | None = None
-    doppler_factor: np.ndarray | None = None
-
-
-def range_geometry(
-    rx_pos_ecef_m: np.ndarray,
-    sat_pos_ecef_m: np.ndarray,
-    rx_vel_ecef_mps: np.ndarray | None = None,
-    sat_vel_ecef_mps: np.ndarray | None = None,
-) -> RangeGeometry:
-    """Geometric range (and range rate) from a receiver to satellites given at their transmit time.
-
-    rho solves ``rho = |R3(omega_e rho / c) r_sat - r_rx|`` (exact earth rotation during the light
-    time). With velocities, the exact derivative with respect to receive time is
-    ``rho_dot = u . (R3 v_sat - v_rx) / (1 + u . R3 (v_sat + omega x r_sat) / c)``, ``u`` the unit
-    line of sight; the denominator is the light-time (Doppler) factor (|effect| <~ 1 cm/s).
-
-    Parameters
-    ----------
-    rx_pos_ecef_m : (3,) receiver position at receive time, ECEF.
-    sat_pos_ecef_m : (N, 3) satellite positions at transmit time, ECEF of the transmit time.
-    rx_vel_ecef_mps : (3,) receiver ECEF velocity (optional).
-    sat_vel_ecef_mps : (N, 3) satellite ECEF velocities at transmit time (optional).
-    """
-    r_rx = np.asarray(rx_pos_ecef_m, dtype=float).reshape(3)
-    r_s = np.atleast_2d(np.asarray(sat_pos_ecef_m, dtype=float))
-    rho = np.linalg.norm(r_s - r_rx, axis=1)
-    for _ in range(RANGE_ITERATIONS):
-        rot = earth_rotation_matrices(OMEGA_IE_RPS * rho / C_MPS)
-        r_rot = np.einsum("nij,nj->ni", rot, r_s)
-        d = r_rot - r_rx
-        rho = np.linalg.norm(d, axis=1)
-    los = d / rho[:, None]
-    rate = factor = None
-    if rx_vel_ecef_mps is not None and sat_vel_ecef_mps is not None:
-        v_rx = np.asarray(rx_vel_ecef_mps, dtype=float).reshape(3)
-        v_s = np.atleast_2d(np.asarray(sat_vel_ecef_mps, dtype=float))
-        v_in = v_s + OMEGA_IE_RPS * np.stack([-r_s[:, 1], r_s[:, 0], np.zeros(len(r_s))], axis=-1)
-        v_rot = np.einsum("nij,nj->ni", rot, v_s)
-        v_in_rot = np.einsum("nij,nj->ni", rot, v_in)
-        factor = 1.0 / (1.0 + np.sum(los * v_in_rot, axis=1) / C_MPS)
-        rate = np.sum(los * (v_rot - v_rx), axis=1) * factor
-    return RangeGeometry(rho, los, r_rot, rho / C_MPS, rate, factor)
 
 
 def predicted_range(rx_pos_ecef_m: np.ndarray, sat_pos_ecef_m: np.ndarray) -> np.ndarray:
