@@ -77,7 +77,7 @@ class FaultTest(ABC):
     def flags(self, standardised: np.ndarray, S: np.ndarray, nis: float) -> FaultDecision:
         """Decide which rows are faulty and which are dropped this epoch."""
 
-    def reset(self) -> None:
+    def reset(self) -> None:  # noqa: B027 (optional hook: stateless tests keep nothing)
         """Forget any state (re-initialisation)."""
 
     def _per_row(self, standardised: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -152,8 +152,9 @@ class Chi2Reconfig(FaultTest):
             self._passes += 1
             if self._passes >= self.readmit_passes:
                 self.excluded = False
-        return FaultDecision(np.full(m, float(nis)), np.full(m, thr), np.full(m, failed),
-                             np.full(m, self.excluded))
+        return FaultDecision(
+            np.full(m, float(nis)), np.full(m, thr), np.full(m, failed), np.full(m, self.excluded)
+        )
 
 
 FAULT_TESTS: dict[str, type[FaultTest]] = {

@@ -1,22 +1,27 @@
 """Federated filter core: a bank of local filters, master fusion and reset (sensor independent).
 
-The N local filters (plus an optional master member keeping ``master_share``) are ONE batched
-bank (``kalman``'s arrays): ``x`` (B, n), ``P`` (B, n, n), ``q_scale`` (B, n), with
-B = N (+ 1 master). All members share one linearisation point (the pipeline's single INS) and
-the closed loop: the fused correction is fed back once and every member shifts by it
-(``bank.feedback``). The first ``n_common`` states (15 INS error states) are common and fused;
-states beyond them are private to each member and never fused or rescaled.
+The N local filters and the master are ONE batched bank (``kalman``'s arrays): ``x`` (B, n),
+``P`` (B, n, n), ``q_scale`` (B, n), with B = N + 1 (N = 1 without a master share: B = 1, the
+centralised filter). The master member keeps ``master_share`` of the information and is fused
+like a local, or, with no share, holds no information and only carries the fused solution
+through its own time update between fusions (outputs then need no fusion; see
+``FederatedCore.fused_covariance``). All members share one linearisation point (the
+pipeline's single INS) and the closed loop: the fused correction is fed back once and every
+member shifts by it (``bank.feedback``). The first ``n_common`` states (15 INS error states)
+are common and fused; states beyond them are private to each member and never fused or
+rescaled.
 
 One aiding epoch (seed 000 algorithm 2):
 
-1. ``update(owner, z, H, R, test)``: the owner's predicted innovation is tested (fault_tests),
-   then ONE ``kalman.update`` call on the whole bank with a per-member row mask (members other
-   than the owner have every row masked out, so their gain is exactly zero; the owner's faulty
-   rows are masked out too: seed 000 eq (8)-(10)).
+1. ``update(owner, z, H, R, test)``: ONE ``kalman.update`` call on the bank of locals with a
+   per-member row mask (locals other than the owner have every row masked out, so their gain
+   is exactly zero); the owner's predicted innovation statistics it returns are tested
+   (fault_tests); only when the test isolates rows is the call repeated without them (seed 000
+   eq (8)-(10): a faulty row gets infinite noise, i.e. is dropped).
 2. ``fuse_and_reset()``: master fusion over the common states
-       P_g = (sum_i P_i^-1)^-1,  x_g = P_g sum_i P_i^-1 x_i          seed 000 Algorithm 2
-   (information form, Cholesky solves, after a diagonal scaling that makes INS covariances,
-   whose raw condition numbers reach 1e17, well conditioned; the scaling is exact algebra).
+           P_g = (sum_i P_i^-1)^-1,  x_g = P_g sum_i P_i^-1 x_i          seed 000 Algorithm 2
+   (``information_fusion``: pairwise covariance form, Cholesky solves, after a diagonal scaling
+   that makes INS covariances, whose raw condition numbers reach 1e17, well conditioned).
    ``fusion_reset``: shares G_i = diag(g_i) from the sharing strategy, then
        P_i = G_i^-1/2 P_g G_i^-1/2,  Q_i = G_i^-1/2 Q G_i^-1/2 (q_scale = 1/g_i),  x_i = x_g
                                                                   seed 000 eq (14)-(15), (25)-(27)
@@ -24,7 +29,8 @@ One aiding epoch (seed 000 algorithm 2):
    ``no_reset``: the locals keep their own P_i, Q_i (set once at ``start`` from the strategy's
    initial division, Carlson's no-reset mode); the fusion is for output and for the closed
    loop: x_g is fed back into the shared INS and every local shifts by it (x_i <- x_i - x_g),
-   which re-references the locals without changing any local's own estimate.
+   which re-references the locals without changing any local's own estimate (a master without
+   a share is still reset to (x_g, P_g) for outputs).
 
 Private states (n > n_common) at a reset: each member keeps its conditional p | c
 (A = P_pc P_cc^-1) and follows the new common marginal: x_p += A (x_c' - x_c),
@@ -125,34 +131,46 @@ def _chol(A: np.ndarray, what: str) -> np.ndarray:
 def information_fusion(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """P_g = (sum_i P_i^-1)^-1, x_g = P_g sum_i P_i^-1 x_i for x (B, c), P (B, c, c).
 
-    Computed on D^-1 P_i D^-1 with D = diag(sqrt(mean_i P_i,jj)) (exact: fusion commutes with a
-    common linear change of variables), by Cholesky factors, never an explicit ``inv``.
+    Computed without inverting any P_i, by sequential pairwise fusion in covariance form
+    (information adds, so the order does not matter):
+        (P_a^-1 + P_b^-1)^-1 = P_a (P_a + P_b)^-1 P_b,
+        x = x_a + P_a (P_a + P_b)^-1 (x_b - x_a),
+    with one Cholesky factorisation of P_a + P_b per pair, on D^-1 P D^-1 with
+    D = diag(sqrt(mean_i P_i,jj)) (exact: fusion commutes with a common change of variables;
+    raw INS covariances have condition numbers up to ~1e17). B - 1 small solves: this runs at
+    every solution output, so it is kept cheap (~30 us per pair).
     """
     B, c = x.shape
-    d = np.sqrt(np.mean(np.diagonal(P, axis1=1, axis2=2), axis=0))  # (c,) scaling
-    Ps = P / np.outer(d, d)
+    diag = np.diagonal(P, axis1=1, axis2=2)
+    if not (np.isfinite(P).all() and np.isfinite(x).all() and (diag > 0.0).all()):
+        raise kalman.NotPositiveDefinite("local covariances to fuse are not finite / positive")
+    d = np.sqrt(np.mean(diag, axis=0))  # (c,) scaling
+    dd = np.outer(d, d)
+    Ps = P / dd
     xs = x / d
-    eye = np.eye(c)
-    # L_i^-1 of the Cholesky factors (LAPACK gesv on the triangular factor: at this size ~5x
-    # faster than scipy's batched solve_triangular, same accuracy)
-    Linv = np.linalg.solve(_chol(Ps, "local covariance"), eye)
-    Y = np.swapaxes(Linv, 1, 2) @ Linv  # P_i^-1 = L_i^-T L_i^-1 (information matrices)
-    Yg = kalman.symmetrise(Y.sum(axis=0))  # sum_i P_i^-1
-    yg = np.einsum("bij,bj->i", Y, xs)  # sum_i P_i^-1 x_i
-    Lg_inv = np.linalg.solve(_chol(Yg, "fused information"), eye)
-    Pg = Lg_inv.T @ Lg_inv  # P_g = (sum_i P_i^-1)^-1
-    xg = Pg @ yg  # x_g = P_g sum_i P_i^-1 x_i
-    return xg * d, kalman.symmetrise(Pg * np.outer(d, d))
+    Pg, xg = Ps[0], xs[0]
+    for i in range(1, B):
+        L = _chol(Pg + Ps[i], "sum of local covariances")  # P_a + P_b = L L'
+        rhs = np.concatenate([Ps[i], (xs[i] - xg)[:, None]], axis=1)
+        M = np.linalg.solve(L.T, np.linalg.solve(L, rhs))  # (P_a + P_b)^-1 [P_b, x_b - x_a]
+        xg = xg + Pg @ M[:, c]  # x_a + P_a (P_a + P_b)^-1 (x_b - x_a)
+        Pg = kalman.symmetrise(Pg @ M[:, :c])  # P_a (P_a + P_b)^-1 P_b
+    return xg * d, Pg * dd
 
 
 class FederatedCore:
     """Local-filter bank + master fusion + reset (see module docstring).
 
+    Bank members: 0 .. n_locals-1 are the local filters; member n_locals (when n_locals > 1 or
+    ``master_share`` > 0) is the MASTER: with ``master_share`` > 0 it keeps that information
+    share and takes part in the fusion; with ``master_share`` = 0 it holds no information, is not
+    fused, and only carries the master's own time update for outputs (it is reset to the fused
+    (x_g, P_g) at every fusion and propagated with the full Q in the same batched call). The
+    master never owns measurement rows.
+
     Parameters
     ----------
-    bank : FilterBank
-        B = ``bank_size(n_locals, master_share)`` members; member i < n_locals is local i, member
-        n_locals (if ``master_share`` > 0) is the master, which never owns measurement rows.
+    bank : FilterBank with B = ``bank_size(n_locals, master_share)`` members
     n_locals : int
     strategy : SharingStrategy
     reset : "fusion_reset" | "no_reset"
@@ -163,9 +181,16 @@ class FederatedCore:
         Number of common (fused) states; 15 for the INS error model.
     """
 
-    def __init__(self, bank: FilterBank, n_locals: int, strategy: SharingStrategy,
-                 reset: ResetMode = "fusion_reset", master_share: float = 0.0, floor_share: float = 1e-3,
-                 n_common: int = 15):
+    def __init__(
+        self,
+        bank: FilterBank,
+        n_locals: int,
+        strategy: SharingStrategy,
+        reset: ResetMode = "fusion_reset",
+        master_share: float = 0.0,
+        floor_share: float = 1e-3,
+        n_common: int = 15,
+    ):
         if n_locals < 1:
             raise ValueError("n_locals must be >= 1")
         if not 0.0 <= master_share < 1.0:
@@ -174,8 +199,10 @@ class FederatedCore:
             raise ValueError(f"unknown reset mode {reset!r}")
         B = self.bank_size(n_locals, master_share)
         if bank.x.shape[0] != B:
-            raise ValueError(f"bank has {bank.x.shape[0]} members, need {B} ({n_locals} locals"
-                             f"{' + master' if master_share > 0 else ''})")
+            raise ValueError(
+                f"bank has {bank.x.shape[0]} members, need {B} ({n_locals} locals"
+                f"{' + master' if B > n_locals else ''})"
+            )
         n = bank.x.shape[1]
         if not 0 < n_common <= n:
             raise ValueError(f"n_common must be in (0, {n}], got {n_common}")
@@ -187,12 +214,17 @@ class FederatedCore:
         self.floor_share = float(floor_share)
         self.c = n_common
         self.B = B
-        self.shares = np.full((B, n_common), 1.0 / B)  # last shares applied (locals, then master)
+        self.master = n_locals if B > n_locals else None  # index of the master member
+        self.n_fused = n_locals + (1 if master_share > 0.0 else 0)  # members entering the fusion
+        # last information shares (locals, then the master's when it keeps one): (n_fused, c)
+        self.shares = np.full((self.n_fused, n_common), 1.0 / self.n_fused)
+        self._dirty = False  # a local was updated since the last fusion
         self._flagged_only = np.zeros((n_locals, n_common), dtype=bool)
 
     @staticmethod
     def bank_size(n_locals: int, master_share: float = 0.0) -> int:
-        return n_locals + (1 if master_share > 0.0 else 0)
+        """Members needed: the locals, plus the master when there is anything to fuse or keep."""
+        return n_locals + (1 if (n_locals > 1 or master_share > 0.0) else 0)
 
     # --- start --------------------------------------------------------------------------------
     def start(self) -> None:
@@ -202,7 +234,8 @@ class FederatedCore:
             return
         b = self.bank
         x0, P0 = b.x[0, : self.c].copy(), b.P[0, : self.c, : self.c].copy()
-        self._reset(x0, P0, self._compute_shares())
+        self._reset(x0, P0, self._compute_shares(), np.arange(self.B))
+        self._dirty = False
 
     # --- local update -------------------------------------------------------------------------
     def update(self, owner: int, z: np.ndarray, H: np.ndarray, R: np.ndarray, test: FaultTest) -> LocalUpdate:
@@ -220,88 +253,137 @@ class FederatedCore:
         m, n = H.shape
         if n != b.x.shape[1]:
             raise ValueError(f"H has {n} columns, the bank has {b.x.shape[1]} states")
-        # owner's predicted innovation: r = z - H x, S = H P H' + R (seed 000 eq 5)
-        r = z - H @ b.x[owner]
-        S = kalman.symmetrise(H @ b.P[owner] @ H.T + R)
-        L = _chol(S, "innovation covariance S")
-        w = np.linalg.solve(L, r)  # whitened innovation L^-1 r
-        nis = float(w @ w)
-        std = r / np.sqrt(np.diagonal(S))
-        decision = test.flags(std, S, nis)
+        # one call on the bank of locals with every row of the owner (other locals fully masked:
+        # zero gain; the master is not a local and is left out); its innovation statistics are
+        # the owner's predicted ones (seed 000 eq 5: S = H P H' + R)
+        N = self.n_locals
+        mask = np.zeros((N, m), dtype=bool)
+        mask[owner] = True
+        xl, Pl = b.x[:N], b.P[:N]
+        x_new, P_new, res = kalman.update(xl, Pl, z, H, R, mask)
+        std, nis = res.standardised[owner], float(res.nis[owner])
+        decision = test.flags(std, res.S[owner], nis)
         used = decision.used
-        # seed 000 eq (22) reading: common states observed by a flagged row and by no used row
-        Hc = np.abs(H[:, : self.c]) > 0.0
-        seen_flagged = np.any(Hc[decision.flagged], axis=0)
-        seen_used = np.any(Hc[used], axis=0)
-        flagged_only = seen_flagged & ~seen_used
+        if not np.all(used):  # redo without the isolated rows (rare: only when a test fails)
+            mask[owner] = used  # seed 000 eq (8)-(10): a faulty row gets infinite noise = dropped
+            if np.any(used):
+                x_new, P_new, _ = kalman.update(xl, Pl, z, H, R, mask)
+        if np.any(decision.flagged):
+            # seed 000 eq (22) reading: common states seen by a flagged row and by no used row
+            Hc = H[:, : self.c] != 0.0
+            flagged_only = np.any(Hc[decision.flagged], axis=0) & ~np.any(Hc[used], axis=0)
+            self._flagged_only[owner] |= flagged_only
+        else:
+            flagged_only = np.zeros(self.c, dtype=bool)
         if np.any(used):
-            mask = np.zeros((self.B, m), dtype=bool)
-            mask[owner] = used  # other members: all rows masked -> zero gain (DESIGN.md banks)
-            x_new, P_new, _ = kalman.update(b.x, b.P, z, H, R, mask)
-            if not np.all(np.isfinite(P_new[owner])):
+            P_owner = P_new[owner]
+            if not np.isfinite(P_owner).all():
                 raise kalman.NotPositiveDefinite("updated local covariance is not finite")
-            _chol(P_new[owner], "updated local covariance")  # PD check (cheaper than eigenvalues)
-            b.x, b.P = x_new, P_new
-        self._flagged_only[owner] |= flagged_only
+            _chol(P_owner, "updated local covariance")  # PD check (cheaper than eigenvalues)
+            if N == self.B:
+                b.x, b.P = x_new, P_new
+            else:
+                x_all, P_all = b.x.copy(), b.P.copy()
+                x_all[:N], P_all[:N] = x_new, P_new
+                b.x, b.P = x_all, P_all
+            self._dirty = True
         return LocalUpdate(owner, decision, std, nis, flagged_only)
 
     # --- master -------------------------------------------------------------------------------
     def fuse(self) -> tuple[np.ndarray, np.ndarray]:
         """Master fusion of the current bank over the common states: (x_g (c,), P_g (c, c))."""
         b, c = self.bank, self.c
-        if self.B == 1:
+        if self.n_fused == 1:
             return b.x[0, :c].copy(), b.P[0, :c, :c].copy()
-        return information_fusion(b.x[:, :c], b.P[:, :c, :c])
+        return information_fusion(b.x[: self.n_fused, :c], b.P[: self.n_fused, :c, :c])
 
-    def fuse_and_reset(self) -> tuple[np.ndarray, np.ndarray]:
+    def fused_covariance(self) -> np.ndarray:
+        """P_g (c, c) for outputs, without a fusion where none is needed.
+
+        With no local update since the last fusion, the master member carries the fused
+        covariance through its own time update (P_m <- Phi P_m Phi' + Q, Carlson's master time
+        update): its P (times its share when it keeps one) is the output. With scalar shares this
+        equals a fresh fusion of the locals exactly (Carlson); with per-state shares a fresh
+        fusion would also carry the reset's spurious information (sharing.py), which enters at
+        the next fusion instead. With a local update pending, or in no_reset mode with a master
+        share (the master then keeps its own information), ``fuse()``.
+        """
+        c = self.c
+        if self.B == 1:
+            return self.bank.P[0, :c, :c].copy()
+        if not self._dirty and self.master is not None:
+            if self.master_share == 0.0:
+                return self.bank.P[self.master, :c, :c].copy()
+            if self.reset_mode == "fusion_reset":
+                return self.master_share * self.bank.P[self.master, :c, :c]
+        return self.fuse()[1]
+
+    def fuse_and_reset(
+        self, fused: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Seed 000 algorithm 2, after an aiding epoch: fuse, reset (per mode), feed x_g back.
 
-        Returns the fused (x_g, P_g) before feedback (after it, the fused error state is ~0:
-        exactly 0 with ``fusion_reset``).
+        ``fused``: the result of ``fuse()`` on the current bank if the caller already has it
+        (saves recomputing it). Returns the fused (x_g, P_g) before feedback (after it, the fused
+        error state is ~0: exactly 0 with ``fusion_reset``).
         """
-        x_g, P_g = self.fuse()
-        if self.reset_mode == "fusion_reset" and self.B > 1:
-            self._reset(x_g, P_g, self._compute_shares())
+        x_g, P_g = self.fuse() if fused is None else fused
+        if self.B > 1:
+            if self.reset_mode == "fusion_reset":
+                self._reset(x_g, P_g, self._compute_shares(), np.arange(self.B))
+            elif self.master_share == 0.0:  # no_reset: only the output-only master follows P_g
+                self._reset(x_g, P_g, np.ones((1, self.c)), np.array([self.master]))
         self._flagged_only[:] = False
         self.bank.feedback(x_g)
         if self.reset_mode == "fusion_reset":
             self.bank.x[:, : self.c] = 0.0  # x_i = x_g - x_g (exact zero, no rounding residue)
+        self._dirty = self.reset_mode == "no_reset" and self.master_share > 0.0
         return x_g, P_g
 
     def _compute_shares(self) -> np.ndarray:
-        """(B, c): the strategy's local shares, then the master's constant share row."""
+        """(B, c) reset scales: the strategy's local shares, the master's constant share (or 1
+        for the output-only master, which holds P_g itself)."""
         c = self.c
-        ctx = SharingContext(flagged_only=self._flagged_only.copy(), floor_share=self.floor_share,
-                             master_share=self.master_share)
-        G = self.strategy.shares(self.bank.P[: self.n_locals, :c, :c], ctx)
-        if self.B > self.n_locals:
-            G = np.vstack([G, np.full((1, c), self.master_share)])
+        ctx = SharingContext(
+            flagged_only=self._flagged_only, floor_share=self.floor_share, master_share=self.master_share
+        )
+        try:
+            G = self.strategy.shares(self.bank.P[: self.n_locals, :c, :c], ctx)
+        except ValueError as exc:  # invalid weights come from broken covariances
+            raise kalman.NotPositiveDefinite(f"sharing failed: {exc}") from exc
+        if self.master is not None:
+            G = np.vstack([G, np.full((1, c), self.master_share if self.master_share > 0.0 else 1.0)])
         return G
 
-    def _reset(self, x_g: np.ndarray, P_g: np.ndarray, G: np.ndarray) -> None:
+    def _reset(self, x_g: np.ndarray, P_g: np.ndarray, G: np.ndarray, members: np.ndarray) -> None:
+        """Reset ``members`` (index array) with scales G (len(members), c)."""
         b, c = self.bank, self.c
         inv_sqrt = 1.0 / np.sqrt(G)  # G_i^-1/2
         Pcc_new = inv_sqrt[:, :, None] * P_g[None] * inv_sqrt[:, None, :]  # seed 000 eq (14)/(25)
         P = b.P.copy()
         x = b.x.copy()
+        Pm, xm = P[members], x[members]
         if P.shape[1] > c:  # private states: keep p | c, follow the new common marginal
-            Pcc_old = P[:, :c, :c]
-            Pcp = P[:, :c, c:]
+            Pcc_old = Pm[:, :c, :c]
+            Pcp = Pm[:, :c, c:]
             Lc = _chol(Pcc_old, "local common covariance")
             At = solve_triangular(np.swapaxes(Lc, 1, 2), solve_triangular(Lc, Pcp, lower=True), lower=False)
-            A = np.swapaxes(At, 1, 2)  # A = P_pc P_cc^-1   (B, p, c)
-            x[:, c:] += np.einsum("bpc,bc->bp", A, x_g[None] - x[:, :c])
-            P[:, c:, :c] = A @ Pcc_new
-            P[:, :c, c:] = np.swapaxes(P[:, c:, :c], 1, 2)
-            P[:, c:, c:] = P[:, c:, c:] + A @ (Pcc_new - Pcc_old) @ At
-        P[:, :c, :c] = Pcc_new
-        x[:, :c] = x_g  # seed 000 eq (27)
+            A = np.swapaxes(At, 1, 2)  # A = P_pc P_cc^-1   (members, p, c)
+            xm[:, c:] += np.einsum("bpc,bc->bp", A, x_g[None] - xm[:, :c])
+            Pm[:, c:, :c] = A @ Pcc_new
+            Pm[:, :c, c:] = np.swapaxes(Pm[:, c:, :c], 1, 2)
+            Pm[:, c:, c:] = Pm[:, c:, c:] + A @ (Pcc_new - Pcc_old) @ At
+        Pm[:, :c, :c] = Pcc_new
+        xm[:, :c] = x_g  # seed 000 eq (27)
+        P[members] = Pm
+        x[members] = xm
         b.P = kalman.symmetrise(P)
         b.x = x
         q_scale = b.q_scale.copy()
-        q_scale[:, :c] = 1.0 / G  # Q_i = G_i^-1/2 Q G_i^-1/2, seed 000 eq (15)/(26)
+        q_scale[members, :c] = 1.0 / G  # Q_i = G_i^-1/2 Q G_i^-1/2, seed 000 eq (15)/(26)
         b.q_scale = q_scale
-        self.shares = G
+        if len(members) == self.B:
+            self.shares = G[: self.n_fused]
 
     @property
     def local_shares(self) -> np.ndarray:

@@ -24,8 +24,11 @@ Theory every user of this module should know (SEEDS.md, seed 000 "warning from t
 * Diagonal (per-state, "vector") shares are *not* information preserving when P_g has
   cross-correlations: the fused information becomes Y_g o C with C_jk = sum_i sqrt(g_ij g_ik) <= 1
   (Cauchy-Schwarz, equality iff the share columns j and k are proportional), so off-diagonal
-  information is lost while diagonal information is kept, and the result can be overconfident
-  (tests/test_sharing.py measures it). ``vector_conservative`` is the recommended fix.
+  information is lost while diagonal information is kept. In an INS the lost terms are the
+  strong correlations (velocity-attitude-accelerometer bias) whose cancellation keeps weakly
+  observable combinations uncertain, so each reset creates spurious information there and
+  the filter becomes overconfident, then under-weights new measurements (measured in
+  tests/test_federated.py). ``vector_conservative`` is the recommended fix.
 
 Units: trace- and norm-based strategies add variances of different units (m^2, (m/s)^2, rad^2,
 (rad/s)^2); in the 15-state INS model the position block dominates them. That is how the papers
@@ -69,6 +72,9 @@ class SharingContext:
     master_share: float = 0.0
 
 
+_DEFAULT_CONTEXT = SharingContext()
+
+
 class SharingStrategy(ABC):
     """Base: subclasses return un-normalised weights; the base normalises, guards and scales.
 
@@ -84,16 +90,15 @@ class SharingStrategy(ABC):
         P = np.asarray(P_locals, dtype=float)
         if P.ndim != 3 or P.shape[1] != P.shape[2]:
             raise ValueError(f"P_locals must be (N, c, c), got {P.shape}")
-        ctx = context if context is not None else SharingContext()
+        ctx = context if context is not None else _DEFAULT_CONTEXT
         N, c, _ = P.shape
         if N == 1:
-            w = np.ones((1, c))
-        else:
-            w = np.broadcast_to(np.asarray(self._weights(P, ctx), dtype=float).reshape(N, -1), (N, c))
-            if not np.all(np.isfinite(w)) or np.any(w < 0.0):
-                raise ValueError(f"sharing strategy {self.name!r} produced invalid weights")
-            w = _normalise(w)
-        return (1.0 - ctx.master_share) * w
+            return np.full((1, c), 1.0 - ctx.master_share)
+        w = np.asarray(self._weights(P, ctx), dtype=float).reshape(N, -1)
+        if not (np.isfinite(w).all() and (w >= 0.0).all()):
+            raise ValueError(f"sharing strategy {self.name!r} produced invalid weights")
+        w = _normalise(w)  # (N, 1) for scalar strategies, (N, c) per state
+        return (1.0 - ctx.master_share) * np.broadcast_to(w, (N, c))
 
     @abstractmethod
     def _weights(self, P: np.ndarray, ctx: SharingContext) -> np.ndarray:
@@ -237,11 +242,15 @@ class Vector(SharingStrategy):
     Per state j: beta_{j,i} = (1/P_i,jj) / sum_k (1/P_k,jj); a state of local i observed this
     epoch only through flagged observations gets the floor share (``SharingContext``).
 
-    Known defect (SEEDS.md; measured in tests/test_sharing.py): with the reset
+    Known defect (SEEDS.md; measured in tests/test_federated.py): with the reset
     P_i = G_i^-1/2 P_g G_i^-1/2 the fused information loses off-diagonal terms (factor
     sum_i sqrt(g_ij g_ik) <= 1) while keeping the diagonal, which makes the federated filter
-    overconfident (NEES above the state dimension). Also note the floor makes local i's prior of
-    that state ~1/floor times wider, so its next fault test on that state is less sensitive.
+    overconfident. Found: one-axis INS linear model, expected NEES ~40 against 5 and a true
+    position error variance ~20x the centralised one; static INS/GNSS/CNS scenario, NEES ~80
+    against 9; seed 000 flight scenario (fednav-sim eval, seed 1), NEES ~9400 against 9 and
+    ~37 m north RMS against ~1 m for the centralised filter (which it matches with
+    ``vector_conservative``). Also note the floor makes local i's prior of that state ~1/floor
+    times wider, so its next fault test on that state is less sensitive.
     """
 
     name = "vector"
@@ -296,8 +305,17 @@ class Diagonal(SharingStrategy):
 
 STRATEGIES: dict[str, type[SharingStrategy]] = {
     cls.name: cls
-    for cls in (Fixed, Trace, Vector, VectorConservative, EigenTrace, EigenTraceInverse, Diagonal, Edop,
-                NormWeighted)
+    for cls in (
+        Fixed,
+        Trace,
+        Vector,
+        VectorConservative,
+        EigenTrace,
+        EigenTraceInverse,
+        Diagonal,
+        Edop,
+        NormWeighted,
+    )
 }
 
 

@@ -5,10 +5,18 @@ point, closed loop) driven by ``service.estimation.federated.FederatedCore``:
 
 * ``Federated``: one local filter per configured subsystem (e.g. INS/BDS on ``gnss_fix``,
   INS/CNS on ``star``), plus a master member when ``master_share`` > 0. Each aiding message
-  updates only its subsystem's local (fault-tested by the configured plug-in), then the master
-  fuses and resets (seed 000 algorithm 2) and the fused correction is fed back to the INS.
-  ``apply`` returns a ``Faults`` message per aiding epoch (the tested subsystem's per-observation
-  statistics, thresholds, flags, isolation, and every local's 15 sharing coefficients).
+  updates only its subsystem's local (fault-tested by the configured plug-in). ``apply``
+  returns a ``Faults`` message per aiding message: the tested subsystem's per-observation
+  statistics, thresholds, flags and isolation, and every local's 15 sharing coefficients as in
+  effect for this update (set by the previous fusion; they define the prior that was tested).
+* Fusion timing (seed 000 algorithm 2: locals update, then the master fuses and resets): once
+  per aiding EPOCH, i.e. after all messages with the same time (a GNSS fix and a star
+  attitude at the same t are one epoch, as in the paper's 1 s filter period). The fusion runs
+  when time moves on (next IMU data) or when an aiding message of a later time arrives; an
+  output requested meanwhile gets a pure view of the fused estimate (``_epoch_view``), so
+  outputs never change the filter. For scalar shares the timing changes nothing (exact);
+  for per-state shares it matters: every fusion-reset of diagonal shares adds spurious
+  information, so fusing after each message would double it.
 * ``Centralized``: the comparator, a single filter (bank of one) on every supported sensor's
   rows with optional fault handling (one test per sensor kind); it returns ``Faults`` only when
   fault handling is on.
@@ -30,7 +38,8 @@ from service.estimation.fault_tests import FaultTest, make_fault_test
 from service.estimation.federated import FederatedCore
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.sharing import get_strategy
-from service.ins.mechanisation import NavState
+from service.ins import error_model as em
+from service.ins.mechanisation import Ins, NavState
 from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
@@ -57,10 +66,21 @@ class _CorePipeline(Pipeline):
 
     family = "federated"
 
-    def __init__(self, name: str, imu: ImuModel, major_interval_s: float, *,
-                 subsystems: list[tuple[str, list[str]]], sharing: str, fault_handling: str,
-                 false_alarm_prob: float, reset: str = "fusion_reset", master_share: float = 0.0,
-                 floor_share: float = 1e-3, report_faults: bool = True):
+    def __init__(
+        self,
+        name: str,
+        imu: ImuModel,
+        major_interval_s: float,
+        *,
+        subsystems: list[tuple[str, list[str]]],
+        sharing: str,
+        fault_handling: str,
+        false_alarm_prob: float,
+        reset: str = "fusion_reset",
+        master_share: float = 0.0,
+        floor_share: float = 1e-3,
+        report_faults: bool = True,
+    ):
         super().__init__(name, imu, major_interval_s)
         self.local_names = [s for s, _ in subsystems]
         self.strategy = get_strategy(sharing)
@@ -72,11 +92,15 @@ class _CorePipeline(Pipeline):
         for i, (sub_name, kinds) in enumerate(subsystems):
             for kind in kinds:
                 if kind not in MEASUREMENT_MODELS:
-                    raise ValueError(f"pipeline {name!r}: no measurement model for sensor kind {kind!r} "
-                                     f"(subsystem {sub_name!r}); supported: {sorted(MEASUREMENT_MODELS)}")
+                    raise ValueError(
+                        f"pipeline {name!r}: no measurement model for sensor kind {kind!r} "
+                        f"(subsystem {sub_name!r}); supported: {sorted(MEASUREMENT_MODELS)}"
+                    )
                 if kind in self.channels:
-                    raise ValueError(f"pipeline {name!r}: sensor kind {kind!r} is in two subsystems "
-                                     f"({self.channels[kind].name!r}, {sub_name!r}); it would be counted twice")
+                    raise ValueError(
+                        f"pipeline {name!r}: sensor kind {kind!r} is in two subsystems "
+                        f"({self.channels[kind].name!r}, {sub_name!r}); it would be counted twice"
+                    )
                 self.channels[kind] = _Channel(i, sub_name, make_fault_test(fault_handling, false_alarm_prob))
         self.bank: InsFilterBank | None = None
         self.core: FederatedCore | None = None
@@ -84,17 +108,31 @@ class _CorePipeline(Pipeline):
         self._epoch_t: float | None = None  # time of an aiding epoch whose fusion is pending
         self._fused_key: tuple | None = None
         self._fused_P: np.ndarray | None = None
+        self._view_key: int | None = None
+        self._view: Estimate | None = None
+        self._fused_view: tuple[np.ndarray, np.ndarray] | None = None
 
     # --- Pipeline interface ---------------------------------------------------------------------
     def initialise(self, nav: NavState, std: InitStd) -> None:
         if self.bank is not None:
             self.reinitialisations += 1
         n_locals = len(self.local_names)
-        self.bank = InsFilterBank(nav, initial_covariance(std, self.imu), self.imu.noise(),
-                                  bank_size=FederatedCore.bank_size(n_locals, self.master_share),
-                                  major_interval_s=self.major_interval_s)
-        self.core = FederatedCore(self.bank, n_locals, self.strategy, reset=self.reset_mode,
-                                  master_share=self.master_share, floor_share=self.floor_share)
+        self._P0 = initial_covariance(std, self.imu)
+        self.bank = InsFilterBank(
+            nav,
+            self._P0,
+            self.imu.noise(),
+            bank_size=FederatedCore.bank_size(n_locals, self.master_share),
+            major_interval_s=self.major_interval_s,
+        )
+        self.core = FederatedCore(
+            self.bank,
+            n_locals,
+            self.strategy,
+            reset=self.reset_mode,
+            master_share=self.master_share,
+            floor_share=self.floor_share,
+        )
         self.core.start()
         self._epoch_t = None
         for ch in self.channels.values():
@@ -102,19 +140,40 @@ class _CorePipeline(Pipeline):
         self._version += 1
         self.status = "aligned"
 
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float) -> None:
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
         if self._epoch_t is not None:
             self._end_epoch()  # time moves on: the aiding epoch is complete
-        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s)
+        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
 
     def sync(self) -> None:
         self.bank.sync()
 
     def _end_epoch(self) -> None:
-        """Seed 000 algorithm 2 once per aiding epoch: master fusion, reset, feedback."""
+        """Seed 000 algorithm 2 once per aiding epoch: master fusion, reset, feedback.
+
+        Runs outside the engine's ``apply`` guard (from push_imu / estimate), so a covariance
+        that lost positive definiteness is recovered here (DESIGN.md reliability rules).
+        """
+        self._epoch_t = None
+        fused = self._fused_view if self._view_key == self._version else None  # reuse the view's
+        self._version += 1
+        try:
+            self.core.fuse_and_reset(fused)
+        except np.linalg.LinAlgError:
+            self.recover_covariance()
+
+    def recover_covariance(self) -> None:
+        """Numerical-health recovery: keep the INS, restart every member from the initial
+        covariance (re-divided by the sharing strategy), zero error states, flag it."""
+        bank = self.bank
+        bank.x[:] = 0.0
+        bank.P = np.broadcast_to(self._P0, bank.P.shape).copy()
+        bank.q_scale = np.ones_like(bank.q_scale)
+        self.core.start()
         self._epoch_t = None
         self._version += 1
-        self.core.fuse_and_reset()
+        self.reinitialisations += 1
+        self.status = "reinitialised"
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         ch = self.channels.get(kind)
@@ -126,34 +185,64 @@ class _CorePipeline(Pipeline):
         meas = MEASUREMENT_MODELS[kind](bank.nav(), msg, bank.n, dt_late_s)
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
-        self._epoch_t = bank.t  # fusion when the epoch ends (next IMU data, or an output request)
+        self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
-            self.updates += 1
-            self.status = "aided"
+            self.mark_aided(bank.t)
         if not self.report_faults:
             return []
         d = upd.decision
         obs = [
-            ObservationFault(label=label, statistic=float(d.statistic[j]), threshold=float(d.threshold[j]),
-                             flagged=bool(d.flagged[j]), isolated=bool(d.isolated[j]))
+            ObservationFault(
+                label=label,
+                statistic=float(d.statistic[j]),
+                threshold=float(d.threshold[j]),
+                flagged=bool(d.flagged[j]),
+                isolated=bool(d.isolated[j]),
+            )
             for j, label in enumerate(meas.labels)
         ]
-        return [Faults(t=float(bank.t), pipeline=self.name,
-                       subsystems=[SubsystemFaults(name=ch.name, isolated=d.subsystem_isolated, observations=obs)],
-                       sharing=self.sharing_report())]
+        return [
+            Faults(
+                t=float(bank.t),
+                pipeline=self.name,
+                subsystems=[SubsystemFaults(name=ch.name, isolated=d.subsystem_isolated, observations=obs)],
+                sharing=self.sharing_report(),
+            )
+        ]
 
     def estimate(self) -> Estimate:
         if self._epoch_t is not None:
-            self._end_epoch()
+            return self._epoch_view()
         return Estimate(self.bank.nav(), self.fused_covariance()[:9, :9])
+
+    def _epoch_view(self) -> Estimate:
+        """The fused estimate while an epoch's fusion is pending (more aiding at this time may
+        follow), as a pure view: x_g applied to a COPY of the INS state, and P_g. Requesting an
+        output never changes the filter, so results do not depend on outputs or truth being
+        present; the real fusion-reset later applies the identical correction."""
+        if self._view_key != self._version:
+            try:
+                x_g, P_g = self._fused_view = self.core.fuse()
+            except np.linalg.LinAlgError:
+                self.recover_covariance()
+                return self.estimate()
+            ins = Ins(self.bank.nav(), self.major_interval_s)
+            ins.correct(x_g[em.POS], x_g[em.VEL], x_g[em.ATT], x_g[em.GYRO], x_g[em.ACC])
+            self._view = Estimate(ins.state, P_g[:9, :9])
+            self._view_key = self._version
+        return self._view
 
     # --- federated outputs ------------------------------------------------------------------------
     def fused_covariance(self) -> np.ndarray:
         """(15, 15) master-fused covariance of the current bank (cached per state change)."""
         key = (self.bank.ins.state.t, self._version)
         if key != self._fused_key:
-            self._fused_P = self.core.fuse()[1]
-            self._fused_key = key
+            try:
+                self._fused_P = self.core.fused_covariance()
+            except np.linalg.LinAlgError:
+                self.recover_covariance()
+                self._fused_P = self.core.fused_covariance()
+            self._fused_key = (self.bank.ins.state.t, self._version)
         return self._fused_P
 
     def sharing_report(self) -> dict[str, list[float]]:
@@ -172,10 +261,17 @@ class Federated(_CorePipeline):
 
     def __init__(self, cfg: FederatedConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(
-            cfg.name, imu, major_interval_s,
+            cfg.name,
+            imu,
+            major_interval_s,
             subsystems=[(s.name, list(s.sensors)) for s in cfg.subsystems],
-            sharing=cfg.sharing, fault_handling=cfg.fault_handling, false_alarm_prob=cfg.false_alarm_prob,
-            reset=cfg.reset, master_share=cfg.master_share, floor_share=cfg.floor_share, report_faults=True,
+            sharing=cfg.sharing,
+            fault_handling=cfg.fault_handling,
+            false_alarm_prob=cfg.false_alarm_prob,
+            reset=cfg.reset,
+            master_share=cfg.master_share,
+            floor_share=cfg.floor_share,
+            report_faults=True,
         )
         self.cfg = cfg
 
@@ -190,9 +286,13 @@ class Centralized(_CorePipeline):
 
     def __init__(self, cfg: CentralizedConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(
-            cfg.name, imu, major_interval_s,
+            cfg.name,
+            imu,
+            major_interval_s,
             subsystems=[("central", list(MEASUREMENT_MODELS))],
-            sharing="fixed", fault_handling=cfg.fault_handling, false_alarm_prob=cfg.false_alarm_prob,
+            sharing="fixed",
+            fault_handling=cfg.fault_handling,
+            false_alarm_prob=cfg.false_alarm_prob,
             report_faults=cfg.fault_handling != "none",
         )
         self.cfg = cfg
