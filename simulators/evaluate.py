@@ -19,7 +19,7 @@ import numpy as np
 from service import config as config_mod
 from service import keys
 from service.engine import VehicleEngine
-from service.messages import Solution, Truth, WireModel
+from service.messages import Integrity, Solution, Truth, WireModel
 from service.pipelines.base import ERROR_KEYS, error_dict, nees
 from simulators.papers import reference
 from simulators.scenario import Scenario
@@ -108,8 +108,10 @@ def evaluate(
     t0 = float(traj.t_s[0])
     pooled: dict[str, dict[str, list]] = {}
     wall0 = time.perf_counter()
+    integ_runs: dict[str, list] = {}
     for i in range(runs):
         sink, _ = run_once(scenario, seed + i, cfg, trajectory=traj)
+        collect_integrity(integ_runs, sink)
         for name, rec in sink.records.items():
             p = pooled.setdefault(name, {"t": [], "err": [], "nees": []})
             p["t"] += [t - t0 for t in rec.t]
@@ -146,6 +148,7 @@ def evaluate(
                 wr, wm = _stats(err[sel])
                 entry["window"] = {"t0": window[0], "t1": window[1], "rms": wr, "max": wm}
         out["pipelines"][name] = entry
+    add_integrity(out, scenario, integ_runs)
     return out
 
 
@@ -191,7 +194,7 @@ def format_table(result: dict) -> str:
                     + "".join(f"{w[stat][c]:13.4f}" for c in cols)
                 )
     ref = reference(result["scenario"])
-    if ref:
+    if ref and "table1" in ref:
         table = "table2" if any("window" in e for e in result["pipelines"].values()) else "table1"
         lines.append(f"paper ({table}, RMS):")
         for name, vals in ref[table].items():
@@ -204,5 +207,207 @@ def format_table(result: dict) -> str:
             lines.append(
                 f"{name}: max velocity error in fault windows {e['fault_windows_max_vel_err_mps']:.3f} m/s"
             )
+    lines += format_integrity(result)
     lines.append("units: lat_m/lon_m/h_m metres (north/east/up), v m/s, phi arcsec")
     return "\n".join(lines)
+
+
+# --- integrity (seed 001): per-epoch classes of the paper's Table 1 --------------------------------
+INTEGRITY_CLASSES = ("normal", "detected", "missed", "false_alarm", "undetected")
+
+
+def collect_integrity(acc: dict[str, list], sink: CollectingSink) -> None:
+    """Keep each pipeline's Integrity outputs (and their errors) of one run: acc[name] += [(msgs, errs)]."""
+    for name, rec in sink.records.items():
+        pairs = [
+            (m, e) for m, e in zip(rec.outputs, rec.output_errors, strict=True) if isinstance(m, Integrity)
+        ]
+        if pairs:
+            acc.setdefault(name, []).append(pairs)
+
+
+def add_integrity(result: dict, scenario: Scenario, acc: dict[str, list]) -> None:
+    """Add ``result["pipelines"][name]["integrity"]`` for every pipeline that produced Integrity."""
+    for name, runs in acc.items():
+        entry = result["pipelines"].setdefault(name, {})
+        entry["integrity"] = integrity_metrics(scenario, runs)
+
+
+def _raw_faults(scenario: Scenario) -> list[tuple[float, float, set[str]]]:
+    """(start_s, end_s, satellites) of the raw-GNSS faults, in onset order."""
+    out = []
+    for f in scenario.faults:
+        if f.sensor == "gnss_raw":
+            out.append((f.start_s, f.start_s + f.duration_s, {c.split(".")[0] for c in f.channels}))
+    return sorted(out, key=lambda x: x[0])
+
+
+def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.ndarray | None]]]) -> dict:
+    """Integrity figures of one pipeline over runs of ``scenario`` (JSON-ready).
+
+    Epochs are the pipeline's Integrity messages (one per GNSS epoch); ``t_rel`` is the message
+    time from the scenario start on the IMU grid. A raw-GNSS fault of ``scenario.faults`` is
+    *active* at ``start_s <= t_rel < start_s + duration_s``. Per fault, the epoch is *flagged*
+    when the message has ``detected`` or ``alarm``, or lists one of the fault's satellites in
+    ``excluded``; the fault is *detected in time* when its first flagged epoch inside its window
+    comes at most TTA (the phase's time to alert) after its onset. herr = true horizontal error
+    of the solution at the epoch (|dp_east, dp_north|); hazardous = herr > HPL or herr > HAL.
+
+    Classes (each epoch exactly one; the paper's Table 1 plus "undetected"):
+      normal       no fault active, neither detected nor alarm
+      false_alarm  no fault active, detected or alarm (exclusions kept from earlier faults do not
+                   count; a detection caused by the filter's recovery right after a fault ends does)
+      detected     fault active, flagged, and that fault was detected in time
+      missed       fault active and either flagged only after TTA, or not flagged while hazardous
+                   and that fault was not detected in time (never, or late)
+      undetected   fault active, not flagged, not hazardous -- or hazardous while a detection in
+                   time is still to come (then also counted in hmi_epochs if herr > HPL)
+    Overlay (not a class): hmi_epochs = herr > HPL with no alarm, at any epoch.
+    counts sum to ``epochs``. p_fa = false_alarm / (normal + false_alarm) (per fault-free epoch;
+    the paper's 1.25e-4 is 1 / 8000 over all epochs), p_md = missed / (detected + missed +
+    undetected) (per fault epoch). detection_latency_s: first epoch flagged (detected, alarm or an
+    exclusion listed) at or after the first fault's onset, minus that onset; with several runs the
+    worst run (per-run values in ``detection_latency_runs_s``). ``excluded_satellites``: every
+    satellite excluded at some epoch. Epochs without truth are counted in ``epochs_without_truth``
+    and classified without the error criteria (never hazardous, never HMI).
+    """
+    from service.estimation.integrity import limits
+
+    faults = _raw_faults(scenario)
+    rate = scenario.imu.rate_hz
+    t0 = scenario.t0_gps_s
+    counts = dict.fromkeys(INTEGRITY_CLASSES, 0)
+    hpl, vpl, latencies = [], [], []
+    hmi = alarms = no_truth = n_ep = 0
+    excluded: set[str] = set()
+    fault_latency: list[float | None] = []
+    for pairs in runs:
+        t_rel = [round((m.t - t0) * rate) / rate for m, _ in pairs]
+        # first flagged epoch of each fault inside its window
+        first_flag: list[float | None] = []
+        for s0, s1, sats in faults:
+            first_flag.append(
+                next(
+                    (
+                        t
+                        for t, (m, _) in zip(t_rel, pairs, strict=True)
+                        if s0 <= t < s1 and (m.detected or m.alarm or sats & set(m.excluded))
+                    ),
+                    None,
+                )
+            )
+        fault_latency += [
+            None if f is None else f - s0 for f, (s0, _, _) in zip(first_flag, faults, strict=True)
+        ]
+        if faults:
+            on = faults[0][0]
+            det = next(
+                (t for t, (m, _) in zip(t_rel, pairs, strict=True) if t >= on and (m.detected or m.alarm)),
+                None,
+            )
+            latencies.append(None if det is None else det - on)
+        for t, (m, e) in zip(t_rel, pairs, strict=True):
+            n_ep += 1
+            tta = limits(m.phase).tta_s
+            hpl.append(m.hpl_m)
+            vpl.append(m.vpl_m)
+            alarms += bool(m.alarm)
+            excluded |= set(m.excluded)
+            herr = None if e is None else math.hypot(float(e[0]), float(e[1]))
+            no_truth += herr is None
+            hazardous = herr is not None and (herr > m.hpl_m or herr > m.hal_m)
+            if herr is not None and herr > m.hpl_m and not m.alarm:
+                hmi += 1
+            active = [i for i, (s0, s1, _) in enumerate(faults) if s0 <= t < s1]
+            if not active:
+                counts["false_alarm" if (m.detected or m.alarm) else "normal"] += 1
+                continue
+            i = active[0]
+            sats = set().union(*(faults[j][2] for j in active))
+            in_time = first_flag[i] is not None and first_flag[i] - faults[i][0] <= tta + 1e-9
+            if m.detected or m.alarm or sats & set(m.excluded):
+                counts["detected" if in_time else "missed"] += 1
+            elif hazardous and not in_time:
+                counts["missed"] += 1
+            else:
+                counts["undetected"] += 1
+    fault_free = counts["normal"] + counts["false_alarm"]
+    faulty = counts["detected"] + counts["missed"] + counts["undetected"]
+    lat_known = [x for x in latencies if x is not None]
+
+    def stats(v: list[float]) -> dict:
+        return (
+            {"median": float(np.median(v)), "max": float(np.max(v))} if v else {"median": None, "max": None}
+        )
+
+    return {
+        "epochs": n_ep,
+        "detection_latency_s": (max(lat_known) if len(lat_known) == len(latencies) else None)
+        if latencies
+        else None,
+        "detection_latency_runs_s": latencies,
+        "hpl_m": stats(hpl),
+        "vpl_m": stats(vpl),
+        "hmi_epochs": hmi,
+        "alarms": alarms,
+        "counts": counts,
+        "p_fa": counts["false_alarm"] / fault_free if fault_free else None,
+        "p_md": counts["missed"] / faulty if faulty else None,
+        "faults": len(faults) * len(runs),
+        "faults_detected_in_time": sum(1 for x in fault_latency if x is not None and x <= _tta(runs) + 1e-9),
+        "fault_latency_s": stats([x for x in fault_latency if x is not None]),
+        "excluded_satellites": sorted(excluded),
+        "epochs_without_truth": no_truth,
+    }
+
+
+def _tta(runs: list) -> float:
+    from service.estimation.integrity import limits
+
+    for pairs in runs:
+        for m, _ in pairs:
+            return limits(m.phase).tta_s
+    return math.inf
+
+
+def format_integrity(result: dict) -> list[str]:
+    """Integrity lines of the table form, with the paper's figures beside ours where they exist."""
+    ref = reference(result["scenario"])
+    lines = []
+    for name, e in result["pipelines"].items():
+        g = e.get("integrity")
+        if not g:
+            continue
+        c = g["counts"]
+        lat = g["detection_latency_s"]
+        lines.append(
+            f"{name}: integrity over {g['epochs']} epochs: HPL median {g['hpl_m']['median']:.1f} m "
+            f"max {g['hpl_m']['max']:.1f} m, VPL median {g['vpl_m']['median']:.1f} m, alarms {g['alarms']}, "
+            f"HMI epochs {g['hmi_epochs']}, excluded {g['excluded_satellites']}"
+        )
+        lines.append(
+            f"  first detection {'never' if lat is None else f'{lat:.2f} s'} after the first fault onset; "
+            f"faults detected in time {g['faults_detected_in_time']}/{g['faults']}"
+        )
+        t1 = ref.get("integrity_table1")
+        head = f"  {'':14}" + "".join(f"{k:>13}" for k in INTEGRITY_CLASSES) + f"{'P_FA':>11}{'P_MD':>9}"
+        lines.append(head)
+        pfa = "-" if g["p_fa"] is None else f"{g['p_fa']:.2e}"
+        pmd = "-" if g["p_md"] is None else f"{g['p_md']:.2e}"
+        lines.append(
+            f"  {'ours':14}" + "".join(f"{c[k]:>13}" for k in INTEGRITY_CLASSES) + f"{pfa:>11}{pmd:>9}"
+        )
+        if t1:
+            lines.append(
+                f"  {'paper Table 1':14}"
+                + "".join(f"{t1.get(k, '-'):>13}" for k in INTEGRITY_CLASSES)
+                + f"{t1['false_alarm_rate']:>11.2e}{t1['missed_rate']:>9.1f}"
+            )
+        ramp = ref.get("ramp")
+        if ramp:
+            lines.append(
+                f"  paper: ramp {ramp['rate_mps']} m/s on {ramp['satellite']} from {ramp['onset_s']} s "
+                f"flagged at {ramp['flagged_at_s']} s (latency {ramp['latency_s']} s); ours "
+                f"{'never' if lat is None else f'{lat:.2f} s'}"
+            )
+    return lines

@@ -2,27 +2,37 @@
 
 Order: ``InitialNav`` and ``Truth`` at ``t0``; then for every IMU sample ``k >= 1`` at ``t_k``:
 ``Truth`` (at the truth rate, listing the active faults), the aiding measurements of that instant
-(``GnssFix``, then ``StarAttitude``, faults applied), and last the ``ImuSample`` ending at ``t_k``
-(the engine holds aiding until the INS reaches its time, so solutions at ``t_k`` are post-update).
+(``GnssFix``, ``GnssRaw``, then ``StarAttitude``, faults applied), and last the ``ImuSample``
+ending at ``t_k`` (the engine holds aiding until the INS reaches its time, so solutions at ``t_k``
+are post-update).
+
+Raw GNSS (``scenario.gnss_raw``): a :class:`~simulators.gnss.raw_sensor.GnssRawSensor` measured at
+every ``imu_rate / gnss_raw.rate_hz``-th IMU sample (from one period after the start) with the
+receiver at the trajectory's true position and velocity of that instant; faults of sensor
+``"gnss_raw"`` act on ``"<sat>.pseudorange"`` / ``"<sat>.range_rate"`` at the exact scenario time
+``k / imu_rate`` (a fault on a satellite not published at an epoch has no effect there). The
+per-epoch sensor truth (clock, noise, applied faults, GDOP) is kept in ``truth.gnss_raw``.
 
 Randomness: one ``np.random.SeedSequence(seed)`` spawns independent streams for the IMU, GNSS,
-star tracker, initial errors and faults (in that order), so enabling one sensor never changes the
-noise of another. Every draw happens when the :class:`Simulation` is created; iteration only
-builds messages, and ``Simulation.truth`` (biases, initial errors) is available before iterating.
+star tracker, initial errors, faults and raw GNSS (in that order; the first five are the same
+children as before raw GNSS existed), so enabling one sensor never changes the noise of another.
+Every draw happens when the :class:`Simulation` is created; iteration only builds messages, and
+``Simulation.truth`` (biases, initial errors) is available before iterating.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from service import earth, keys
 from service.messages import ImuSample, InitialNav, Truth, WireModel
 from simulators.faults import FaultSet
+from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawTruth
 from simulators.imu import ImuErrorTruth, apply_imu_errors
-from simulators.scenario import Scenario
+from simulators.scenario import GNSS_RAW_SENSOR, Scenario
 from simulators.sensors import epoch_step, simulate_gnss_fixes, simulate_star
 from simulators.trajectory import Trajectory, radii_vec
 
@@ -40,6 +50,7 @@ class SimulationTruth:
     imu_errors : ImuErrorTruth (biases, scale factors, Gauss-Markov states)
     initial_pos_error_enu_m, initial_vel_error_enu_mps : (3,)
     initial_rpy_error_rad : (3,) roll, pitch, yaw (west positive) errors added to the truth
+    gnss_raw : list of GnssRawTruth, one per raw GNSS epoch (empty without raw GNSS)
     """
 
     seed: int
@@ -48,6 +59,7 @@ class SimulationTruth:
     initial_pos_error_enu_m: np.ndarray
     initial_vel_error_enu_mps: np.ndarray
     initial_rpy_error_rad: np.ndarray
+    gnss_raw: list[GnssRawTruth] = field(default_factory=list)
 
 
 def _deg_msg(llh: np.ndarray, rpy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -92,13 +104,14 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             raise ValueError("trajectory does not match the scenario (rate, duration or t0 differ)")
         self.scenario = sc
         self.vehicle = vehicle
-        rng_imu, rng_gnss, rng_star, rng_init, rng_faults = (
-            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
+        rng_imu, rng_gnss, rng_star, rng_init, rng_faults, rng_raw = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
         )
         self._dth, self._dv, imu_truth = apply_imu_errors(sc.imu, traj.dtheta_rad, traj.dvel_mps, rng_imu)
         self.faults = FaultSet(sc.faults, rng_faults)
         self._gnss = simulate_gnss_fixes(sc.gnss, traj, rng_gnss, self.faults) if sc.gnss else []
         self._star = simulate_star(sc.star, traj, rng_star, self.faults) if sc.star else []
+        self._raw, raw_truth = simulate_gnss_raw(sc, traj, rng_raw, self.faults) if sc.gnss_raw else ([], [])
 
         ie = sc.initial_errors
         if ie.mode == "random":
@@ -109,7 +122,7 @@ class Simulation(Iterator[tuple[str, WireModel]]):
         else:
             dp, dv = np.asarray(ie.pos_enu_m, float), np.asarray(ie.vel_enu_mps, float)
             da = np.asarray(ie.rpy_arcsec, float) * earth.ARCSEC
-        self.truth = SimulationTruth(seed, traj, imu_truth, dp, dv, da)
+        self.truth = SimulationTruth(seed, traj, imu_truth, dp, dv, da, raw_truth)
 
         def floor(v) -> tuple[float, float, float]:
             return tuple(float(abs(x)) if x != 0.0 else ZERO_SIGMA_FLOOR for x in v)
@@ -134,6 +147,7 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             "imu": keys.sensor(vehicle, "imu", sc.imu.id, prefix),
             "gnss": keys.sensor(vehicle, "gnss_fix", sc.gnss.id, prefix) if sc.gnss else "",
             "star": keys.sensor(vehicle, "star", sc.star.id, prefix) if sc.star else "",
+            "gnss_raw": keys.sensor(vehicle, "gnss_raw", sc.gnss_raw.id, prefix) if sc.gnss_raw else "",
             "init": keys.init(vehicle, prefix),
             "truth": keys.truth(vehicle, prefix),
         }
@@ -174,8 +188,8 @@ class Simulation(Iterator[tuple[str, WireModel]]):
         yield k_truth, truth_msg(0)
         dt = 1.0 / traj.imu_rate_hz
         dth, dv = self._dth.tolist(), self._dv.tolist()
-        gnss, star = self._gnss, self._star
-        ig = istar = 0
+        gnss, star, raw = self._gnss, self._star, self._raw
+        ig = istar = iraw = 0
         for k in range(1, traj.t_s.size):
             # Truth and aiding of instant t_k come before the IMU sample ending at t_k: the engine
             # queues aiding until the INS reaches t_k, so the solution at t_k is post-update.
@@ -184,10 +198,58 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             if ig < len(gnss) and gnss[ig][0] == k:
                 yield self._keys["gnss"], gnss[ig][1]
                 ig += 1
+            if iraw < len(raw) and raw[iraw][0] == k:
+                yield self._keys["gnss_raw"], raw[iraw][1]
+                iraw += 1
             if istar < len(star) and star[istar][0] == k:
                 yield self._keys["star"], star[istar][1]
                 istar += 1
             yield k_imu, ImuSample(t=t_list[k], dt_s=dt, dtheta_rad=tuple(dth[k]), dvel_mps=tuple(dv[k]))
+
+
+def simulate_gnss_raw(
+    scenario: Scenario, traj: Trajectory, rng: np.random.Generator, faults: FaultSet | None = None
+) -> tuple[list, list[GnssRawTruth]]:
+    """Raw GNSS epochs as ``(imu_sample_index, GnssRaw)`` pairs in time order, and their truths.
+
+    Epochs at every ``epoch_step``-th IMU sample from one period after the start; the receiver
+    (antenna at the IMU) at the trajectory's true position/velocity of that sample. Faults of
+    sensor ``"gnss_raw"`` are applied at the exact scenario time ``k / imu_rate``; channels of
+    satellites not published at an epoch are given to the fault set as zeros and dropped after, so
+    a fault on an unpublished satellite has no effect (scenario validation requires faulted
+    satellites to be required ones unless every visible satellite is used).
+    """
+    spec = scenario.gnss_raw
+    step = epoch_step(traj.imu_rate_hz, spec.rate_hz, "gnss_raw.rate_hz")
+    ks = np.arange(step, traj.t_s.size, step)
+    fault_channels = sorted(
+        {c for f in (faults.for_sensor(GNSS_RAW_SENSOR) if faults else []) for c in f.channels}
+    )
+    t_rel = {"now": 0.0}
+
+    def fault_fn(_t_rel_sensor: float, values: dict[str, float]) -> dict[str, float]:
+        full = {c: 0.0 for c in fault_channels}
+        full.update(values)
+        out = faults.apply(GNSS_RAW_SENSOR, t_rel["now"], full)
+        return {c: out[c] for c in values}
+
+    sensor = GnssRawSensor(
+        spec, rng, fault_fn=fault_fn if fault_channels else None, t0_gps_s=float(traj.t_s[0])
+    )
+    lat, lon = traj.llh[ks, 0], traj.llh[ks, 1]
+    pos = earth.llh_to_ecef(traj.llh[ks])
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    ve, vn, vu = traj.vel_enu_mps[ks].T
+    vel = np.stack(
+        [-so * ve - sl * co * vn + cl * co * vu, co * ve - sl * so * vn + cl * so * vu, cl * vn + sl * vu], -1
+    )
+    out, truths = [], []
+    for i, k in enumerate(ks.tolist()):
+        t_rel["now"] = k / traj.imu_rate_hz
+        ep = sensor.measure(float(traj.t_s[k]), pos[i], vel[i])
+        out.append((k, ep.message))
+        truths.append(ep.truth)
+    return out, truths
 
 
 def simulate(

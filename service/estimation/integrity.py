@@ -19,6 +19,26 @@ measures from fault onset to the alarm or exclusion. Vertical tests join detecti
 compared with VAL) only in phases that have a VAL; the false-alarm budget is then split evenly
 between the horizontal and vertical test families (``n_families``).
 
+Satellite residual test (:class:`ResidualWindows`, detection in addition to solution separation)
+-------------------------------------------------------------------------------------------------
+Each epoch, satellite n's pseudorange residual against the sub-filter F0n that excludes it,
+e_n = z_n - H_n x_0n (after the update), has mean = the fault on n and variance
+hph_n + r_n (hph_n = H_n P_0n H_n'), its noise v_n independent of F0n's error (F0n never used n).
+Over the last W epochs (W in ``windows``; fewer right after a (re)start) the mean residual
+m = sum(e)/W is tested against
+
+    sigma_W^2 = (sum sqrt(hph_k) / W)^2 + sum r_k / W^2
+
+which bounds var(m) for ANY correlation of F0n's errors across the window (the standard
+deviation of a sum is at most the sum of the standard deviations) with white measurement noise.
+A window of one epoch is the snapshot residual test; longer windows average the noise down and
+detect ramps (the idea of AIME's averaged innovations, Diesel & Dunn 1995, on the excluded
+satellite). Flag: |m| > K sigma_W. Each window is one family of N tests sharing the per-epoch
+false-alarm budget with the separation tests (``n_families`` in the pipeline).
+The windows restart (are emptied) for a satellite that enters the bank and for every satellite
+after an exclusion (their past residuals were taken against sub-filters that used the excluded
+satellite), and on re-initialisation.
+
 Re-admission (:class:`ExclusionBook`)
 ------------------------------------
 An excluded satellite is re-admitted after ``readmit_after_s`` of continuous health: every epoch
@@ -29,7 +49,11 @@ restarts the clock. Re-admitted satellites enter the bank like rising satellites
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
 
 PhaseName = str
 
@@ -127,11 +151,96 @@ class ExclusionBook:
         self.entries.clear()
 
 
+@dataclass(frozen=True)
+class ResidualTests:
+    """Windowed satellite residual tests of one epoch, arrays (N, n_windows) in bank order.
+
+    statistic: |mean residual| (m); threshold: K sigma_W (m); count: samples in each window.
+    """
+
+    sats: tuple[str, ...]
+    windows: tuple[int, ...]
+    statistic: np.ndarray
+    threshold: np.ndarray
+    count: np.ndarray
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """(N,) any window of the satellite above its threshold."""
+        if self.statistic.size == 0:
+            return np.zeros(len(self.sats), dtype=bool)
+        return np.any(self.statistic > self.threshold, axis=1)
+
+    @property
+    def normalised(self) -> np.ndarray:
+        """(N,) largest statistic / threshold over the windows."""
+        if self.statistic.size == 0:
+            return np.zeros(len(self.sats))
+        return np.max(self.statistic / np.maximum(self.threshold, 1e-300), axis=1)
+
+
+@dataclass
+class ResidualWindows:
+    """Per-satellite buffers of the satellite residual test (module docstring)."""
+
+    windows: tuple[int, ...] = (1, 10)
+    _buf: dict[str, deque] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if any(int(w) < 1 for w in self.windows):
+            raise ValueError(f"residual windows must be >= 1 epoch, got {self.windows}")
+        self.windows = tuple(int(w) for w in self.windows)
+
+    @property
+    def n_families(self) -> int:
+        return len(self.windows)
+
+    def retain(self, sats: Sequence[str]) -> None:
+        """Forget satellites no longer in the bank (one that comes back starts empty)."""
+        keep = set(sats)
+        for sid in [s for s in self._buf if s not in keep]:
+            del self._buf[sid]
+
+    def clear(self) -> None:
+        self._buf.clear()
+
+    def push(self, sats: Sequence[str], e: np.ndarray, hph: np.ndarray, r: np.ndarray) -> None:
+        depth = max(self.windows, default=1)
+        for j, sid in enumerate(sats):
+            b = self._buf.get(sid)
+            if b is None:
+                b = self._buf[sid] = deque(maxlen=depth)
+            b.append((float(e[j]), float(np.sqrt(hph[j])), float(r[j])))
+
+    def tests(self, sats: Sequence[str], k: float) -> ResidualTests:
+        """Statistics and thresholds (multiplier ``k``) of every window for ``sats``."""
+        nw = len(self.windows)
+        stat, thr, cnt = (
+            np.zeros((len(sats), nw)),
+            np.full((len(sats), nw), np.inf),
+            np.zeros((len(sats), nw)),
+        )
+        for j, sid in enumerate(sats):
+            b = self._buf.get(sid)
+            if not b:
+                continue
+            arr = np.array(b)
+            for i, w in enumerate(self.windows):
+                a = arr[-w:]
+                n = len(a)
+                stat[j, i] = abs(a[:, 0].sum()) / n
+                thr[j, i] = k * np.sqrt((a[:, 1].sum() / n) ** 2 + a[:, 2].sum() / (n * n))
+                cnt[j, i] = n
+        return ResidualTests(tuple(sats), self.windows, stat, thr, cnt)
+
+
 __all__ = [
     "PHASES",
     "Assessment",
     "ExclusionBook",
     "PhaseLimits",
+    "ResidualTests",
+    "ResidualWindows",
     "assess",
     "limits",
     "n_families",

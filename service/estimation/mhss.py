@@ -519,20 +519,57 @@ class MhssBank:
         )
 
     def find_exclusion(
-        self, tests: SeparationTests, p_fa: float, kmd: float, use_vertical: bool, n_families: int = 1
+        self,
+        tests: SeparationTests,
+        p_fa: float,
+        kmd: float,
+        use_vertical: bool,
+        n_families: int = 1,
+        extra_flagged: np.ndarray | None = None,
+        extra_score: np.ndarray | None = None,
     ) -> int | None:
-        """Satellite index to exclude after a detection, or None (module docstring "Exclusion")."""
+        """Satellite index to exclude after a detection, or None (module docstring "Exclusion").
+
+        ``extra_flagged`` / ``extra_score`` (N,): satellites flagged by another detector (the
+        satellite residual test) and their normalised statistics; they join the candidates and
+        the ranking (a candidate's sub-sub separation tests must still all pass).
+        """
         if self.depth < 2 or self.N < 2:
             return None
         kfa_sub = k_fa(p_fa, (self.N - 1) * n_families)
-        failed = np.flatnonzero(tests.flagged(use_vertical))
+        flagged = tests.flagged(use_vertical)
+        score = tests.normalised(use_vertical)
+        if extra_flagged is not None:
+            flagged = flagged | np.asarray(extra_flagged, dtype=bool)
+        if extra_score is not None:
+            score = np.maximum(score, np.asarray(extra_score, dtype=float))
+        failed = np.flatnonzero(flagged)
         cands = [
             int(r) for r in failed if not np.any(self.sub_tests(int(r), kfa_sub, kmd).flagged(use_vertical))
         ]
         if not cands:
             return None
-        score = tests.normalised(use_vertical)
         return max(cands, key=lambda r: score[r])
+
+    def excluded_residuals(
+        self, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, rows: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residual of each satellite against the sub-filter that excludes it (after the update).
+
+        ``rows`` (N,): for satellite n (bank order) the index of its row in (z, H, r_var). Returns
+        ``e`` (N,) = z_n - H_n x_0n, ``hph`` (N,) = H_n P_0n H_n' and ``r`` (N,) = R_n. Sub-filter
+        F0n never used satellite n, so e_n = H_n (error of F0n) + v_n with v_n independent of
+        F0n: E e_n = fault of n, var e_n = hph_n + r_n (the "satellite residual test").
+        """
+        if self.depth < 1 or self.N == 0:
+            z0 = np.zeros(0)
+            return z0, z0, z0
+        rows = np.asarray(rows, dtype=int)
+        Hn = H[rows]
+        subs = 1 + np.arange(self.N)
+        e = z[rows] - np.einsum("ij,ij->i", Hn, self.x[subs])
+        hph = np.einsum("ij,ijk,ik->i", Hn, self.P[subs], Hn)
+        return e, np.maximum(hph, 0.0), np.asarray(r_var, dtype=float)[rows]
 
 
 def residual_test(

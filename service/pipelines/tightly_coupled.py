@@ -25,11 +25,23 @@ update (this class overrides :meth:`InsFilterBank.propagate`). Per epoch:
 2. a change of the used set rebuilds the bank (:meth:`MhssBank.rebuild`: exact for rising and
    setting satellites);
 3. batched update of all members and cross blocks, feedback of the main correction;
-4. main-vs-sub tests (horizontal; + vertical in phases with a VAL) -> detection; on detection the
-   exclusion search (sub-sub tests); an excluded satellite is purged (new main = its sub-filter,
-   whose correction is fed back at once) and the tests/PLs are recomputed on the new bank;
+4. main-vs-sub tests (horizontal; + vertical in phases with a VAL) and the satellite residual
+   tests (each satellite's pseudorange against the sub-filter that excludes it, over windows of
+   ``RESIDUAL_WINDOWS`` epochs: :class:`~service.estimation.integrity.ResidualWindows`) ->
+   detection; on detection the exclusion search (sub-sub tests; residual-flagged satellites are
+   candidates too); an excluded satellite is purged (new main = its sub-filter, whose correction
+   is fed back at once) and the tests/PLs are recomputed on the new bank;
 5. an :class:`~service.messages.Integrity` message (HPL/VPL against the phase's HAL/VAL, alarm,
    availability, per-satellite statistics and thresholds).
+
+False-alarm budget: ``p_fa`` per epoch is split evenly over the test families -- horizontal
+separation (+ vertical with a VAL) and one family per residual window -- each of N two-sided
+tests: K = Q^-1(p_fa / (2 N n_families)). The protection levels use the separation K (the
+residual tests only add detections, so the PLs stay valid). Why the residual test (seed 001's
+ramp, docs/seed001.md): the sub-filter that excludes the faulty satellite has not absorbed any of
+its ramp, and with range rates and the INS its prediction of that satellite's range is good to
+~0.15 m, so the averaged residual shows a 0.63 m/s ramp about twice as fast as the separation
+(whose main filter absorbs part of the ramp into position and clock).
 """
 
 from __future__ import annotations
@@ -167,10 +179,15 @@ class EpochResult:
     excluded_now: str | None
     resolved: bool
     readmitted: tuple[str, ...]
+    residual: integrity.ResidualTests | None = None
+    detected_by: str = ""  # "separation", "residual", "separation+residual" or "" (no detection)
 
 
 class TightlyCoupled(Pipeline):
     family = "tightly_coupled"
+
+    RESIDUAL_WINDOWS: tuple[int, ...] = (1, 10)
+    """Windows (epochs) of the satellite residual test; () turns the test off (separation only)."""
 
     def __init__(self, cfg: TightlyCoupledConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(cfg.name, imu, major_interval_s)
@@ -178,7 +195,8 @@ class TightlyCoupled(Pipeline):
         self.depth = 0 if not cfg.integrity else (2 if cfg.sub_sub_filters else 1)
         self.limits = integrity.limits(cfg.phase)
         self.use_vertical = integrity.uses_vertical(cfg.phase)
-        self.n_families = integrity.n_families(cfg.phase)
+        self.residual = integrity.ResidualWindows(self.RESIDUAL_WINDOWS)
+        self.n_families = integrity.n_families(cfg.phase) + self.residual.n_families
         self.kmd = k_md(cfg.p_md)
         self.k_single = k_fa(cfg.p_fa, 1)  # one two-sided test (re-admission residuals)
         self.book = integrity.ExclusionBook(cfg.readmit_after_s)
@@ -197,6 +215,7 @@ class TightlyCoupled(Pipeline):
         self._P0 = P0
         self.bank = TightInsBank(nav, P0, self.imu.noise(), self.cfg.clock, self.major_interval_s, self.depth)
         self.book.clear()
+        self.residual.clear()
         self.clock_initialised = False
         self.last = None
         self.status = "aligned"
@@ -206,6 +225,7 @@ class TightlyCoupled(Pipeline):
         every member and cross block from the initial covariance (all states zero)."""
         mh = self.bank.mhss
         self.bank.mhss = MhssBank.initial(np.zeros(N_STATES), self._P0, mh.sats, mh.depth)
+        self.residual.clear()
         self.reinitialisations += 1
         self.status = "reinitialised"
 
@@ -258,6 +278,7 @@ class TightlyCoupled(Pipeline):
         )
         if set(used) != set(mh.sats):
             mh = bank.mhss = mh.rebuild(used)
+            self.residual.retain(mh.sats)
         upd = None
         if used:
             col = {sid: j for j, sid in enumerate(mh.sats)}
@@ -265,11 +286,19 @@ class TightlyCoupled(Pipeline):
                 [col.get(sid, -1) if first[sid] == i else -1 for i, sid in enumerate(sats.ids)]
             )
             sel = sat_col[rows.row_sat] >= 0
-            upd = mh.update(rows.z[sel], rows.H[sel], rows.r_var[sel], sat_col[rows.row_sat[sel]])
+            z, H, r_var, rcol = rows.z[sel], rows.H[sel], rows.r_var[sel], sat_col[rows.row_sat[sel]]
+            upd = mh.update(z, H, r_var, rcol)
             if not is_positive_definite(mh.P[:1])[0]:
                 # numerical health: never continue on a broken P (DESIGN reliability rules)
                 self.recover_covariance()
                 return []
+            if self.depth >= 1 and self.residual.windows:
+                # the pseudorange row of each bank column (one per used satellite)
+                is_pr = np.flatnonzero(rows.H[sel][:, gm.CLK_BIAS] == 1.0)
+                pr_row = np.full(mh.N, -1)
+                pr_row[rcol[is_pr]] = is_pr
+                if np.all(pr_row >= 0):
+                    self.residual.push(mh.sats, *mh.excluded_residuals(z, H, r_var, pr_row))
             bank.feedback(mh.x[0].copy())
             self.mark_aided(nav.t)
         if self.depth == 0:
@@ -278,20 +307,38 @@ class TightlyCoupled(Pipeline):
 
         # MHSS tests, exclusion, protection levels
         p_fa, nf, usev = cfg.p_fa, self.n_families, self.use_vertical
-        tests = mh.main_tests(k_fa(p_fa, mh.N * nf), self.kmd)
-        detected = bool(np.any(tests.flagged(usev)))
+        kfa = k_fa(p_fa, mh.N * nf)
+        tests = mh.main_tests(kfa, self.kmd)
+        res = self.residual.tests(mh.sats, kfa)
+        ss_detected = bool(np.any(tests.flagged(usev)))
+        res_detected = bool(np.any(res.flagged))
+        detected = ss_detected or res_detected
         resolved, excluded_now = not detected, None
         if detected and cfg.exclusion:
-            r = mh.find_exclusion(tests, p_fa, self.kmd, usev, nf)
+            r = mh.find_exclusion(tests, p_fa, self.kmd, usev, nf, res.flagged, res.normalised)
             if r is not None:
                 excluded_now = mh.sats[r]
                 mh = bank.mhss = mh.rebuild([s for s in mh.sats if s != excluded_now], purge=[excluded_now])
                 bank.feedback(mh.x[0].copy())  # the new main (old sub-filter r) becomes the solution
                 self.book.exclude(excluded_now, msg.t)
+                self.residual.clear()  # past residuals were taken against filters that used it
                 tests = mh.main_tests(k_fa(p_fa, mh.N * nf), self.kmd)
                 resolved = not bool(np.any(tests.flagged(usev)))
         verdict = integrity.assess(tests.hpl, tests.vpl, cfg.phase, detected, resolved)
-        self.last = EpochResult(msg.t, mh.sats, upd, tests, detected, excluded_now, resolved, readmitted)
+        self.last = EpochResult(
+            msg.t,
+            mh.sats,
+            upd,
+            tests,
+            detected,
+            excluded_now,
+            resolved,
+            readmitted,
+            res,
+            ("separation" if ss_detected else "")
+            + ("+" if ss_detected and res_detected else "")
+            + ("residual" if res_detected else ""),
+        )
         sat_tests = (
             [
                 SatelliteTest(
