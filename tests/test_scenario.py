@@ -54,7 +54,8 @@ def test_shipped_scenarios_load():
     for n in ("demo_aircraft", "seed000_fault_free", "seed000_faults"):
         sc = load_scenario(n)  # the filter's process model is the simulated IMU grade
         imu = sc.service["imu"]
-        assert imu["gyro_bias_dph"] == sc.imu.gyro_bias_dph[0] and imu["accel_bias_ug"] == sc.imu.accel_bias_ug[0]
+        assert imu["gyro_bias_dph"] == sc.imu.gyro_bias_dph[0]
+        assert imu["accel_bias_ug"] == sc.imu.accel_bias_ug[0]
         assert imu["arw_dpsh"] == sc.imu.arw_dpsh and imu["vrw_ugpsHz"] == sc.imu.vrw_ugpsHz
     assert demo.imu.gyro_bias_dph == (0.01,) * 3 and demo.imu.arw_dpsh == 0.001
     assert demo.imu.accel_bias_ug == (50.0,) * 3 and demo.imu.vrw_ugpsHz == 5.0
