@@ -50,6 +50,9 @@ class EngineSink(Protocol):
 
     def on_truth(self, vehicle: str, truth: Truth) -> None: ...
 
+    # A sink may set ``wants_solutions = False`` and implement
+    # ``on_estimate(vehicle, pipeline, t, err9, P9)`` instead of receiving Solution messages.
+
 
 def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
     """Instantiate a pipeline from its config (the registry of pipeline kinds)."""
@@ -234,11 +237,15 @@ class VehicleEngine:
         self.emit_solutions()
 
     def emit_solutions(self) -> None:
+        wants = getattr(self.sink, "wants_solutions", True)
         for p in self.pipelines:
             p.sync()
-            sol = p.solution()
             est = p.estimate()
-            self.sink.on_solution(self.vehicle, sol, self._errors(p, sol.t, est), est.P9)
+            err9 = self._errors(p, est.nav.t, est)
+            if wants:
+                self.sink.on_solution(self.vehicle, p.solution(est), err9, est.P9)
+            else:  # evaluation without solution messages: skip building them
+                self.sink.on_estimate(self.vehicle, p.name, est.nav.t, err9, est.P9)
 
     def _errors(self, p: Pipeline, t: float, est=None) -> np.ndarray | None:
         """Errors of a pipeline's estimate against truth at t (None without truth at t)."""

@@ -47,12 +47,18 @@ class CollectingSink:
     def _rec(self, name: str) -> RunRecord:
         return self.records.setdefault(name, RunRecord())
 
+    @property
+    def wants_solutions(self) -> bool:
+        return self.keep
+
     def on_solution(self, vehicle, sol: Solution, err9, P9) -> None:
-        r = self._rec(sol.pipeline)
-        if self.keep:
-            r.solutions.append(sol)
+        self._rec(sol.pipeline).solutions.append(sol)
+        self.on_estimate(vehicle, sol.pipeline, sol.t, err9, P9)
+
+    def on_estimate(self, vehicle, pipeline: str, t: float, err9, P9) -> None:
+        r = self._rec(pipeline)
         if err9 is not None:
-            r.t.append(sol.t)
+            r.t.append(t)
             r.err.append(err9)
             try:
                 r.nees.append(nees(err9, P9))

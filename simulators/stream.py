@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from service import earth, keys
-from service.messages import ImuSample, InitialNav, Truth, WireModel
+from service.messages import MAX_RATE_RPS, MAX_SPECIFIC_FORCE_MPS2, ImuSample, InitialNav, Truth, WireModel
 from simulators.faults import FaultSet
 from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawTruth
 from simulators.imu import ImuErrorTruth, apply_imu_errors
@@ -108,6 +108,15 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
         )
         self._dth, self._dv, imu_truth = apply_imu_errors(sc.imu, traj.dtheta_rad, traj.dvel_mps, rng_imu)
+        # ImuSample messages are built without per-message validation (see _messages): check the
+        # whole arrays once against the wire limits instead
+        dt_imu = 1.0 / traj.imu_rate_hz
+        for name, arr, limit in (
+            ("dtheta_rad", self._dth, MAX_RATE_RPS * dt_imu),
+            ("dvel_mps", self._dv, MAX_SPECIFIC_FORCE_MPS2 * dt_imu),
+        ):
+            if not np.all(np.isfinite(arr)) or np.max(np.linalg.norm(arr, axis=1)) > limit:
+                raise ValueError(f"simulated {name} is not finite or beyond the ImuSample limits")
         self.faults = FaultSet(sc.faults, rng_faults)
         self._gnss = simulate_gnss_fixes(sc.gnss, traj, rng_gnss, self.faults) if sc.gnss else []
         self._star = simulate_star(sc.star, traj, rng_star, self.faults) if sc.star else []
@@ -204,7 +213,14 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             if istar < len(star) and star[istar][0] == k:
                 yield self._keys["star"], star[istar][1]
                 istar += 1
-            yield k_imu, ImuSample(t=t_list[k], dt_s=dt, dtheta_rad=tuple(dth[k]), dvel_mps=tuple(dv[k]))
+            # constructed without re-validation: the values come from the validated scenario and
+            # finite arrays (checked once in __init__); receivers validate what they get anyway
+            yield (
+                k_imu,
+                ImuSample.model_construct(
+                    t=t_list[k], dt_s=dt, dtheta_rad=tuple(dth[k]), dvel_mps=tuple(dv[k])
+                ),
+            )
 
 
 def simulate_gnss_raw(

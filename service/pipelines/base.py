@@ -108,8 +108,8 @@ class Pipeline(ABC):
         """
         self.status = "fault"
 
-    def solution(self) -> Solution:
-        est = self.estimate()
+    def solution(self, est: Estimate | None = None) -> Solution:
+        est = est or self.estimate()
         nav, P = est.nav, est.P9
         sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
         rpy = nav.rpy_rad
