@@ -274,11 +274,17 @@ class Faults(WireModel):
 
 
 class SatelliteTest(WireModel):
+    """Per-satellite tests: solution separation (horizontal, vertical) and the windowed residual."""
+
     id: str
-    statistic_m: float
-    threshold_m: float
+    statistic_m: float = Field(description="Horizontal separation |dx_0n|, m")
+    threshold_m: float = Field(description="Horizontal separation threshold T_n, m")
     vertical_statistic_m: float = 0.0
     vertical_threshold_m: float = 0.0
+    residual_statistic_m: float = Field(0.0, description="Windowed mean residual vs the sub-filter, m")
+    residual_threshold_m: float = Field(
+        0.0, description="Its threshold (the window with the largest ratio), m"
+    )
 
 
 class Integrity(WireModel):
@@ -296,6 +302,7 @@ class Integrity(WireModel):
     detected: bool
     excluded: list[str]
     satellites: list[SatelliteTest]
+    detected_by: str = Field("", description="'separation', 'residual', 'separation+residual' or ''")
 
 
 class PipelineHealth(WireModel):

@@ -339,6 +339,13 @@ class TightlyCoupled(Pipeline):
             + ("+" if ss_detected and res_detected else "")
             + ("residual" if res_detected else ""),
         )
+        # residual test of each satellite: the window with the largest statistic/threshold ratio
+        resid = {}
+        if res.statistic.size:
+            ratio = res.statistic / np.maximum(res.threshold, 1e-300)
+            for j, sid in enumerate(res.sats):
+                w = int(np.argmax(ratio[j]))
+                resid[sid] = (float(res.statistic[j, w]), float(res.threshold[j, w]))
         sat_tests = (
             [
                 SatelliteTest(
@@ -347,6 +354,8 @@ class TightlyCoupled(Pipeline):
                     threshold_m=float(tests.T_h[j]),
                     vertical_statistic_m=float(tests.d_v[j]),
                     vertical_threshold_m=float(tests.T_v[j]),
+                    residual_statistic_m=resid.get(sid, (0.0, 0.0))[0],
+                    residual_threshold_m=resid.get(sid, (0.0, 0.0))[1],
                 )
                 for j, sid in enumerate(mh.sats)
             ]
@@ -367,6 +376,7 @@ class TightlyCoupled(Pipeline):
                 detected=detected,
                 excluded=self.book.ids,
                 satellites=sat_tests,
+                detected_by=self.last.detected_by,
             )
         ]
 
