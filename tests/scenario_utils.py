@@ -24,6 +24,7 @@ def shortened(name: str, duration_s: float, **overrides):
         segs.append(seg)
         total += seg["duration_s"]
     data["segments"] = segs
+    data["faults"] = [f for f in data.get("faults", []) if f["start_s"] < duration_s]
     for k, v in overrides.items():
         data[k] = v
     return parse_scenario(data, f"{name} shortened to {duration_s} s")
