@@ -492,3 +492,13 @@ def test_real_spp_and_doppler_static_wuhan(wuhan):
     spp_mean = np.mean(np.array(pos), axis=0)
     assert np.linalg.norm(fix - spp_mean) < 60.0
     assert np.linalg.norm(fix - ref) > 600.0
+
+
+def test_gdop_rules_when_every_selected_satellite_is_required():
+    from simulators.gnss.constellation import select_satellites
+
+    az = np.radians([0.0, 90.0, 180.0, 270.0, 45.0, 135.0])
+    el = np.radians([20.0, 30.0, 40.0, 50.0, 60.0, 70.0])
+    for rule in ("max_gdop", "min_gdop"):
+        sel = select_satellites(az, el, rule, 4, required=[0, 2, 3, 5])
+        np.testing.assert_array_equal(sel, [0, 2, 3, 5])

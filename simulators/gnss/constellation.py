@@ -126,7 +126,10 @@ def _combinations_gdop(
         raise ValueError(
             f"exhaustive selection of {count} of {n} satellites needs {n_comb} subsets (> {MAX_COMBINATIONS})"
         )
-    combos = np.array(list(itertools.combinations(free, k_free)), dtype=int).reshape(-1, k_free)
+    if k_free == 0:  # every selected satellite is required: the one subset is the required set
+        combos = np.zeros((1, 0), dtype=int)
+    else:
+        combos = np.array(list(itertools.combinations(free, k_free)), dtype=int).reshape(-1, k_free)
     subsets = np.concatenate([np.broadcast_to(req, (len(combos), len(req))), combos], axis=1)
     subsets.sort(axis=1)
     g = dop_batch(los_enu(az[subsets], el[subsets])).gdop
