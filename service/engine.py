@@ -36,7 +36,7 @@ import numpy as np
 
 from service import earth
 from service.config import LooselyCoupledConfig, ServiceConfig
-from service.ins.mechanisation import NavState
+from service.ins.mechanisation import NavState, Preintegrator
 from service.messages import GnssFix, ImuSample, InitialNav, Solution, Truth, WireModel
 from service.pipelines.base import InitStd, Pipeline, nav_errors
 
@@ -93,6 +93,7 @@ class VehicleEngine:
         self.rejected: Counter = counters if counters is not None else Counter()
         self.pipelines: list[Pipeline] = [build_pipeline(p, config) for p in config.pipelines]
         self.initialised = False
+        self.pre = Preintegrator()  # the vehicle's one minor loop, shared by every pipeline
         self.last_imu_t: float | None = None
         self.pending: list[tuple[float, str, str, WireModel]] = []
         self._last_t_by_key: dict[tuple[str, str], float] = {}
@@ -199,8 +200,19 @@ class VehicleEngine:
         return True
 
     def _push(self, dth, dv, dt, t_end) -> None:
-        for p in self.pipelines:
-            p.push_imu(dth, dv, dt, t_end)
+        """One minor-loop step for every pipeline at once (shared preintegration)."""
+        pre = self.pre
+        pre.push(dth, dv, dt, t_end)
+        if pre.T >= self.config.major_interval_s - 1e-9:
+            self._advance_all()
+
+    def _advance_all(self) -> None:
+        """Bring every pipeline's INS to the engine's time (major update from the shared loop)."""
+        pre = self.pre
+        if pre.T > 0.0:
+            for p in self.pipelines:
+                p.advance(pre)
+            pre.reset(pre.t_end)
 
     def _imu_gap(self, t: float) -> None:
         self.rejected["imu_gap"] += 1
@@ -214,6 +226,7 @@ class VehicleEngine:
 
     # --- aiding ---------------------------------------------------------------------------------
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:
+        self._advance_all()
         for p in self.pipelines:
             p.sync()
             try:
@@ -238,6 +251,7 @@ class VehicleEngine:
 
     def emit_solutions(self) -> None:
         wants = getattr(self.sink, "wants_solutions", True)
+        self._advance_all()
         for p in self.pipelines:
             p.sync()
             est = p.estimate()
@@ -263,6 +277,8 @@ class VehicleEngine:
             p.initialise(nav, std)
             if self._lost:
                 p.status = "reinitialised"
+        self.pre = Preintegrator()
+        self.pre.reset(nav.t)
         self.initialised = True
         self._lost = False
         self.last_imu_t = nav.t

@@ -16,26 +16,41 @@ from service.transport.rerun_sink import RerunSink
 
 T0 = 1_300_000_000.0
 ALL_FAMILIES = {
-    "lc": "loosely_coupled", "fed": "federated", "mhss": "integrity", "imm": "imm",
-    "ta": "transfer_alignment", "uw": "underwater",
+    "lc": "loosely_coupled",
+    "fed": "federated",
+    "mhss": "integrity",
+    "imm": "imm",
+    "ta": "transfer_alignment",
+    "uw": "underwater",
 }
 
 
 def _integrity(t: float, hpl: float, alarm: bool = False, available: bool = True) -> Integrity:
-    return Integrity(t=t, pipeline="raim", phase="snapshot", hpl_m=hpl, vpl_m=hpl, hal_m=40.0, val_m=None,
-                     alarm=alarm, available=available, detected=alarm, excluded=[],
-                     satellites=[SatelliteTest(id="G01", statistic_m=1.0, threshold_m=2.0)])
+    return Integrity(
+        t=t,
+        pipeline="raim",
+        phase="snapshot",
+        hpl_m=hpl,
+        vpl_m=hpl,
+        hal_m=40.0,
+        val_m=None,
+        alarm=alarm,
+        available=available,
+        detected=alarm,
+        excluded=[],
+        satellites=[SatelliteTest(id="G01", statistic_m=1.0, threshold_m=2.0)],
+    )
 
 
 @pytest.fixture
 def stanford_rrd(tmp_path):
     """One epoch per Stanford region (HAL 40 m), plus an unavailable one with error above HPL."""
     cases = [  # (error, HPL, alarm)
-        (5.0, 10.0, False),   # normal
-        (8.0, 12.0, False),   # normal
+        (5.0, 10.0, False),  # normal
+        (8.0, 12.0, False),  # normal
         (20.0, 15.0, False),  # MI
         (50.0, 30.0, False),  # HMI
-        (45.0, 20.0, True),   # alarm (error above HAL, alarm raised)
+        (45.0, 20.0, True),  # alarm (error above HAL, alarm raised)
         (10.0, 50.0, False),  # unavailable
         (60.0, 55.0, False),  # unavailable, error above PL
     ]
@@ -53,8 +68,15 @@ def test_stanford_regions_and_hmi(stanford_rrd):
     assert i["epochs"] == len(cases)
     hpl = np.array([c[1] for c in cases])
     assert i["hpl_median_m"] == float(np.median(hpl)) and i["hpl_max_m"] == 55.0
-    assert i["stanford_h"] == {"normal": 2, "mi": 1, "hmi": 1, "alarm": 1, "unavailable": 1,
-                               "unavailable_mi": 1, "total": 7}
+    assert i["stanford_h"] == {
+        "normal": 2,
+        "mi": 1,
+        "hmi": 1,
+        "alarm": 1,
+        "unavailable": 1,
+        "unavailable_mi": 1,
+        "total": 7,
+    }
     # error > HPL without alarm: MI, HMI, unavailable_mi
     assert i["hmi_epochs"] == 3
     assert i["alarm_epochs"] == 1 and i["unavailable_epochs"] == 2
@@ -76,8 +98,18 @@ def test_main_json_and_text(stanford_rrd, capsys):
     path, _ = stanford_rrd
     assert inspect.main([str(path), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    for key in ("file", "recording_id", "duration_s", "t_start", "t_end", "vehicles", "pipelines",
-                "integrity", "faults", "health"):
+    for key in (
+        "file",
+        "recording_id",
+        "duration_s",
+        "t_start",
+        "t_end",
+        "vehicles",
+        "pipelines",
+        "integrity",
+        "faults",
+        "health",
+    ):
         assert key in doc
     assert doc["recording_id"] == "stanford" and doc["vehicles"] == ["uav"]
     assert doc["duration_s"] == pytest.approx(6.0, abs=1e-6)
@@ -135,10 +167,22 @@ def test_blueprints_are_sent_and_embedded(tmp_path):
 
     with RerunSink(path, recording_id="bp", blueprint=spy) as sink:
         for v in ("car1", "car2"):
-            sink.log_solution(v, Solution(
-                t=T0, pipeline="fed", lat_deg=1.0, lon_deg=2.0, height_m=3.0, vel_enu_mps=(0.0, 0.0, 0.0),
-                rpy_deg=(0.0, 0.0, 0.0), pos_std_enu_m=(1.0, 1.0, 1.0), vel_std_enu_mps=(0.1, 0.1, 0.1),
-                rpy_std_deg=(0.1, 0.1, 0.1), status="aided"))
+            sink.log_solution(
+                v,
+                Solution(
+                    t=T0,
+                    pipeline="fed",
+                    lat_deg=1.0,
+                    lon_deg=2.0,
+                    height_m=3.0,
+                    vel_enu_mps=(0.0, 0.0, 0.0),
+                    rpy_deg=(0.0, 0.0, 0.0),
+                    pos_std_enu_m=(1.0, 1.0, 1.0),
+                    vel_std_enu_mps=(0.1, 0.1, 0.1),
+                    rpy_std_deg=(0.1, 0.1, 0.1),
+                    status="aided",
+                ),
+            )
     assert sent == [["car1"], ["car1", "car2"]]
     reader = RrdReader(path)
     assert len(reader.blueprints()) >= 1
@@ -149,8 +193,17 @@ def test_static_blueprint_object_is_embedded(tmp_path):
     path = tmp_path / "bp2.rrd"
     bp = blueprints.build_blueprint("car1", ALL_FAMILIES)
     with RerunSink(path, recording_id="bp2", blueprint=bp) as sink:
-        sink.log_truth("car1", Truth(t=T0, lat_deg=1.0, lon_deg=2.0, height_m=3.0,
-                                     vel_enu_mps=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)))
+        sink.log_truth(
+            "car1",
+            Truth(
+                t=T0,
+                lat_deg=1.0,
+                lon_deg=2.0,
+                height_m=3.0,
+                vel_enu_mps=(0.0, 0.0, 0.0),
+                rpy_deg=(0.0, 0.0, 0.0),
+            ),
+        )
     assert RrdReader(path).blueprints()
     assert inspect.inspect_rrd(path)["has_blueprint"] is True
 

@@ -50,17 +50,26 @@ class StepClock:
 
 
 def _verify(path: Path) -> None:
-    out = subprocess.run([str(RERUN), "rrd", "verify", str(path)], capture_output=True, text=True,
-                         timeout=120)
+    out = subprocess.run(
+        [str(RERUN), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 0, out.stdout + out.stderr
 
 
 def _solution(pipeline: str, t: float, k: int, status: str) -> Solution:
     return Solution(
-        t=t, pipeline=pipeline, lat_deg=30.5 + 1e-6 * k, lon_deg=114.3 + 2e-6 * k, height_m=50.0 + 0.01 * k,
-        vel_enu_mps=(10.0, 5.0, 0.1), rpy_deg=(1.0, 2.0, 45.0), pos_std_enu_m=(1.0, 1.1, 2.0),
-        vel_std_enu_mps=(0.1, 0.1, 0.2), rpy_std_deg=(0.01, 0.01, 0.05),
-        gyro_bias_dph=(0.01 * k, 0.0, 0.0) if pipeline == "fed" else (0.0, 0.0, 0.0), status=status,
+        t=t,
+        pipeline=pipeline,
+        lat_deg=30.5 + 1e-6 * k,
+        lon_deg=114.3 + 2e-6 * k,
+        height_m=50.0 + 0.01 * k,
+        vel_enu_mps=(10.0, 5.0, 0.1),
+        rpy_deg=(1.0, 2.0, 45.0),
+        pos_std_enu_m=(1.0, 1.1, 2.0),
+        vel_std_enu_mps=(0.1, 0.1, 0.2),
+        rpy_std_deg=(0.01, 0.01, 0.05),
+        gyro_bias_dph=(0.01 * k, 0.0, 0.0) if pipeline == "fed" else (0.0, 0.0, 0.0),
+        status=status,
     )
 
 
@@ -70,59 +79,130 @@ def _write_recording(path: Path, seed: int = 7) -> dict:
     errors = {p: {n: rng.normal(0.0, 1.0 + i, N) for i, n in enumerate(paths.ERROR_NAMES)} for p in PIPELINES}
     bounds = {p: {n: np.full(N, 3.0 * (1.0 + i)) for i, n in enumerate(paths.ERROR_NAMES)} for p in PIPELINES}
     hpl, herr, vpl = [], [], []
-    sink = RerunSink(path, recording_id="rec-test-1", blueprint=blueprint_factory(PIPELINES),
-                     flush_interval_s=0.5, clock=StepClock(), track_interval_s=5.0)
+    sink = RerunSink(
+        path,
+        recording_id="rec-test-1",
+        blueprint=blueprint_factory(PIPELINES),
+        flush_interval_s=0.5,
+        clock=StepClock(),
+        track_interval_s=5.0,
+    )
     for k in range(N):
         t = T0 + k * DT
         faults = [ActiveFault(sensor="gnss", kind="step", channels=["pe"])] if 100 <= k < 120 else []
-        sink.log_truth(VEHICLE, Truth(t=t, lat_deg=30.5, lon_deg=114.3, height_m=50.0,
-                                      vel_enu_mps=(10.0, 5.0, 0.0), rpy_deg=(1.0, 2.0, 45.0), faults=faults))
+        sink.log_truth(
+            VEHICLE,
+            Truth(
+                t=t,
+                lat_deg=30.5,
+                lon_deg=114.3,
+                height_m=50.0,
+                vel_enu_mps=(10.0, 5.0, 0.0),
+                rpy_deg=(1.0, 2.0, 45.0),
+                faults=faults,
+            ),
+        )
         for p in PIPELINES:
             status = "aligned" if k < 10 else ("ins_only" if p == "fed" and k >= 150 else "aided")
             sink.log_solution(VEHICLE, _solution(p, t, k, status))
-            sink.log_errors(VEHICLE, p, t, {n: float(v[k]) for n, v in errors[p].items()},
-                            {n: float(v[k]) for n, v in bounds[p].items()})
+            sink.log_errors(
+                VEHICLE,
+                p,
+                t,
+                {n: float(v[k]) for n, v in errors[p].items()},
+                {n: float(v[k]) for n, v in bounds[p].items()},
+            )
         if k % 10 == 0:  # 1 Hz aiding epochs
             j = k // 10
             flagged = j in (3, 4, 9)
-            sink.log_faults(VEHICLE, Faults(
-                t=t, pipeline="fed",
-                subsystems=[
-                    SubsystemFaults(name="gnss", isolated=flagged, observations=[
-                        ObservationFault(label="pe", statistic=20.0 if flagged else 1.0, threshold=6.63,
-                                         flagged=flagged, isolated=False),
-                        ObservationFault(label="pn", statistic=0.5, threshold=6.63, flagged=False,
-                                         isolated=False),
-                    ]),
-                    SubsystemFaults(name="star", isolated=False, observations=[
-                        ObservationFault(label="roll", statistic=7.0 if j == 5 else 0.1, threshold=6.63,
-                                         flagged=j == 5, isolated=j == 5),
-                    ]),
-                ],
-                sharing={"gnss": [0.5] * 15, "star": [0.5] * 15},
-            ))
+            sink.log_faults(
+                VEHICLE,
+                Faults(
+                    t=t,
+                    pipeline="fed",
+                    subsystems=[
+                        SubsystemFaults(
+                            name="gnss",
+                            isolated=flagged,
+                            observations=[
+                                ObservationFault(
+                                    label="pe",
+                                    statistic=20.0 if flagged else 1.0,
+                                    threshold=6.63,
+                                    flagged=flagged,
+                                    isolated=False,
+                                ),
+                                ObservationFault(
+                                    label="pn", statistic=0.5, threshold=6.63, flagged=False, isolated=False
+                                ),
+                            ],
+                        ),
+                        SubsystemFaults(
+                            name="star",
+                            isolated=False,
+                            observations=[
+                                ObservationFault(
+                                    label="roll",
+                                    statistic=7.0 if j == 5 else 0.1,
+                                    threshold=6.63,
+                                    flagged=j == 5,
+                                    isolated=j == 5,
+                                ),
+                            ],
+                        ),
+                    ],
+                    sharing={"gnss": [0.5] * 15, "star": [0.5] * 15},
+                ),
+            )
             h = 10.0 + j  # HPL 10..30 m
             # j=7: HMI (HPL 17 < HAL 30 < 35); j=8: MI (HPL 18 < 20 < HAL 30)
             e = 35.0 if j == 7 else (20.0 if j == 8 else 2.0)
             hpl.append(h)
             herr.append(e)
             vpl.append(2.0 * h)
-            sink.log_integrity(VEHICLE, Integrity(
-                t=t, pipeline="mhss", phase="tracking", hpl_m=h, vpl_m=2.0 * h, hal_m=30.0, val_m=50.0,
-                alarm=j == 12, available=h <= 30.0, detected=j in (12, 13),
-                excluded=["C03"] if j >= 13 else [],
-                satellites=[SatelliteTest(id=s, statistic_m=1.0 + j, threshold_m=5.0)
-                            for s in ("C03", "G12")],
-            ), h_error_m=e, v_error_m=3.0)
-            sink.log_health(VEHICLE, Health(
-                t=t, uptime_s=float(j), received=100 * (j + 1), accepted=99 * (j + 1),
-                rejected={"late": j, "nan": 1},
-                dropped_overload=0, queue_depth=j % 3, latency_ms={"p50": 1.5, "p99": 4.0, "max": 9.0},
-                pipelines={p: PipelineHealth(status="aided", last_t=t, updates=k) for p in PIPELINES},
-            ))
+            sink.log_integrity(
+                VEHICLE,
+                Integrity(
+                    t=t,
+                    pipeline="mhss",
+                    phase="tracking",
+                    hpl_m=h,
+                    vpl_m=2.0 * h,
+                    hal_m=30.0,
+                    val_m=50.0,
+                    alarm=j == 12,
+                    available=h <= 30.0,
+                    detected=j in (12, 13),
+                    excluded=["C03"] if j >= 13 else [],
+                    satellites=[
+                        SatelliteTest(id=s, statistic_m=1.0 + j, threshold_m=5.0) for s in ("C03", "G12")
+                    ],
+                ),
+                h_error_m=e,
+                v_error_m=3.0,
+            )
+            sink.log_health(
+                VEHICLE,
+                Health(
+                    t=t,
+                    uptime_s=float(j),
+                    received=100 * (j + 1),
+                    accepted=99 * (j + 1),
+                    rejected={"late": j, "nan": 1},
+                    dropped_overload=0,
+                    queue_depth=j % 3,
+                    latency_ms={"p50": 1.5, "p99": 4.0, "max": 9.0},
+                    pipelines={p: PipelineHealth(status="aided", last_t=t, updates=k) for p in PIPELINES},
+                ),
+            )
     sink.close()
-    return {"errors": errors, "bounds": bounds, "hpl": np.array(hpl), "herr": np.array(herr),
-            "vpl": np.array(vpl)}
+    return {
+        "errors": errors,
+        "bounds": bounds,
+        "hpl": np.array(hpl),
+        "herr": np.array(herr),
+        "vpl": np.array(vpl),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -243,13 +323,26 @@ def test_map_entities_and_tracks(recording):
 def test_close_is_idempotent_and_late_calls_are_noops(tmp_path):
     path = tmp_path / "twice.rrd"
     sink = RerunSink(path, recording_id="twice")
-    sink.log_truth("v1", Truth(t=T0, lat_deg=1.0, lon_deg=2.0, height_m=3.0, vel_enu_mps=(0.0, 0.0, 0.0),
-                               rpy_deg=(0.0, 0.0, 0.0)))
+    sink.log_truth(
+        "v1",
+        Truth(
+            t=T0, lat_deg=1.0, lon_deg=2.0, height_m=3.0, vel_enu_mps=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)
+        ),
+    )
     sink.close()
     sink.close()
     assert sink.closed
-    sink.log_truth("v1", Truth(t=T0 + 1, lat_deg=1.0, lon_deg=2.0, height_m=3.0, vel_enu_mps=(0.0, 0.0, 0.0),
-                               rpy_deg=(0.0, 0.0, 0.0)))
+    sink.log_truth(
+        "v1",
+        Truth(
+            t=T0 + 1,
+            lat_deg=1.0,
+            lon_deg=2.0,
+            height_m=3.0,
+            vel_enu_mps=(0.0, 0.0, 0.0),
+            rpy_deg=(0.0, 0.0, 0.0),
+        ),
+    )
     sink.flush()
     sink.close()
     _verify(path)
@@ -262,8 +355,20 @@ def test_disabled_sink_is_a_noop(tmp_path):
     assert not sink.enabled and sink.closed
     sink.log_solution("v", _solution("p", T0, 0, "aided"))
     sink.log_errors("v", "p", T0, {"east_m": 1.0}, {"east_m": 3.0})
-    sink.log_health("v", Health(t=None, uptime_s=0.0, received=0, accepted=0, rejected={}, dropped_overload=0,
-                                queue_depth=0, latency_ms={}, pipelines={}))
+    sink.log_health(
+        "v",
+        Health(
+            t=None,
+            uptime_s=0.0,
+            received=0,
+            accepted=0,
+            rejected={},
+            dropped_overload=0,
+            queue_depth=0,
+            latency_ms={},
+            pipelines={},
+        ),
+    )
     sink.flush()
     sink.close()
     sink.close()
@@ -314,11 +419,29 @@ def test_close_from_another_thread_loses_nothing(tmp_path):
 def test_health_without_time_uses_latest_sensor_time(tmp_path):
     path = tmp_path / "h.rrd"
     with RerunSink(path) as sink:
-        h = Health(t=None, uptime_s=0.0, received=1, accepted=0, rejected={"schema": 1}, dropped_overload=0,
-                   queue_depth=0, latency_ms={}, pipelines={})
+        h = Health(
+            t=None,
+            uptime_s=0.0,
+            received=1,
+            accepted=0,
+            rejected={"schema": 1},
+            dropped_overload=0,
+            queue_depth=0,
+            latency_ms={},
+            pipelines={},
+        )
         sink.log_health("v", h)  # nothing processed yet: skipped
-        sink.log_truth("v", Truth(t=T0 + 5, lat_deg=1.0, lon_deg=2.0, height_m=3.0,
-                                  vel_enu_mps=(0.0, 0.0, 0.0), rpy_deg=(0.0, 0.0, 0.0)))
+        sink.log_truth(
+            "v",
+            Truth(
+                t=T0 + 5,
+                lat_deg=1.0,
+                lon_deg=2.0,
+                height_m=3.0,
+                vel_enu_mps=(0.0, 0.0, 0.0),
+                rpy_deg=(0.0, 0.0, 0.0),
+            ),
+        )
         sink.log_health("v", h)
     _, data = read_series(path)
     s = data[paths.health("v", "rejected_total")]
@@ -338,8 +461,13 @@ def test_seconds_to_ns():
 def test_optimize_on_close_keeps_content(tmp_path):
     plain, packed = tmp_path / "plain.rrd", tmp_path / "packed.rrd"
     for path, optimize in ((plain, False), (packed, True)):
-        with RerunSink(path, recording_id="opt", flush_interval_s=0.0, optimize_on_close=optimize,
-                       blueprint=blueprint_factory(PIPELINES)) as sink:
+        with RerunSink(
+            path,
+            recording_id="opt",
+            flush_interval_s=0.0,
+            optimize_on_close=optimize,
+            blueprint=blueprint_factory(PIPELINES),
+        ) as sink:
             for k in range(50):
                 sink.log_errors("v", "fed", T0 + k * DT, {"east_m": math.sin(k), "north_m": math.cos(k)})
                 sink.log_solution("v", _solution("fed", T0 + k * DT, k, "aided"))

@@ -64,6 +64,16 @@ class InsFilterBank:
         if self.ins.state.t != t_before:
             self.propagate(T)
 
+    def advance(self, pre) -> None:
+        """Major update from a shared :class:`~service.ins.mechanisation.Preintegrator`, then
+        propagate the bank over its interval (the engine's path: one minor loop per vehicle)."""
+        T = pre.T
+        if T > 0.0:
+            if self.ins.pending_s > 0.0:
+                self.sync()
+            self.ins.major_update(pre)
+            self.propagate(T)
+
     def sync(self) -> None:
         """Bring the state to the INS time (apply pending minor-loop increments and propagate)."""
         T = self.ins.pending_s

@@ -26,6 +26,7 @@ rates of 1-200 Hz or covariance steps of 0.005-1 s all qualify):
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -126,14 +127,29 @@ def continuous_F(
     return F
 
 
-def continuous_Q(noise: ImuNoise, mat_nb: np.ndarray) -> np.ndarray:
-    """Continuous process noise spectral density Qc = G q G' (isotropic sensor noise)."""
-    Q = np.zeros((N_STATES, N_STATES))
-    Q[VEL, VEL] = noise.vrw**2 * np.eye(3)  # C_nb (s^2 I) C_nb' = s^2 I
-    Q[ATT, ATT] = noise.arw**2 * np.eye(3)
-    Q[GYRO, GYRO] = noise.gyro_bias_rw**2 * np.eye(3)
-    Q[ACC, ACC] = noise.accel_bias_rw**2 * np.eye(3)
+def continuous_Q(noise: ImuNoise, mat_nb: np.ndarray | None = None) -> np.ndarray:
+    """Continuous process noise spectral density Qc = G q G' (read-only, cached per noise model).
+
+    The sensor noises are isotropic, so C_nb (s^2 I) C_nb' = s^2 I: Qc does not depend on the
+    attitude (``mat_nb`` is accepted for interface symmetry and ignored).
+    """
+    return _qc(noise)
+
+
+@functools.lru_cache(maxsize=64)
+def _qc(noise: ImuNoise) -> np.ndarray:
+    d = np.zeros(N_STATES)
+    d[VEL] = noise.vrw**2
+    d[ATT] = noise.arw**2
+    d[GYRO] = noise.gyro_bias_rw**2
+    d[ACC] = noise.accel_bias_rw**2
+    Q = np.diag(d)
+    Q.setflags(write=False)
     return Q
+
+
+_I15 = np.eye(N_STATES)
+_I15.setflags(write=False)
 
 
 def discretise(F: np.ndarray, Qc: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray]:
@@ -144,7 +160,12 @@ def discretise(F: np.ndarray, Qc: np.ndarray, T: float) -> tuple[np.ndarray, np.
     """
     FT = F * T
     FT2 = FT @ FT
-    Phi = np.eye(F.shape[0]) + FT + FT2 / 2.0 + FT2 @ (FT / 6.0 + FT2 / 24.0)
+    Phi = (
+        (_I15 if F.shape[0] == N_STATES else np.eye(F.shape[0]))
+        + FT
+        + FT2 / 2.0
+        + FT2 @ (FT / 6.0 + FT2 / 24.0)
+    )
     # Qd = sum_k A_k T^(k+1)/(k+1)!, A_0 = Qc, A_(k+1) = F A_k + A_k F' (the Lyapunov series of
     # Van Loan's integral). Five terms: position variance driven by attitude noise through
     # gravity enters at T^5 (g^2 arw^2 T^5/20), 0.14 % of it at T = 0.1 s with three terms.

@@ -79,6 +79,87 @@ def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
+class Preintegrator:
+    """Minor loop over *raw* IMU increments (Savage's second-order coning and sculling).
+
+    Bias-independent, so one instance serves every INS of a vehicle (all pipelines): each INS
+    applies its own bias estimate at its major update with the exact algebra below. Between two
+    major updates an INS's bias estimate is constant (corrections happen only after a major
+    update), and with b the gyro and a the accelerometer bias:
+        alpha = alpha~ - b T,  nu = nu~ - a T
+        beta  = beta~ - 1/2 (S1 - S2) x b
+        scul  = scul~ - 1/2 [(S1 - S2) x a + (S4 - S3) x b]
+    where S1 = sum (alpha~_(m-1) + dth~_(m-1)/6) dt_m, S2 = sum tau_m dth~_m, S3 = sum tau_m dv~_m,
+    S4 = sum (nu~_(m-1) + dv~_(m-1)/6) dt_m, tau_m = t_(m-1) + dt_(m-1)/6 (time from the start of
+    the interval); the b x b and a x b terms cancel exactly. The only approximation: the previous
+    increment carried across a major boundary is corrected with the current bias.
+    """
+
+    __slots__ = ("v", "T", "t_end", "_prev")
+
+    # layout of v: alpha(0:3) beta(3:6) nu(6:9) scul(9:12) S1(12:15) S2(15:18) S3(18:21) S4(21:24)
+    def __init__(self) -> None:
+        self._prev = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # dth(3), dv(3), dt of the last increment
+        self.reset(0.0)
+
+    def reset(self, t: float) -> None:
+        self.v = [0.0] * 24
+        self.T = 0.0
+        self.t_end = t
+
+    def push(self, dth, dv, dt: float, t_end: float) -> None:
+        v = self.v
+        th0, th1, th2 = float(dth[0]), float(dth[1]), float(dth[2])
+        v0, v1, v2 = float(dv[0]), float(dv[1]), float(dv[2])
+        p0, p1, p2, q0, q1, q2, pdt = self._prev
+        # A = alpha_(m-1) + dth_(m-1)/6, N = nu_(m-1) + dv_(m-1)/6, tau = t_(m-1) + dt_(m-1)/6
+        A0, A1, A2 = v[0] + p0 / 6.0, v[1] + p1 / 6.0, v[2] + p2 / 6.0
+        N0, N1, N2 = v[6] + q0 / 6.0, v[7] + q1 / 6.0, v[8] + q2 / 6.0
+        tau = self.T + pdt / 6.0
+        c0, c1, c2 = _cross(A0, A1, A2, th0, th1, th2)  # coning
+        v[3] += 0.5 * c0
+        v[4] += 0.5 * c1
+        v[5] += 0.5 * c2
+        s0, s1, s2 = _cross(A0, A1, A2, v0, v1, v2)  # sculling
+        r0, r1, r2 = _cross(N0, N1, N2, th0, th1, th2)
+        v[9] += 0.5 * (s0 + r0)
+        v[10] += 0.5 * (s1 + r1)
+        v[11] += 0.5 * (s2 + r2)
+        v[12] += A0 * dt
+        v[13] += A1 * dt
+        v[14] += A2 * dt
+        v[15] += tau * th0
+        v[16] += tau * th1
+        v[17] += tau * th2
+        v[18] += tau * v0
+        v[19] += tau * v1
+        v[20] += tau * v2
+        v[21] += N0 * dt
+        v[22] += N1 * dt
+        v[23] += N2 * dt
+        v[0] += th0
+        v[1] += th1
+        v[2] += th2
+        v[6] += v0
+        v[7] += v1
+        v[8] += v2
+        self._prev = (th0, th1, th2, v0, v1, v2, dt)
+        self.T += dt
+        self.t_end = t_end
+
+    def corrected(self, gyro_bias_rps: np.ndarray, accel_bias_mps2: np.ndarray):
+        """(alpha, beta, nu, scul) with the biases removed (class docstring)."""
+        v = np.array(self.v)
+        b, a, T = gyro_bias_rps, accel_bias_mps2, self.T
+        s12 = v[12:15] - v[15:18]
+        s43 = v[21:24] - v[18:21]
+        alpha = v[0:3] - b * T
+        beta = v[3:6] - 0.5 * _cross3(s12, b)
+        nu = v[6:9] - a * T
+        scul = v[9:12] - 0.5 * (_cross3(s12, a) + _cross3(s43, b))
+        return alpha, beta, nu, scul
+
+
 class Ins:
     """A strapdown INS; one instance per pipeline (closed loop makes references differ).
 
@@ -88,6 +169,9 @@ class Ins:
         Initial navigation state (the INS owns a copy).
     major_interval_s : float
         Longest interval between major (attitude/velocity/position) updates.
+
+    Either push IMU intervals one by one (:meth:`push`, with the INS's own minor loop) or hand
+    it a shared :class:`Preintegrator` at each major update (:meth:`major_update`).
     """
 
     def __init__(self, state: NavState, major_interval_s: float = 0.1):
@@ -97,28 +181,18 @@ class Ins:
         self.last_fn_mps2 = np.array([0.0, 0.0, earth.gravity_normal(state.lat_rad, state.h_m)])
         self.last_wib_b_rps = np.zeros(3)
         self._dv_prev_n = np.zeros(3)
-        self._prev_dth = (0.0, 0.0, 0.0)
-        self._prev_dv = (0.0, 0.0, 0.0)
-        self._reset_minor()
-
-    # --- minor loop --------------------------------------------------------------------------
-    def _reset_minor(self) -> None:
-        self._a = [0.0, 0.0, 0.0]  # alpha: sum of angle increments
-        self._b = [0.0, 0.0, 0.0]  # beta: coning
-        self._nu = [0.0, 0.0, 0.0]  # sum of velocity increments
-        self._scul = [0.0, 0.0, 0.0]  # sculling
-        self._T = 0.0
-        self._t_end = self.state.t
+        self._pre = Preintegrator()
+        self._pre.reset(self.state.t)
 
     @property
     def pending_s(self) -> float:
-        """Time accumulated in the minor loop, not yet applied to the state."""
-        return self._T
+        """Time accumulated in the own minor loop, not yet applied to the state."""
+        return self._pre.T
 
     @property
     def time(self) -> float:
         """Time the INS has reached (end of the last pushed interval)."""
-        return self._t_end
+        return self._pre.t_end if self._pre.T > 0.0 else self.state.t
 
     def push(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
         """Accumulate one (possibly partial) IMU interval; runs a major update when due.
@@ -127,55 +201,26 @@ class Ins:
         cannot be accumulated from increments without losing microseconds, so the caller's
         time stamps are kept exactly.
         """
-        bg, ba = self.state.gyro_bias_rps, self.state.accel_bias_mps2
-        th0 = dtheta_rad[0] - bg[0] * dt_s
-        th1 = dtheta_rad[1] - bg[1] * dt_s
-        th2 = dtheta_rad[2] - bg[2] * dt_s
-        v0 = dvel_mps[0] - ba[0] * dt_s
-        v1 = dvel_mps[1] - ba[1] * dt_s
-        v2 = dvel_mps[2] - ba[2] * dt_s
-        a, nu = self._a, self._nu
-        p0, p1, p2 = self._prev_dth
-        q0, q1, q2 = self._prev_dv
-        # (alpha_{m-1} + dtheta_{m-1}/6) and (nu_{m-1} + dv_{m-1}/6)
-        ae0, ae1, ae2 = a[0] + p0 / 6.0, a[1] + p1 / 6.0, a[2] + p2 / 6.0
-        ne0, ne1, ne2 = nu[0] + q0 / 6.0, nu[1] + q1 / 6.0, nu[2] + q2 / 6.0
-        c0, c1, c2 = _cross(ae0, ae1, ae2, th0, th1, th2)  # coning increment x2
-        self._b[0] += 0.5 * c0
-        self._b[1] += 0.5 * c1
-        self._b[2] += 0.5 * c2
-        s0, s1, s2 = _cross(ae0, ae1, ae2, v0, v1, v2)
-        r0, r1, r2 = _cross(ne0, ne1, ne2, th0, th1, th2)
-        self._scul[0] += 0.5 * (s0 + r0)
-        self._scul[1] += 0.5 * (s1 + r1)
-        self._scul[2] += 0.5 * (s2 + r2)
-        a[0] += th0
-        a[1] += th1
-        a[2] += th2
-        nu[0] += v0
-        nu[1] += v1
-        nu[2] += v2
-        self._prev_dth = (th0, th1, th2)
-        self._prev_dv = (v0, v1, v2)
-        self._T += dt_s
-        self._t_end = t_end if t_end is not None else self.state.t + self._T
-        if self._T >= self.major_interval_s - 1e-9:
+        pre = self._pre
+        pre.push(dtheta_rad, dvel_mps, dt_s, t_end if t_end is not None else self.state.t + pre.T + dt_s)
+        if pre.T >= self.major_interval_s - 1e-9:
             self.major_update()
 
     # --- major loop --------------------------------------------------------------------------
-    def major_update(self) -> None:
-        """Apply the accumulated minor-loop increments to attitude, velocity and position."""
-        T = self._T
+    def major_update(self, pre: Preintegrator | None = None) -> None:
+        """Apply minor-loop increments (the own ones, or a shared preintegrator's) to the state."""
+        own = pre is None
+        pre = self._pre if own else pre
+        T = pre.T
         if T <= 0.0:
             return
         s = self.state
-        a = np.array(self._a)
-        phi_b = a + np.array(self._b)  # body rotation vector over the interval
-        nu = np.array(self._nu)
+        a, beta, nu, scul = pre.corrected(s.gyro_bias_rps, s.accel_bias_mps2)
+        phi_b = a + beta  # body rotation vector over the interval
         # rotation compensation to third order (Savage eq. 7.2.2.2-22): the 1/6 a x (a x nu) term
         # matters in sustained turns at 10 Hz major rates (~1e-5 m/s per update otherwise)
         a_x_nu = _cross3(a, nu)
-        dv_sf_b = nu + 0.5 * a_x_nu + _cross3(a, a_x_nu) / 6.0 + np.array(self._scul)
+        dv_sf_b = nu + 0.5 * a_x_nu + _cross3(a, a_x_nu) / 6.0 + scul
 
         # mid-interval extrapolation of position and velocity for the earth terms
         v_mid = s.vel_enu_mps + 0.5 * self._dv_prev_n * (T / max(self._prev_T, 1e-12))
@@ -206,13 +251,14 @@ class Ins:
         s.q_nb = q / math.sqrt(float(q @ q))
         s.vel_enu_mps = v_new
         s.lat_rad, s.lon_rad, s.h_m = lat_new, lon_new, h_new
-        s.t = self._t_end
+        s.t = pre.t_end
 
         self._dv_prev_n = dv_n
         self._prev_T = T
         self.last_fn_mps2 = f_n / T
         self.last_wib_b_rps = a / T
-        self._reset_minor()
+        if own:
+            pre.reset(s.t)
 
     _prev_T = 0.1
 
@@ -231,7 +277,7 @@ class Ins:
         Attitude error convention: C_nb(computed) = (I - [phi x]) C_nb(true), so the corrected
         attitude is C_nb <- exp([phi x]) C_nb.
         """
-        if self._T > 0.0:
+        if self._pre.T > 0.0:
             self.major_update()
         s = self.state
         r_m, r_n = earth.radii(s.lat_rad)

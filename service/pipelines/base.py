@@ -3,7 +3,8 @@
 Each pipeline owns its INS (closed loop makes references differ per pipeline), so several run
 side by side on one input stream. The engine calls, in sensor-time order:
   ``initialise(nav, std)`` once (and again on re-initialisation),
-  ``push_imu(dtheta, dvel, dt, t_end)`` per (possibly split) IMU interval,
+  ``advance(pre)`` with the vehicle's shared preintegrated IMU interval at every major update
+  (or ``push_imu(dtheta, dvel, dt, t_end)`` per IMU interval, with the pipeline's own minor loop),
   ``sync()`` before reading the state at an aiding or output epoch,
   ``apply(kind, sensor_id, msg, dt_late)`` per aiding measurement -> extra outputs (Faults, ...),
   ``solution(t)`` at output epochs, ``estimate()`` for errors/NEES against truth.
@@ -89,6 +90,11 @@ class Pipeline(ABC):
 
     @abstractmethod
     def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None: ...
+
+    def advance(self, pre) -> None:
+        """Apply a preintegrated IMU interval shared by all pipelines of the vehicle (the
+        engine's path; ``push_imu`` is the per-pipeline equivalent)."""
+        self.bank.advance(pre)
 
     @abstractmethod
     def sync(self) -> None: ...

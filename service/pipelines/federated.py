@@ -145,6 +145,11 @@ class _CorePipeline(Pipeline):
             self._end_epoch()  # time moves on: the aiding epoch is complete
         self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
 
+    def advance(self, pre) -> None:
+        if self._epoch_t is not None:
+            self._end_epoch()  # time moves on: the aiding epoch is complete
+        self.bank.advance(pre)
+
     def sync(self) -> None:
         self.bank.sync()
 

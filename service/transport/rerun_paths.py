@@ -49,24 +49,61 @@ SERVICE = "service"
 RESERVED_PIPELINE_NAMES = frozenset({TRUTH, SERVICE})
 
 SOLUTION_SCALARS = (
-    "lat_deg", "lon_deg", "height_m", "ve_mps", "vn_mps", "vu_mps", "roll_deg", "pitch_deg", "heading_deg",
+    "lat_deg",
+    "lon_deg",
+    "height_m",
+    "ve_mps",
+    "vn_mps",
+    "vu_mps",
+    "roll_deg",
+    "pitch_deg",
+    "heading_deg",
 )
 STD_SCALARS = (
-    "pos_e_m", "pos_n_m", "pos_u_m", "ve_mps", "vn_mps", "vu_mps", "roll_deg", "pitch_deg", "heading_deg",
+    "pos_e_m",
+    "pos_n_m",
+    "pos_u_m",
+    "ve_mps",
+    "vn_mps",
+    "vu_mps",
+    "roll_deg",
+    "pitch_deg",
+    "heading_deg",
 )
 #: Errors of a solution against truth: position ENU (m), velocity ENU (m/s), attitude error angles
 #: about E/N/U (arcsec).
 ERROR_NAMES = (
-    "east_m", "north_m", "up_m", "ve_mps", "vn_mps", "vu_mps", "phi_e_arcsec", "phi_n_arcsec", "phi_u_arcsec",
+    "east_m",
+    "north_m",
+    "up_m",
+    "ve_mps",
+    "vn_mps",
+    "vu_mps",
+    "phi_e_arcsec",
+    "phi_n_arcsec",
+    "phi_u_arcsec",
 )
 POSITION_ERRORS = ERROR_NAMES[0:3]
 VELOCITY_ERRORS = ERROR_NAMES[3:6]
 ATTITUDE_ERRORS = ERROR_NAMES[6:9]
 INTEGRITY_SCALARS = (
-    "hpl_m", "vpl_m", "hal_m", "val_m", "alarm", "available", "detected", "h_error_m", "v_error_m",
+    "hpl_m",
+    "vpl_m",
+    "hal_m",
+    "val_m",
+    "alarm",
+    "available",
+    "detected",
+    "h_error_m",
+    "v_error_m",
 )
 HEALTH_SCALARS = (
-    "queue_depth", "latency_p50_ms", "latency_p99_ms", "received", "accepted", "rejected_total",
+    "queue_depth",
+    "latency_p50_ms",
+    "latency_p99_ms",
+    "received",
+    "accepted",
+    "rejected_total",
     "dropped_overload",
 )
 BOUND_SERIES = ("+3σ", "-3σ")
@@ -130,8 +167,13 @@ def bound(vehicle: str, pipeline: str, name: str | None = None) -> str:
     return base if name is None else f"{base}/{part(name)}"
 
 
-def faults(vehicle: str, pipeline: str, subsystem: str | None = None, label: str | None = None,
-           leaf: str | None = None) -> str:
+def faults(
+    vehicle: str,
+    pipeline: str,
+    subsystem: str | None = None,
+    label: str | None = None,
+    leaf: str | None = None,
+) -> str:
     """``.../faults[/{subsystem}[/{label}[/{leaf}]]]``; leaf is statistic, threshold or flagged."""
     p = f"{pipeline_root(vehicle, pipeline)}/faults"
     for x in (subsystem, label, leaf):
@@ -155,8 +197,9 @@ def integrity(vehicle: str, pipeline: str, leaf: str | None = None) -> str:
     return base if leaf is None else f"{base}/{part(leaf)}"
 
 
-def integrity_sat(vehicle: str, pipeline: str, sat_id: str | None = None, leaf: str | None = None,
-                  vertical: bool = False) -> str:
+def integrity_sat(
+    vehicle: str, pipeline: str, sat_id: str | None = None, leaf: str | None = None, vertical: bool = False
+) -> str:
     p = f"{integrity(vehicle, pipeline)}/{'sat_v' if vertical else 'sat'}"
     if sat_id is not None:
         p = f"{p}/{part(sat_id)}"

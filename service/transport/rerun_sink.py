@@ -52,12 +52,26 @@ log = logging.getLogger(__name__)
 BlueprintSource = Any | Callable[[Sequence[str]], Any]
 
 # RGBA (0xRRGGBBAA): tab10 palette for pipelines, black for truth.
-_PALETTE = (0x1F77B4FF, 0xFF7F0EFF, 0x2CA02CFF, 0xD62728FF, 0x9467BDFF,
-            0x8C564BFF, 0xE377C2FF, 0x7F7F7FFF, 0xBCBD22FF, 0x17BECFFF)
+_PALETTE = (
+    0x1F77B4FF,
+    0xFF7F0EFF,
+    0x2CA02CFF,
+    0xD62728FF,
+    0x9467BDFF,
+    0x8C564BFF,
+    0xE377C2FF,
+    0x7F7F7FFF,
+    0xBCBD22FF,
+    0x17BECFFF,
+)
 _TRUTH_COLOR = 0x000000FF
 _REGION_COLOR = {
-    "normal": 0x2CA02CFF, "mi": 0xFFBF00FF, "hmi": 0xD62728FF, "alarm": 0x1F77B4FF,
-    "unavailable": 0x7F7F7FFF, "unavailable_mi": 0x9467BDFF,
+    "normal": 0x2CA02CFF,
+    "mi": 0xFFBF00FF,
+    "hmi": 0xD62728FF,
+    "alarm": 0x1F77B4FF,
+    "unavailable": 0x7F7F7FFF,
+    "unavailable_mi": 0x9467BDFF,
 }
 _STATUS_LEVEL = {"fault": "ERROR", "ins_only": "WARN", "reinitialised": "WARN"}
 
@@ -105,8 +119,9 @@ def _columns(kind: str, values: list[Any]):
         return rr.TextLog.columns(text=list(texts), level=list(levels))
     if kind == "point2d":
         pos, colors = zip(*values, strict=True)
-        return rr.Points2D.columns(positions=np.asarray(pos, dtype=np.float64),
-                                   colors=np.asarray(colors, dtype=np.uint32))
+        return rr.Points2D.columns(
+            positions=np.asarray(pos, dtype=np.float64), colors=np.asarray(colors, dtype=np.uint32)
+        )
     raise ValueError(f"unknown series kind {kind!r}")
 
 
@@ -168,8 +183,10 @@ class RerunSink:
         if flush_interval_s is None:
             flush_interval_s = 1.0 if viewer_addr is not None else 5.0
         if flush_interval_s < 0 or max_buffered_rows < 1 or track_interval_s <= 0 or max_track_points < 2:
-            raise ValueError("flush_interval_s >= 0, max_buffered_rows >= 1, track_interval_s > 0, "
-                             "max_track_points >= 2 required")
+            raise ValueError(
+                "flush_interval_s >= 0, max_buffered_rows >= 1, track_interval_s > 0, "
+                "max_track_points >= 2 required"
+            )
         self.rrd_path = None if rrd_path is None else Path(rrd_path)
         self.viewer_addr = viewer_addr
         self.application_id = application_id
@@ -239,10 +256,18 @@ class RerunSink:
             if self._closed:
                 return
             tn = self._time(vehicle, sol.t)
-            self._geo(paths.solution(vehicle, p, "position"), tn, sol.lat_deg, sol.lon_deg,
-                      self._color(vehicle, p))
-            self._state_scalars(lambda n: paths.solution(vehicle, p, n), tn, sol.lat_deg, sol.lon_deg,
-                                sol.height_m, sol.vel_enu_mps, sol.rpy_deg)
+            self._geo(
+                paths.solution(vehicle, p, "position"), tn, sol.lat_deg, sol.lon_deg, self._color(vehicle, p)
+            )
+            self._state_scalars(
+                lambda n: paths.solution(vehicle, p, n),
+                tn,
+                sol.lat_deg,
+                sol.lon_deg,
+                sol.height_m,
+                sol.vel_enu_mps,
+                sol.rpy_deg,
+            )
             std = (*sol.pos_std_enu_m, *sol.vel_std_enu_mps, *sol.rpy_std_deg)
             for name, v in zip(paths.STD_SCALARS, std, strict=True):
                 self._add(paths.solution_std(vehicle, p, name), "scalar", tn, v)
@@ -255,8 +280,9 @@ class RerunSink:
             if self._status.get(key) != sol.status:
                 self._status[key] = sol.status
                 self._add(paths.solution(vehicle, p, "status"), "state", tn, sol.status)
-            self._track(paths.solution(vehicle, p, "track"), sol.t, sol.lat_deg, sol.lon_deg,
-                        self._color(vehicle, p))
+            self._track(
+                paths.solution(vehicle, p, "track"), sol.t, sol.lat_deg, sol.lon_deg, self._color(vehicle, p)
+            )
             self._maybe_flush()
 
     def log_truth(self, vehicle: str, truth: Truth) -> None:
@@ -268,8 +294,15 @@ class RerunSink:
                 return
             tn = self._time(vehicle, truth.t)
             self._geo(paths.truth(vehicle, "position"), tn, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
-            self._state_scalars(lambda n: paths.truth(vehicle, n), tn, truth.lat_deg, truth.lon_deg,
-                                truth.height_m, truth.vel_enu_mps, truth.rpy_deg)
+            self._state_scalars(
+                lambda n: paths.truth(vehicle, n),
+                tn,
+                truth.lat_deg,
+                truth.lon_deg,
+                truth.height_m,
+                truth.vel_enu_mps,
+                truth.rpy_deg,
+            )
             desc = "; ".join(f"{f.sensor} {f.kind} [{','.join(f.channels)}]" for f in truth.faults)
             desc = desc or "no active faults"
             if self._truth_faults.get(vehicle, "no active faults") != desc:
@@ -279,8 +312,14 @@ class RerunSink:
             self._track(paths.truth(vehicle, "track"), truth.t, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
             self._maybe_flush()
 
-    def log_errors(self, vehicle: str, pipeline: str, t: float, errors: Mapping[str, float],
-                   bounds: Mapping[str, float] | None = None) -> None:
+    def log_errors(
+        self,
+        vehicle: str,
+        pipeline: str,
+        t: float,
+        errors: Mapping[str, float],
+        bounds: Mapping[str, float] | None = None,
+    ) -> None:
         """Errors of a solution against truth and their 3-sigma covariance bounds.
 
         Parameters
@@ -326,13 +365,25 @@ class RerunSink:
                 return
             tn = self._time(vehicle, faults.t)
             for sub in faults.subsystems:
-                self._add(paths.faults(vehicle, p, sub.name, "subsystem_isolated"), "state", tn,
-                          "isolated" if sub.isolated else "in use")
+                self._add(
+                    paths.faults(vehicle, p, sub.name, "subsystem_isolated"),
+                    "state",
+                    tn,
+                    "isolated" if sub.isolated else "in use",
+                )
                 for obs in sub.observations:
-                    self._add(paths.faults(vehicle, p, sub.name, obs.label, "statistic"), "scalar", tn,
-                              obs.statistic)
-                    self._add(paths.faults(vehicle, p, sub.name, obs.label, "threshold"), "scalar", tn,
-                              obs.threshold)
+                    self._add(
+                        paths.faults(vehicle, p, sub.name, obs.label, "statistic"),
+                        "scalar",
+                        tn,
+                        obs.statistic,
+                    )
+                    self._add(
+                        paths.faults(vehicle, p, sub.name, obs.label, "threshold"),
+                        "scalar",
+                        tn,
+                        obs.threshold,
+                    )
                     state = "isolated" if obs.isolated else ("flagged" if obs.flagged else "ok")
                     self._add(paths.faults(vehicle, p, sub.name, obs.label, "flagged"), "state", tn, state)
             for local, coeffs in faults.sharing.items():
@@ -340,8 +391,9 @@ class RerunSink:
                     self._add(paths.sharing(vehicle, p, local, i), "scalar", tn, c)
             self._maybe_flush()
 
-    def log_integrity(self, vehicle: str, integ: Integrity, h_error_m: float | None = None,
-                      v_error_m: float | None = None) -> None:
+    def log_integrity(
+        self, vehicle: str, integ: Integrity, h_error_m: float | None = None, v_error_m: float | None = None
+    ) -> None:
         """MHSS integrity: protection levels vs alert limits vs true error, per-satellite tests,
         events (detection, alarm, exclusion, availability) and Stanford-diagram points.
 
@@ -355,24 +407,40 @@ class RerunSink:
                 return
             tn = self._time(vehicle, integ.t)
             values = {
-                "hpl_m": integ.hpl_m, "vpl_m": integ.vpl_m, "hal_m": integ.hal_m, "val_m": integ.val_m,
-                "alarm": float(integ.alarm), "available": float(integ.available),
-                "detected": float(integ.detected), "h_error_m": h_error_m, "v_error_m": v_error_m,
+                "hpl_m": integ.hpl_m,
+                "vpl_m": integ.vpl_m,
+                "hal_m": integ.hal_m,
+                "val_m": integ.val_m,
+                "alarm": float(integ.alarm),
+                "available": float(integ.available),
+                "detected": float(integ.detected),
+                "h_error_m": h_error_m,
+                "v_error_m": v_error_m,
                 "excluded_count": float(len(integ.excluded)),
             }
             for name, v in values.items():
                 if v is not None and math.isfinite(v):
                     self._add(paths.integrity(vehicle, p, name), "scalar", tn, float(v))
             for sat in integ.satellites:
-                self._add(paths.integrity_sat(vehicle, p, sat.id, "statistic_m"), "scalar", tn,
-                          sat.statistic_m)
-                self._add(paths.integrity_sat(vehicle, p, sat.id, "threshold_m"), "scalar", tn,
-                          sat.threshold_m)
+                self._add(
+                    paths.integrity_sat(vehicle, p, sat.id, "statistic_m"), "scalar", tn, sat.statistic_m
+                )
+                self._add(
+                    paths.integrity_sat(vehicle, p, sat.id, "threshold_m"), "scalar", tn, sat.threshold_m
+                )
                 if sat.vertical_statistic_m or sat.vertical_threshold_m:
-                    self._add(paths.integrity_sat(vehicle, p, sat.id, "statistic_m", vertical=True), "scalar",
-                              tn, sat.vertical_statistic_m)
-                    self._add(paths.integrity_sat(vehicle, p, sat.id, "threshold_m", vertical=True), "scalar",
-                              tn, sat.vertical_threshold_m)
+                    self._add(
+                        paths.integrity_sat(vehicle, p, sat.id, "statistic_m", vertical=True),
+                        "scalar",
+                        tn,
+                        sat.vertical_statistic_m,
+                    )
+                    self._add(
+                        paths.integrity_sat(vehicle, p, sat.id, "threshold_m", vertical=True),
+                        "scalar",
+                        tn,
+                        sat.vertical_threshold_m,
+                    )
             self._integrity_events(vehicle, p, tn, integ)
             if h_error_m is not None and math.isfinite(h_error_m):
                 self._stanford(vehicle, p, "h", tn, h_error_m, integ.hpl_m, integ.hal_m, integ.alarm)
@@ -406,8 +474,9 @@ class RerunSink:
                     self._add(paths.health(vehicle, name), "scalar", tn, float(v))
             self._maybe_flush()
 
-    def log_scalars(self, vehicle: str, pipeline: str, t: float, group: str,
-                    values: Mapping[str, float]) -> None:
+    def log_scalars(
+        self, vehicle: str, pipeline: str, t: float, group: str, values: Mapping[str, float]
+    ) -> None:
         """Family-specific scalars at ``/{vehicle}/{pipeline}/{group}/{name}``.
 
         Groups the blueprints show: ``rerun_paths.GROUPS`` (imm, alignment, underwater).
@@ -500,8 +569,16 @@ class RerunSink:
         s.rows.append((t_ns, value))
         self._rows += 1
 
-    def _state_scalars(self, path_of: Callable[[str], str], tn: int, lat: float, lon: float, h: float,
-                       vel: Sequence[float], rpy: Sequence[float]) -> None:
+    def _state_scalars(
+        self,
+        path_of: Callable[[str], str],
+        tn: int,
+        lat: float,
+        lon: float,
+        h: float,
+        vel: Sequence[float],
+        rpy: Sequence[float],
+    ) -> None:
         vals = (lat, lon, h, *vel, *rpy)
         for name, v in zip(paths.SOLUTION_SCALARS, vals, strict=True):
             self._add(path_of(name), "scalar", tn, v)
@@ -548,8 +625,11 @@ class RerunSink:
         tr.last_logged_t = tr.head_t
         t = np.array([seconds_to_ns(tr.head_t)], dtype=np.int64).astype("timedelta64[ns]")
         try:
-            self._rec.send_columns(tr.path, indexes=[rr.TimeColumn(paths.TIMELINE, duration=t)],
-                                   columns=rr.GeoLineStrings.columns(line_strings=[np.asarray(line)]))
+            self._rec.send_columns(
+                tr.path,
+                indexes=[rr.TimeColumn(paths.TIMELINE, duration=t)],
+                columns=rr.GeoLineStrings.columns(line_strings=[np.asarray(line)]),
+            )
         except Exception as exc:
             log.warning("rerun sink: track %s not sent: %s", tr.path, exc)
 
@@ -557,7 +637,8 @@ class RerunSink:
         key = (vehicle, p)
         excluded = frozenset(integ.excluded)
         prev_det, prev_alarm, prev_avail, prev_excl = self._integ_prev.get(
-            key, (False, False, True, frozenset()))
+            key, (False, False, True, frozenset())
+        )
         self._integ_prev[key] = (integ.detected, integ.alarm, integ.available, excluded)
         path = paths.integrity_events(vehicle, p)
         if integ.detected and not prev_det:
@@ -572,8 +653,9 @@ class RerunSink:
         if prev_excl - excluded:
             self._add(path, "text", tn, ("readmitted: " + ",".join(sorted(prev_excl - excluded)), "INFO"))
 
-    def _stanford(self, vehicle: str, p: str, axis: str, tn: int, err: float, pl: float, al: float,
-                  alarm: bool) -> None:
+    def _stanford(
+        self, vehicle: str, p: str, axis: str, tn: int, err: float, pl: float, al: float, alarm: bool
+    ) -> None:
         # Stanford diagram in a 2D view: x = |error|, y = -PL (2D views point y down), per-epoch points
         # colored by region; static frame: PL = error diagonal and the alert limit lines.
         err = abs(err)
@@ -603,8 +685,11 @@ class RerunSink:
                 continue
             t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows)).astype("timedelta64[ns]")
             try:
-                self._rec.send_columns(path, indexes=[rr.TimeColumn(paths.TIMELINE, duration=t)],
-                                       columns=_columns(s.kind, [r[1] for r in rows]))
+                self._rec.send_columns(
+                    path,
+                    indexes=[rr.TimeColumn(paths.TIMELINE, duration=t)],
+                    columns=_columns(s.kind, [r[1] for r in rows]),
+                )
             except Exception as exc:
                 log.warning("rerun sink: %d rows for %s not sent: %s", len(rows), path, exc)
 
@@ -623,8 +708,13 @@ def optimize_rrd(path: str | Path, out: str | Path | None = None, timeout_s: flo
     exe = Path(sys.executable).parent / ("rerun.exe" if os.name == "nt" else "rerun")
     cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "rerun_cli"]
     tmp = dst.with_name(dst.name + ".optimizing")
-    proc = subprocess.run([*cmd, "rrd", "optimize", str(src), "-o", str(tmp)], capture_output=True,
-                          text=True, timeout=timeout_s, check=False)
+    proc = subprocess.run(
+        [*cmd, "rrd", "optimize", str(src), "-o", str(tmp)],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        check=False,
+    )
     if proc.returncode != 0 or not tmp.is_file():
         tmp.unlink(missing_ok=True)
         raise RuntimeError(f"rerun rrd optimize failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
