@@ -268,8 +268,8 @@ def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.nd
                    and that fault was not detected in time (never, or late)
       undetected   fault active, not flagged, not hazardous -- or hazardous while a detection in
                    time is still to come (then also counted in hmi_epochs if herr > HPL)
-    Overlay (not a class): hmi_epochs = herr > HPL with no alarm, at any epoch.
-    counts sum to ``epochs``. p_fa = false_alarm / (normal + false_alarm) (per fault-free epoch;
+    Overlay (not a class): hmi_epochs = herr > HPL with no alarm, at any epoch; also reported as
+    ``counts["hmi"]``. The classes (all counts but "hmi") sum to ``epochs``. p_fa = false_alarm / (normal + false_alarm) (per fault-free epoch;
     the paper's 1.25e-4 is 1 / 8000 over all epochs), p_md = missed / (detected + missed +
     undetected) (per fault epoch). detection_latency_s: first epoch flagged (detected, alarm or an
     exclusion listed) at or after the first fault's onset, minus that onset; with several runs the
@@ -339,6 +339,7 @@ def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.nd
                 counts["undetected"] += 1
     fault_free = counts["normal"] + counts["false_alarm"]
     faulty = counts["detected"] + counts["missed"] + counts["undetected"]
+    counts["hmi"] = hmi  # the paper's HMI column: an overlay on the classes, not summed with them
     lat_known = [x for x in latencies if x is not None]
 
     def stats(v: list[float]) -> dict:

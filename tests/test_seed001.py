@@ -196,8 +196,10 @@ def test_integrity_json_keys_are_consistent(ramp_result):
     g = ramp_result["pipelines"]["tc_mhss"]["integrity"]
     for key in ("detection_latency_s", "hpl_m", "vpl_m", "hmi_epochs", "alarms", "counts", "p_fa", "p_md"):
         assert key in g
-    assert set(g["counts"]) == set(INTEGRITY_CLASSES) >= {"normal", "detected", "missed", "false_alarm"}
-    assert sum(g["counts"].values()) == g["epochs"] == 300  # 30 s at 10 Hz
+    assert set(g["counts"]) == set(INTEGRITY_CLASSES) | {"hmi"}
+    assert set(INTEGRITY_CLASSES) >= {"normal", "detected", "missed", "false_alarm"}
+    assert g["counts"]["hmi"] == g["hmi_epochs"]
+    assert sum(g["counts"][k] for k in INTEGRITY_CLASSES) == g["epochs"] == 300  # 30 s at 10 Hz
     for pl in ("hpl_m", "vpl_m"):
         assert 0.0 < g[pl]["median"] <= g[pl]["max"] < 556.0
     c = g["counts"]
