@@ -309,6 +309,8 @@ class Service:
 
     def _deliver(self, wall: float, key: str, payload: bytes) -> None:
         pk = keys.parse_input(key, self.config.prefix)
+        if pk is None and keys.is_output(key, self.config.prefix):
+            return  # another fednav service's outputs share the prefix: not input, not an error
         parts = key.split("/")
         vehicle = parts[1] if len(parts) > 1 else ""
         if "*" not in self.config.vehicles and vehicle not in self.config.vehicles:

@@ -63,8 +63,19 @@ def service(vehicle: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
 
 
 def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[str]:
-    """Key expressions the service subscribes to for a vehicle selector (``*`` = all vehicles)."""
-    return [f"{prefix}/{vehicles}/sensor/**", f"{prefix}/{vehicles}/truth"]
+    """Key expression the service subscribes to for a vehicle selector (``*`` = all vehicles).
+
+    One expression per vehicle selector, so one Zenoh channel keeps the arrival order of a
+    vehicle's sensors *and* truth (two subscriptions would be two channels, drained in turn).
+    Outputs under the same prefix (``nav/``, ``service/``) are recognised by :func:`is_output`.
+    """
+    return [f"{prefix}/{vehicles}/**"]
+
+
+def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
+    """True for keys a fednav service publishes (nav/..., service/...), not inputs."""
+    parts = key.split("/")
+    return len(parts) >= 3 and parts[0] == prefix and parts[2] in ("nav", "service")
 
 
 @dataclass(frozen=True)

@@ -123,6 +123,10 @@ def test_recording_verifies_and_reads_back(demo_run):
     summary = inspect_rrd(rrd)
     assert "lc" in summary["pipelines"]
     assert summary["duration_s"] > 250
+    # truth and sensors arrive in order on one channel: errors against truth at every solution
+    lc = summary["pipelines"]["lc"]
+    assert lc["error_epochs"] >= lc["solutions"] - 2, (lc["error_epochs"], lc["solutions"])
+    assert lc["h_rms_m"] < 5.0
 
 
 def test_in_process_eval_equals_over_zenoh(demo_run):
