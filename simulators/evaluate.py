@@ -269,8 +269,9 @@ def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.nd
       undetected   fault active, not flagged, not hazardous -- or hazardous while a detection in
                    time is still to come (then also counted in hmi_epochs if herr > HPL)
     Overlay (not a class): hmi_epochs = herr > HPL with no alarm, at any epoch; also reported as
-    ``counts["hmi"]``. The classes (all counts but "hmi") sum to ``epochs``. p_fa = false_alarm / (normal + false_alarm) (per fault-free epoch;
-    the paper's 1.25e-4 is 1 / 8000 over all epochs), p_md = missed / (detected + missed +
+    ``counts["hmi"]``. The classes (all counts but "hmi") sum to ``epochs``.
+    p_fa = false_alarm / (normal + false_alarm) (per fault-free epoch; the paper's 1.25e-4 is
+    1 / 8000 over all epochs), p_md = missed / (detected + missed +
     undetected) (per fault epoch). detection_latency_s: first epoch flagged (detected, alarm or an
     exclusion listed) at or after the first fault's onset, minus that onset; with several runs the
     worst run (per-run values in ``detection_latency_runs_s``). ``excluded_satellites``: every
