@@ -1,0 +1,38 @@
+"""Service configuration: the shipped example loads; errors name the field."""
+
+from pathlib import Path
+
+import pytest
+
+from service import config
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "service" / "configs" / "example.toml"
+
+
+def test_example_config_loads():
+    cfg = config.load(EXAMPLE)
+    assert [p.kind for p in cfg.pipelines] == ["loosely_coupled", "federated", "tightly_coupled"]
+    assert cfg.zenoh.listen == ["tcp/127.0.0.1:7447"] and not cfg.zenoh.multicast_scouting
+
+
+@pytest.mark.parametrize(
+    "data, field",
+    [
+        ({"output": {"solution_rate_hz": -1}}, "output.solution_rate_hz"),
+        ({"pipelines": [{"name": "x", "kind": "federated", "sharing": "magic"}]}, "sharing"),
+        ({"intake": {"overload": "maybe"}}, "intake.overload"),
+        ({"bogus": 1}, "bogus"),
+    ],
+)
+def test_errors_name_the_field(data, field):
+    with pytest.raises(config.ConfigError) as ei:
+        config.from_dict(data)
+    assert field in str(ei.value)
+
+
+def test_scenario_table_and_missing_table(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text('name = "x"\n[service]\nvehicles = ["a"]\n')
+    assert config.load(p, "service").vehicles == ["a"]
+    with pytest.raises(config.ConfigError, match="no \\[nope\\] table"):
+        config.load(p, "nope")
