@@ -81,20 +81,23 @@ class InsFilterBank:
             self.ins.major_update()
             self.propagate(T)
 
-    def propagate(self, T: float) -> None:
+    def transition(self, T: float) -> tuple[np.ndarray, np.ndarray]:
+        """(Phi, Qd) over T at the current INS state: the 15 INS error states, block-diagonal
+        with the private states' model ``private_model(T)``."""
         s = self.ins.state
         c_nb = s.mat_nb
         F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
-        Qc = em.continuous_Q(self.noise, c_nb)
-        Phi15, Qd15 = em.discretise(F, Qc, T)
+        Phi15, Qd15 = em.discretise(F, em.continuous_Q(self.noise), T)
         if self.n == em.N_STATES:
-            Phi, Qd = Phi15, Qd15
-        else:
-            Phi = np.eye(self.n)
-            Qd = np.zeros((self.n, self.n))
-            Phi[:15, :15], Qd[:15, :15] = Phi15, Qd15
-            Phi_pp, Qd_pp = self.private_model(T)
-            Phi[15:, 15:], Qd[15:, 15:] = Phi_pp, Qd_pp
+            return Phi15, Qd15
+        Phi = np.eye(self.n)
+        Qd = np.zeros((self.n, self.n))
+        Phi[:15, :15], Qd[:15, :15] = Phi15, Qd15
+        Phi[15:, 15:], Qd[15:, 15:] = self.private_model(T)
+        return Phi, Qd
+
+    def propagate(self, T: float) -> None:
+        Phi, Qd = self.transition(T)
         self.last_Phi = Phi
         if np.all(self.q_scale == 1.0):
             Qb = Qd

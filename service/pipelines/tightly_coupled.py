@@ -143,18 +143,10 @@ class TightInsBank(InsFilterBank):
         return out
 
     def propagate(self, T: float) -> None:
-        # Phi and Qd as InsFilterBank.propagate builds them (15 INS states + private block), then
-        # one batched prediction of members and cross-covariances (full Q for every block)
-        s = self.ins.state
-        c_nb = s.mat_nb
-        F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
-        Qc = em.continuous_Q(self.noise, c_nb)
-        Phi15, Qd15 = em.discretise(F, Qc, T)
-        Phi_pp, Qd_pp = self.clock_model(T)
-        Phi = np.eye(N_STATES)
-        Qd = np.zeros((N_STATES, N_STATES))
-        Phi[:15, :15], Qd[:15, :15] = Phi15, Qd15
-        Phi[15:, 15:], Qd[15:, 15:] = Phi_pp, Qd_pp
+        # the bank's transition (15 INS states + clock block), then one batched prediction of
+        # members and cross-covariances (full Q for every block)
+        Phi, Qd = self.transition(T)
+        Phi_pp = Phi[15:, 15:]
         self.last_Phi = Phi
         self.mhss.predict(Phi, Qd)
         self.clock_ref = Phi_pp @ self.clock_ref
