@@ -24,18 +24,11 @@ from simulators.evaluate import run_once
 from simulators.processes import free_port, start_service, start_sim, wait_idle
 from simulators.stream import Simulation
 
+from .plain_zenoh import client as zenoh_client
 from .scenario_utils import SCENARIOS, shortened
 
 pytestmark = pytest.mark.integration
 RERUN = Path(sys.executable).with_name("rerun")
-
-
-def _client(port: int) -> zenoh.Session:
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    return zenoh.open(c)
 
 
 def test_bad_input_is_counted_and_never_reaches_the_filter(tmp_path):
@@ -44,7 +37,7 @@ def test_bad_input_is_counted_and_never_reaches_the_filter(tmp_path):
     cfg_path.write_text((SCENARIOS / "demo_aircraft.toml").read_text())
     port = free_port()
     svc = start_service(port, config=cfg_path, table="service")
-    session = _client(port)
+    session = zenoh_client(port)
     sols: list[dict] = []
     session.declare_subscriber(
         "fednav/v1/nav/lc/solution", lambda s: sols.append(json.loads(s.payload.to_bytes()))
@@ -149,7 +142,7 @@ def test_sigterm_mid_run_leaves_a_complete_recording(tmp_path):
     rrd = tmp_path / "term.rrd"
     demo = SCENARIOS / "demo_aircraft.toml"
     svc = start_service(port, config=demo, table="service", rrd=rrd)
-    session = _client(port)
+    session = zenoh_client(port)
     sols: list[float] = []
     session.declare_subscriber(
         "fednav/v1/nav/lc/solution", lambda s: sols.append(json.loads(s.payload.to_bytes())["t"])

@@ -22,19 +22,12 @@ import zenoh
 
 from simulators.processes import free_port, start_service, start_sim, wait_idle
 
+from .plain_zenoh import client as zenoh_client
+
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "simulators" / "scenarios" / "demo_aircraft.toml"
 RERUN = Path(sys.executable).with_name("rerun")
-
-
-def _client(port: int) -> zenoh.Session:
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", "[]")
-    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    return zenoh.open(c)
 
 
 class Collector:
@@ -70,7 +63,7 @@ def demo_run(tmp_path_factory):
     port = free_port()
     rrd = tmp / "demo.rrd"
     svc = start_service(port, config=DEMO, table="service", rrd=rrd)
-    client = _client(port)
+    client = zenoh_client(port)
     col = Collector(client, "fednav/v1/**")
     try:
         sim = start_sim(port, DEMO, speed=0.0, seed=3)

@@ -20,6 +20,8 @@ import zenoh
 
 from simulators.processes import free_port, start_service, start_sim, wait_idle
 
+from .plain_zenoh import client as zenoh_client
+
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
 RAMP = ROOT / "simulators" / "scenarios" / "seed001_ramp.toml"
@@ -39,15 +41,6 @@ def short_ramp(tmp_path: Path) -> Path:
     return p
 
 
-def _client(port: int) -> zenoh.Session:
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", "[]")
-    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    return zenoh.open(c)
-
-
 @pytest.fixture(scope="module")
 def integrity_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("seed001")
@@ -58,7 +51,7 @@ def integrity_run(tmp_path_factory):
     assert sc.duration_s == DURATION_S and sc.faults[0].channels == ["C03.pseudorange"]
     port = free_port()
     svc = start_service(port, config=scenario, table="service")
-    client = _client(port)
+    client = zenoh_client(port)
     got: list[tuple[str, dict]] = []
     lock = threading.Lock()
 
