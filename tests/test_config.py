@@ -36,3 +36,16 @@ def test_scenario_table_and_missing_table(tmp_path):
     assert config.load(p, "service").vehicles == ["a"]
     with pytest.raises(config.ConfigError, match="no \\[nope\\] table"):
         config.load(p, "nope")
+
+
+def test_service_cli_rejects_a_bad_config_naming_the_field(tmp_path):
+    import subprocess
+    import sys
+
+    p = tmp_path / "bad.toml"
+    p.write_text("[output]\nsolution_rate_hz = 0\n")
+    res = subprocess.run(
+        [sys.executable, "-m", "service", "--config", str(p)], capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode == 2
+    assert "output.solution_rate_hz" in res.stderr

@@ -1,0 +1,44 @@
+"""One service instance serving several vehicles by key expression (``--vehicle '*'``)."""
+
+import json
+import signal
+import threading
+
+import pytest
+
+from simulators.processes import free_port, query_status, start_service, start_sim, wait_idle
+
+from .plain_zenoh import client as zenoh_client
+from .scenario_utils import SCENARIOS
+
+pytestmark = pytest.mark.integration
+
+
+def test_two_vehicles_one_service():
+    demo = SCENARIOS / "demo_aircraft.toml"
+    port = free_port()
+    svc = start_service(port, config=demo, table="service", extra=["--vehicle", "*"])
+    session = zenoh_client(port)
+    seen: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def on_sol(sample):
+        vehicle = str(sample.key_expr).split("/")[1]
+        json.loads(sample.payload.to_bytes())
+        with lock:
+            seen[vehicle] = seen.get(vehicle, 0) + 1
+
+    session.declare_subscriber("fednav/*/nav/lc/solution", on_sol)
+    try:
+        sims = [start_sim(port, demo, speed=0.0, seed=s, vehicle=v) for s, v in ((1, "alpha"), (2, "bravo"))]
+        for sim in sims:
+            assert sim.wait(timeout=300) == 0, sim.output()
+        for v in ("alpha", "bravo"):
+            st = wait_idle(port, vehicle=v)
+            assert st is not None and st["health"]["accepted"] == st["health"]["received"] > 30000
+        assert query_status(port, "charlie")["health"] is None  # a vehicle never seen: no worker
+    finally:
+        svc.signal(signal.SIGINT)
+        svc.wait(timeout=60)
+        session.close()
+    assert seen.get("alpha", 0) > 2900 and seen.get("bravo", 0) > 2900, seen
