@@ -231,9 +231,8 @@ class TightlyCoupled(Pipeline):
         return Estimate(self.bank.nav(), self.bank.P[0, :9, :9])
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
-        if kind != "gnss_raw":
+        if kind != "gnss_raw" or not isinstance(msg, GnssRaw):
             return []
-        assert isinstance(msg, GnssRaw)
         return self._gnss_epoch(msg, dt_late_s)
 
     # --- one GNSS epoch -------------------------------------------------------------------------------
