@@ -33,10 +33,7 @@ from simulators.gnss.orbits import (
 from simulators.gnss.rinex import BroadcastEphemeris, read_rinex2_nav
 from simulators.gnss.sp3 import Sp3Data, Sp3Orbits, lagrange_weights
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-SP3_FILE = DATA / "orbits_2021_118" / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3"
-BRDC_2021 = DATA / "orbits_2021_118" / "brdc1180.21n"
-BRDC_2015 = DATA / "psins_wuhan_2015" / "01.15n"
+from .real_data import BRDC_2015, BRDC_2021, SP3_FILE
 
 
 def _need(path: Path) -> Path:

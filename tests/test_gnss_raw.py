@@ -32,10 +32,7 @@ from simulators.gnss.raw_sensor import (
 )
 from simulators.gnss.rinex import C_L1_M, BroadcastEphemeris, read_rinex2_obs
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-SP3_FILE = DATA / "orbits_2021_118" / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3"
-BRDC_2021 = DATA / "orbits_2021_118" / "brdc1180.21n"
-WUHAN = DATA / "psins_wuhan_2015"
+from .real_data import BRDC_2021, SP3_FILE, WUHAN
 
 LLH0 = np.array([math.radians(40.10021), math.radians(118.60212), 100.0])  # seed 000's start point
 T0 = NOMINAL_EPOCH_GPS_S + 1800.0  # 2021-04-28 18:30 GPST, inside the real SP3 file too
