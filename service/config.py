@@ -55,6 +55,7 @@ SharingName = Literal[
     "fixed",
     "trace",
     "vector",
+    "vector_eigen",
     "vector_conservative",
     "eigen_trace",
     "eigen_trace_inverse",
@@ -85,12 +86,15 @@ class FederatedConfig(Model):
     kind: Literal["federated"] = "federated"
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     subsystems: list[SubsystemConfig] = Field(default_factory=_default_subsystems, min_length=1)
-    sharing: SharingName = Field("vector", description="Information-sharing strategy")
+    sharing: SharingName = Field("vector_eigen", description="Information-sharing strategy")
     fault_handling: FaultHandlingName = Field("per_observation", description="Fault handling plug-in")
     reset: Literal["fusion_reset", "no_reset"] = Field("fusion_reset", description="Master reset mode")
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5, description="Per-test false-alarm probability")
     floor_share: float = Field(
-        1e-3, gt=0, lt=0.5, description="Share floor of a state seen only by a flagged row"
+        0.05,
+        gt=0,
+        lt=0.5,
+        description="Share floor of a state seen only by a flagged row (docs/seed000.md: not below ~0.01)",
     )
     master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
 

@@ -77,7 +77,10 @@ def test_seed000_scenarios_carry_the_paper_parameters():
         )
         names = [p["name"] for p in sc.service["pipelines"]]
         assert names[:5] == ["fed_fixed", "fed_scalar", "fed_vector", "fed_vector_sysiso", "centralized"]
-        assert names[5:] == ["fed_vector_cons", "fed_vector_cons_sysiso"]  # our recommended variant
+        assert names[5:] == ["fed_vector_perstate", "fed_vector_cons"]  # comparison variants
+        sharing = {p["name"]: p.get("sharing") for p in sc.service["pipelines"]}
+        assert sharing["fed_vector"] == sharing["fed_vector_sysiso"] == "vector_eigen"
+        assert sharing["fed_vector_perstate"] == "vector"
     assert ff.faults == []
     sched = [(f.start_s, f.duration_s, dict(zip(f.channels, f.magnitude, strict=True))) for f in fa.faults]
     assert sched == [

@@ -222,3 +222,71 @@ def test_vector_reset_loses_off_diagonal_information_by_the_hadamard_factor():
     Y = _reset_information(P_g, G)
     np.testing.assert_allclose(Y, Yg * C, rtol=1e-8, atol=1e-10 * np.abs(Yg).max())
     assert np.abs(Y - Yg).max() > 1e-3 * np.abs(Yg).max()  # measurably different
+
+
+# --- vector sharing along the eigen-directions of P_g (seed 000 eq 11) ------------------------------
+def _eigen_case(rng, N=2, scales=None):
+    P_locals = np.stack([_random_spd(rng, 15, scales) for _ in range(N)])
+    return P_locals, sharing.fuse_covariances(P_locals)
+
+
+@pytest.mark.parametrize("N", [2, 3])
+@pytest.mark.parametrize("master_share", [0.0, 0.3])
+def test_vector_eigen_reset_preserves_information_exactly(N, master_share):
+    """G_i = V diag(beta_i) V^-1 with V^-1 P_g V^-T diagonal: sum_i G_i = (1 - m) I as MATRICES, and
+    the reset covariances return exactly the fused information, sum_i P_i^-1 = (1 - m) P_g^-1,
+    also on INS-like scales (1e-8 .. 5) and with flagged states."""
+    rng = np.random.default_rng(21 + N)
+    strat = get_strategy("vector_eigen")
+    for trial in range(6):
+        scales = _ins_like_scales(rng) if trial % 2 else None
+        P_locals, P_g = _eigen_case(rng, N, scales)
+        fl = rng.random((N, 15)) < 0.3 if trial >= 3 else None
+        plan = strat.plan(P_locals, P_g, SharingContext(flagged_only=fl, master_share=master_share))
+        V = plan.scale[:, None] * plan.directions
+        Vinv = np.linalg.inv(V)
+        np.testing.assert_allclose(Vinv @ P_g @ Vinv.T, np.diag(plan.lam), atol=1e-9 * plan.lam.max())
+        G = np.stack([V @ np.diag(b) @ Vinv for b in plan.shares])
+        Gs = G * plan.scale[None, None, :] / plan.scale[None, :, None]  # diag(s)^-1 G diag(s): O(1)
+        np.testing.assert_allclose(Gs.sum(axis=0), (1.0 - master_share) * np.eye(15), atol=1e-12)
+        np.testing.assert_allclose(np.diagonal(G, axis1=1, axis2=2), plan.state_shares(), atol=1e-12)
+        Pi = plan.covariances(P_g)
+        d = np.sqrt(np.diag(P_g))  # compare in correlation units (raw information spans 1e16)
+        Y = sum(np.linalg.inv(p / np.outer(d, d)) for p in Pi)
+        Yg = np.linalg.inv(P_g / np.outer(d, d))
+        np.testing.assert_allclose(Y, (1.0 - master_share) * Yg, rtol=0, atol=1e-8 * np.abs(Yg).max())
+        # process noise: one scalar per local, summing to the locals' total (conserves Q^-1 too)
+        assert plan.q_shares is not None and np.all(plan.q_shares > 0)
+        np.testing.assert_allclose(plan.q_shares.sum(), 1.0 - master_share, atol=1e-12)
+
+
+def test_vector_eigen_is_unit_free_and_prefers_the_accurate_local():
+    """Rescaling the states (metres -> millimetres, rad -> arcsec) changes no share; along a
+    direction where local 0 is 100x more accurate it gets ~100/101 of the information."""
+    rng = np.random.default_rng(5)
+    P0 = _random_spd(rng, 15)
+    P1 = 100.0 * P0  # local 1 is 100x worse along every direction
+    P_locals = np.stack([P0, P1])
+    P_g = sharing.fuse_covariances(P_locals)
+    strat = get_strategy("vector_eigen")
+    b = strat.plan(P_locals, P_g).shares
+    np.testing.assert_allclose(b[0], 100.0 / 101.0, rtol=1e-9)
+    D = np.diag(10.0 ** rng.uniform(-6, 6, 15))
+    b_scaled = strat.plan(D @ P_locals @ D, D @ P_g @ D).shares
+    np.testing.assert_allclose(b_scaled, b, rtol=1e-9)
+
+
+def test_vector_eigen_floor_applies_to_directions_on_flagged_states():
+    """Eq (22) per direction: with P_g diagonal the directions are the states, so a state local 0
+    saw only through flagged rows gets exactly the floor share there, the others are untouched."""
+    P_locals = np.stack([np.diag(np.linspace(1.0, 2.0, 15)), np.diag(np.linspace(3.0, 1.0, 15))])
+    P_g = sharing.fuse_covariances(P_locals)
+    fl = np.zeros((2, 15), dtype=bool)
+    fl[0, 3:6] = True
+    strat = get_strategy("vector_eigen")
+    base = strat.plan(P_locals, P_g).state_shares()
+    G = strat.plan(P_locals, P_g, SharingContext(flagged_only=fl, floor_share=0.05)).state_shares()
+    np.testing.assert_allclose(G[0, 3:6], 0.05, rtol=1e-9)
+    np.testing.assert_allclose(G[1, 3:6], 0.95, rtol=1e-9)
+    keep = np.r_[0:3, 6:15]
+    np.testing.assert_allclose(G[:, keep], base[:, keep], rtol=1e-12)

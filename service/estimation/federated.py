@@ -188,7 +188,7 @@ class FederatedCore:
         strategy: SharingStrategy,
         reset: ResetMode = "fusion_reset",
         master_share: float = 0.0,
-        floor_share: float = 1e-3,
+        floor_share: float = 0.05,
         n_common: int = 15,
     ):
         if n_locals < 1:
@@ -234,7 +234,7 @@ class FederatedCore:
             return
         b = self.bank
         x0, P0 = b.x[0, : self.c].copy(), b.P[0, : self.c, : self.c].copy()
-        self._reset(x0, P0, self._compute_shares(), np.arange(self.B))
+        self._reset_all(x0, P0)
         self._dirty = False
 
     # --- local update -------------------------------------------------------------------------
@@ -330,9 +330,9 @@ class FederatedCore:
         x_g, P_g = self.fuse() if fused is None else fused
         if self.B > 1:
             if self.reset_mode == "fusion_reset":
-                self._reset(x_g, P_g, self._compute_shares(), np.arange(self.B))
+                self._reset_all(x_g, P_g)
             elif self.master_share == 0.0:  # no_reset: only the output-only master follows P_g
-                self._reset(x_g, P_g, np.ones((1, self.c)), np.array([self.master]))
+                self._reset(x_g, np.array([self.master]), P_g[None], np.ones((1, self.c)))
         self._flagged_only[:] = False
         self.bank.feedback(x_g)
         if self.reset_mode == "fusion_reset":
@@ -340,26 +340,34 @@ class FederatedCore:
         self._dirty = self.reset_mode == "no_reset" and self.master_share > 0.0
         return x_g, P_g
 
-    def _compute_shares(self) -> np.ndarray:
-        """(B, c) reset scales: the strategy's local shares, the master's constant share (or 1
-        for the output-only master, which holds P_g itself)."""
+    def _reset_all(self, x_g: np.ndarray, P_g: np.ndarray) -> None:
+        """Reset every member from the fusion: the locals by the strategy's ``ResetPlan``, the
+        master by its constant share (or to P_g itself for the output-only master)."""
         c = self.c
         ctx = SharingContext(
             flagged_only=self._flagged_only, floor_share=self.floor_share, master_share=self.master_share
         )
         try:
-            G = self.strategy.shares(self.bank.P[: self.n_locals, :c, :c], ctx)
-        except ValueError as exc:  # invalid weights come from broken covariances
+            plan = self.strategy.plan(self.bank.P[: self.n_locals, :c, :c], P_g, ctx)
+            Pcc = plan.covariances(P_g)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # invalid shares come from broken covariances
             raise kalman.NotPositiveDefinite(f"sharing failed: {exc}") from exc
+        qs = plan.q_scales()
+        shares = plan.state_shares()
         if self.master is not None:
-            G = np.vstack([G, np.full((1, c), self.master_share if self.master_share > 0.0 else 1.0)])
-        return G
+            m = self.master_share if self.master_share > 0.0 else 1.0
+            Pcc = np.concatenate([Pcc, (P_g / m)[None]])
+            qs = np.vstack([qs, np.full((1, c), 1.0 / m)])
+            shares = np.vstack([shares, np.full((1, c), m)])
+        self._reset(x_g, np.arange(self.B), Pcc, qs)
+        self.shares = shares[: self.n_fused]
 
-    def _reset(self, x_g: np.ndarray, P_g: np.ndarray, G: np.ndarray, members: np.ndarray) -> None:
-        """Reset ``members`` (index array) with scales G (len(members), c)."""
+    def _reset(
+        self, x_g: np.ndarray, members: np.ndarray, Pcc_new: np.ndarray, q_scale_new: np.ndarray
+    ) -> None:
+        """Reset ``members`` (index array) to x_g with common covariances Pcc_new (members, c, c)
+        and process-noise scales q_scale_new (members, c)."""
         b, c = self.bank, self.c
-        inv_sqrt = 1.0 / np.sqrt(G)  # G_i^-1/2
-        Pcc_new = inv_sqrt[:, :, None] * P_g[None] * inv_sqrt[:, None, :]  # seed 000 eq (14)/(25)
         P = b.P.copy()
         x = b.x.copy()
         Pm, xm = P[members], x[members]
@@ -380,10 +388,8 @@ class FederatedCore:
         b.P = kalman.symmetrise(P)
         b.x = x
         q_scale = b.q_scale.copy()
-        q_scale[members, :c] = 1.0 / G  # Q_i = G_i^-1/2 Q G_i^-1/2, seed 000 eq (15)/(26)
+        q_scale[members, :c] = q_scale_new  # seed 000 eq (15)/(26) (see sharing.ResetPlan)
         b.q_scale = q_scale
-        if len(members) == self.B:
-            self.shares = G[: self.n_fused]
 
     @property
     def local_shares(self) -> np.ndarray:

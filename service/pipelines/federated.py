@@ -78,7 +78,7 @@ class _CorePipeline(Pipeline):
         false_alarm_prob: float,
         reset: str = "fusion_reset",
         master_share: float = 0.0,
-        floor_share: float = 1e-3,
+        floor_share: float = 0.05,
         report_faults: bool = True,
     ):
         super().__init__(name, imu, major_interval_s)
