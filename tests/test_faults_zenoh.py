@@ -45,11 +45,15 @@ def compressed_faults(tmp_path: Path) -> Path:
     text = text.replace('name = "seed000_faults"', 'name = "seed000_faults_compressed"')
     blocks = text.split("\n[[faults]]")
     assert len(blocks) == 4, "the shipped scenario has three fault blocks"
-    both = blocks[1].replace("start_s = 300.0", f"start_s = {BOTH[0]}").replace(
-        "duration_s = 10.0", f"duration_s = {BOTH[1] - BOTH[0]}"
+    both = (
+        blocks[1]
+        .replace("start_s = 300.0", f"start_s = {BOTH[0]}")
+        .replace("duration_s = 10.0", f"duration_s = {BOTH[1] - BOTH[0]}")
     )
-    vel = blocks[2].replace("start_s = 450.0", f"start_s = {VEL[0]}").replace(
-        "duration_s = 50.0", f"duration_s = {VEL[1] - VEL[0]}"
+    vel = (
+        blocks[2]
+        .replace("start_s = 450.0", f"start_s = {VEL[0]}")
+        .replace("duration_s = 50.0", f"duration_s = {VEL[1] - VEL[0]}")
     )
     text = "\n[[faults]]".join([blocks[0], both, vel])
     keep = ("fed_vector", "fed_vector_sysiso")
