@@ -204,7 +204,7 @@ def test_update_changes_only_the_owner_and_equals_a_single_filter_update():
     assert upd.nis == pytest.approx(res.nis[0], rel=1e-12)
 
 
-@pytest.mark.parametrize("strategy", ["fixed", "trace", "vector"])
+@pytest.mark.parametrize("strategy", ["fixed", "trace", "vector", "vector_eigen"])
 @pytest.mark.parametrize("master_share", [0.0, 0.2])
 def test_output_covariance_is_the_master_time_update(strategy, master_share):
     """Between aiding epochs the output covariance comes from the master member's own time
@@ -230,7 +230,8 @@ def test_output_covariance_is_the_master_time_update(strategy, master_share):
             assert np.max(np.abs(core.fused_covariance() - core.fuse()[1]) / scale) < 1e-12
 
 
-def test_private_states_are_not_fused_or_rescaled():
+@pytest.mark.parametrize("strategy", ["vector", "vector_eigen"])
+def test_private_states_are_not_fused_or_rescaled(strategy):
     """n = 5 common + 2 private: a reset keeps each member's conditional p | c covariance, moves
     x_p by A (x_g - x_c), leaves private q_scale at 1, and keeps P positive definite."""
     rng = np.random.default_rng(3)
@@ -238,7 +239,7 @@ def test_private_states_are_not_fused_or_rescaled():
     A = rng.normal(size=(n, n))
     P0 = A @ A.T + np.eye(n)
     bank = LinearBank(P0, 3)  # 2 locals + the master
-    core = FederatedCore(bank, 2, get_strategy("vector"), n_common=c)
+    core = FederatedCore(bank, 2, get_strategy(strategy), n_common=c)
     core.start()
     H = np.zeros((2, n))
     H[0, 0] = H[1, 5] = 1.0  # local 0 observes a common state and its first private state
@@ -265,14 +266,15 @@ def test_private_states_are_not_fused_or_rescaled():
     assert xg.shape == (c,) and Pg.shape == (c, c)
 
 
-def test_no_reset_runs_and_its_fused_covariance_is_not_overconfident():
+@pytest.mark.parametrize("strategy", ["fixed", "vector_eigen"])
+def test_no_reset_runs_and_its_fused_covariance_is_not_overconfident(strategy):
     """no_reset (Carlson's no-reset mode: initial division, Q_i = Q / beta_i, locals never reset,
     x_g fed back into the shared reference): seeded MC, 30 runs x 120 cycles on mini_ins, mean NEES
     of the fused estimate over the last 60 cycles <= 1.3 x dim (found 4.25 for dim 5: conservative,
     as Carlson's bound says)."""
     nees_all = []
     for seed in range(30):
-        x, P, truth = run_linear("fixed", 2, 120, seed=1000 + seed, reset="no_reset")
+        x, P, truth = run_linear(strategy, 2, 120, seed=1000 + seed, reset="no_reset")
         e = x[60:] - truth[60:]
         nees_all.append([ei @ np.linalg.solve(Pi, ei) for ei, Pi in zip(e, P[60:], strict=True)])
     assert np.mean(nees_all) <= 1.3 * 5
@@ -487,7 +489,7 @@ def test_end_to_end_scalar_federated_equals_centralised():
         )
 
 
-@pytest.mark.parametrize("sharing", ["vector", "fixed"])
+@pytest.mark.parametrize("sharing", ["vector", "vector_eigen", "fixed"])
 def test_outputs_never_change_the_filter(sharing):
     """One fusion per aiding epoch (GNSS + star at the same t), whether or not estimates are
     requested between the two messages (the engine does so for outputs when truth is present):
@@ -521,9 +523,10 @@ def test_outputs_never_change_the_filter(sharing):
     assert quiet.bank.nav().lat_rad == asked.bank.nav().lat_rad
 
 
-def test_faults_message_and_sharing_report():
+@pytest.mark.parametrize("sharing", ["vector", "vector_eigen"])
+def test_faults_message_and_sharing_report(sharing):
     init, std, events = static_stream(2, 5)
-    p = _fed("vec", sharing="vector", fault_handling="per_observation", master_share=0.2)
+    p = _fed("vec", sharing=sharing, fault_handling="per_observation", master_share=0.2)
     out = drive([p], events, init, std)["vec"]
     assert len(out) == 10  # one per aiding message (5 s x GNSS + star)
     for msg in out:
