@@ -39,16 +39,38 @@ FAMILY_ALIASES = {"centralized": "loosely_coupled", "tightly_coupled": "integrit
 _AXES = {
     "Position error": (paths.POSITION_ERRORS, ("east (m)", "north (m)", "up (m)")),
     "Velocity error": (paths.VELOCITY_ERRORS, ("east (m/s)", "north (m/s)", "up (m/s)")),
-    "Attitude error": (paths.ATTITUDE_ERRORS, ("about east (arcsec)", "about north (arcsec)",
-                                               "about up (arcsec)")),
+    "Attitude error": (
+        paths.ATTITUDE_ERRORS,
+        ("about east (arcsec)", "about north (arcsec)", "about up (arcsec)"),
+    ),
 }
-_STATE_TITLES = ("latitude (deg)", "longitude (deg)", "height (m)", "velocity east (m/s)",
-                 "velocity north (m/s)", "velocity up (m/s)", "roll (deg)", "pitch (deg)", "heading (deg)")
-_STD_TITLES = ("1σ east (m)", "1σ north (m)", "1σ up (m)", "1σ v east (m/s)", "1σ v north (m/s)",
-               "1σ v up (m/s)", "1σ roll (deg)", "1σ pitch (deg)", "1σ heading (deg)")
-_GROUP_OF_FAMILY = {"imm": ("imm", "IMM model probabilities"),
-                    "transfer_alignment": ("alignment", "lever arm and misalignment"),
-                    "underwater": ("underwater", "DVL / USBL states")}
+_STATE_TITLES = (
+    "latitude (deg)",
+    "longitude (deg)",
+    "height (m)",
+    "velocity east (m/s)",
+    "velocity north (m/s)",
+    "velocity up (m/s)",
+    "roll (deg)",
+    "pitch (deg)",
+    "heading (deg)",
+)
+_STD_TITLES = (
+    "1σ east (m)",
+    "1σ north (m)",
+    "1σ up (m)",
+    "1σ v east (m/s)",
+    "1σ v north (m/s)",
+    "1σ v up (m/s)",
+    "1σ roll (deg)",
+    "1σ pitch (deg)",
+    "1σ heading (deg)",
+)
+_GROUP_OF_FAMILY = {
+    "imm": ("imm", "IMM model probabilities"),
+    "transfer_alignment": ("alignment", "lever arm and misalignment"),
+    "underwater": ("underwater", "DVL / USBL states"),
+}
 
 
 def family_of(kind: str) -> str:
@@ -85,46 +107,68 @@ def _error_tab(v: str, pipelines: Sequence[str], title: str) -> rrb.Horizontal:
     names, labels = _AXES[title]
     columns: list[rrb.Vertical] = []
     if len(pipelines) > 1:
-        columns.append(rrb.Vertical(
-            *[_ts(f"all: {lab}", [paths.error(v, p, n) for p in pipelines])
-              for n, lab in zip(names, labels, strict=True)],
-            name="all pipelines"))
+        columns.append(
+            rrb.Vertical(
+                *[
+                    _ts(f"all: {lab}", [paths.error(v, p, n) for p in pipelines])
+                    for n, lab in zip(names, labels, strict=True)
+                ],
+                name="all pipelines",
+            )
+        )
     for p in pipelines:
-        columns.append(rrb.Vertical(
-            *[_ts(f"{p}: {lab} ±3σ", [paths.error(v, p, n), paths.bound(v, p, n)])
-              for n, lab in zip(names, labels, strict=True)],
-            name=p))
+        columns.append(
+            rrb.Vertical(
+                *[
+                    _ts(f"{p}: {lab} ±3σ", [paths.error(v, p, n), paths.bound(v, p, n)])
+                    for n, lab in zip(names, labels, strict=True)
+                ],
+                name=p,
+            )
+        )
     return rrb.Horizontal(*columns, name=title)
 
 
 def _navigation_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
     grid = rrb.Grid(
-        *[_ts(title, [paths.truth(v, n)] + [paths.solution(v, p, n) for p in pipelines])
-          for n, title in zip(paths.SOLUTION_SCALARS, _STATE_TITLES, strict=True)],
-        grid_columns=3)
-    status = rrb.StateTimelineView(name="status", origin=paths.vehicle_root(v),
-                                   contents=[paths.solution(v, p, "status") for p in pipelines])
-    truth_faults = rrb.TextLogView(name="injected faults (truth)", origin=paths.vehicle_root(v),
-                                   contents=[paths.truth(v, "faults")])
+        *[
+            _ts(title, [paths.truth(v, n)] + [paths.solution(v, p, n) for p in pipelines])
+            for n, title in zip(paths.SOLUTION_SCALARS, _STATE_TITLES, strict=True)
+        ],
+        grid_columns=3,
+    )
+    status = rrb.StateTimelineView(
+        name="status",
+        origin=paths.vehicle_root(v),
+        contents=[paths.solution(v, p, "status") for p in pipelines],
+    )
+    truth_faults = rrb.TextLogView(
+        name="injected faults (truth)", origin=paths.vehicle_root(v), contents=[paths.truth(v, "faults")]
+    )
     return rrb.Vertical(grid, rrb.Horizontal(status, truth_faults), row_shares=[4, 1], name="Navigation")
 
 
 def _covariance_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
     grid = rrb.Grid(
-        *[_ts(title, [paths.solution_std(v, p, n) for p in pipelines])
-          for n, title in zip(paths.STD_SCALARS, _STD_TITLES, strict=True)],
-        grid_columns=3)
+        *[
+            _ts(title, [paths.solution_std(v, p, n) for p in pipelines])
+            for n, title in zip(paths.STD_SCALARS, _STD_TITLES, strict=True)
+        ],
+        grid_columns=3,
+    )
     biases = rrb.Horizontal(
         _ts("gyro bias (deg/h)", [paths.solution(v, p, "gyro_bias_dph") for p in pipelines]),
-        _ts("accelerometer bias (µg)", [paths.solution(v, p, "accel_bias_ug") for p in pipelines]))
+        _ts("accelerometer bias (µg)", [paths.solution(v, p, "accel_bias_ug") for p in pipelines]),
+    )
     return rrb.Vertical(grid, biases, row_shares=[3, 1], name="Covariance")
 
 
 def _faults_tab(v: str, p: str, with_sharing: bool) -> rrb.Vertical:
     views: list[rrb.View] = [
         _ts(f"{p}: test statistics vs thresholds", f"{paths.faults(v, p)}/**"),
-        rrb.StateTimelineView(name=f"{p}: fault flags per observation", origin=paths.faults(v, p),
-                              contents="$origin/**"),
+        rrb.StateTimelineView(
+            name=f"{p}: fault flags per observation", origin=paths.faults(v, p), contents="$origin/**"
+        ),
     ]
     if with_sharing:
         views.append(_ts(f"{p}: sharing coefficients", f"{paths.sharing(v, p)}/**"))
@@ -135,24 +179,40 @@ def _integrity_tab(v: str, p: str) -> rrb.Grid:
     def i(leaf: str) -> str:
         return paths.integrity(v, p, leaf)
 
-    everything = rrb.VisibleTimeRange(paths.TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
-                                      end=rrb.TimeRangeBoundary.cursor_relative())
+    everything = rrb.VisibleTimeRange(
+        paths.TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+    )
     return rrb.Grid(
         _ts(f"{p}: HPL vs HAL vs horizontal error (m)", [i("hpl_m"), i("hal_m"), i("h_error_m")]),
         _ts(f"{p}: VPL vs VAL vs vertical error (m)", [i("vpl_m"), i("val_m"), i("v_error_m")]),
-        _ts(f"{p}: alarm / available / detected / excluded", [i("alarm"), i("available"), i("detected"),
-                                                              i("excluded_count")]),
-        _ts(f"{p}: per-satellite statistic vs threshold (m)",
-            [f"{paths.integrity_sat(v, p)}/**", f"{paths.integrity_sat(v, p, vertical=True)}/**"]),
-        rrb.TextLogView(name=f"{p}: integrity events", origin=paths.integrity(v, p),
-                        contents=[paths.integrity_events(v, p)]),
-        rrb.Spatial2DView(name=f"{p}: Stanford (x: |error|, y: -HPL)", origin=paths.stanford(v, p),
-                          contents=[paths.stanford(v, p, "h"), paths.stanford(v, p, "frame_h")],
-                          time_ranges=everything),
-        rrb.Spatial2DView(name=f"{p}: Stanford (x: |error|, y: -VPL)", origin=paths.stanford(v, p),
-                          contents=[paths.stanford(v, p, "v"), paths.stanford(v, p, "frame_v")],
-                          time_ranges=everything),
-        grid_columns=2, name=f"{p}: integrity")
+        _ts(
+            f"{p}: alarm / available / detected / excluded",
+            [i("alarm"), i("available"), i("detected"), i("excluded_count")],
+        ),
+        _ts(
+            f"{p}: per-satellite statistic vs threshold (m)",
+            [f"{paths.integrity_sat(v, p)}/**", f"{paths.integrity_sat(v, p, vertical=True)}/**"],
+        ),
+        rrb.TextLogView(
+            name=f"{p}: integrity events",
+            origin=paths.integrity(v, p),
+            contents=[paths.integrity_events(v, p)],
+        ),
+        rrb.Spatial2DView(
+            name=f"{p}: Stanford (x: |error|, y: -HPL)",
+            origin=paths.stanford(v, p),
+            contents=[paths.stanford(v, p, "h"), paths.stanford(v, p, "frame_h")],
+            time_ranges=everything,
+        ),
+        rrb.Spatial2DView(
+            name=f"{p}: Stanford (x: |error|, y: -VPL)",
+            origin=paths.stanford(v, p),
+            contents=[paths.stanford(v, p, "v"), paths.stanford(v, p, "frame_v")],
+            time_ranges=everything,
+        ),
+        grid_columns=2,
+        name=f"{p}: integrity",
+    )
 
 
 def _group_tab(v: str, p: str, family: str) -> rrb.TimeSeriesView:
@@ -169,7 +229,9 @@ def _health_tab(v: str) -> rrb.Grid:
         _ts("latency intake -> publish (ms)", [h("latency_p50_ms"), h("latency_p99_ms")]),
         _ts("messages received / accepted", [h("received"), h("accepted")]),
         _ts("messages rejected / dropped (overload)", [h("rejected_total"), h("dropped_overload")]),
-        grid_columns=2, name="Health")
+        grid_columns=2,
+        name="Health",
+    )
 
 
 def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
@@ -211,8 +273,11 @@ def build_fleet_blueprint(vehicles: Sequence[str], pipelines: Mapping[str, str])
         return rrb.Blueprint(auto_views=True, auto_layout=True)
     if len(vehicles) == 1:
         return build_blueprint(vehicles[0], pipelines)
-    return rrb.Blueprint(rrb.Tabs(*[vehicle_tabs(v, pipelines) for v in vehicles], active_tab=0),
-                         auto_views=False, auto_layout=False)
+    return rrb.Blueprint(
+        rrb.Tabs(*[vehicle_tabs(v, pipelines) for v in vehicles], active_tab=0),
+        auto_views=False,
+        auto_layout=False,
+    )
 
 
 def blueprint_factory(pipelines: Mapping[str, str]) -> Callable[[Sequence[str]], rrb.Blueprint]:

@@ -67,8 +67,12 @@ def read_series(path: str | Path) -> tuple[dict[str, Any], dict[str, Series]]:
     if not recordings:
         raise InspectError(f"{p}: the file holds no recording")
     store = recordings[0]
-    info = {"recording_id": store.recording_id, "application_id": store.application_id,
-            "blueprints": len(blueprints), "recordings": len(recordings)}
+    info = {
+        "recording_id": store.recording_id,
+        "application_id": store.application_id,
+        "blueprints": len(blueprints),
+        "recordings": len(recordings),
+    }
 
     t_parts: dict[str, list[np.ndarray]] = defaultdict(list)
     v_parts: dict[str, list[Any]] = defaultdict(list)
@@ -173,8 +177,9 @@ def _pipeline_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any]
     return res
 
 
-def _stanford_counts(err: Series | None, pl: Series | None, al: Series | None,
-                     alarm: Series | None) -> dict[str, int] | None:
+def _stanford_counts(
+    err: Series | None, pl: Series | None, al: Series | None, alarm: Series | None
+) -> dict[str, int] | None:
     if err is None or pl is None or len(err) == 0:
         return None
     e = np.abs(np.asarray(err.values))
@@ -183,8 +188,9 @@ def _stanford_counts(err: Series | None, pl: Series | None, al: Series | None,
     for ei, pli, ali, ai in zip(e, pl_v, al_v, alarm_v, strict=True):
         if not math.isfinite(pli):
             continue
-        region = paths.stanford_region(ei, pli, ali if math.isfinite(ali) else None,
-                                       bool(ai > 0.5) if math.isfinite(ai) else False)
+        region = paths.stanford_region(
+            ei, pli, ali if math.isfinite(ali) else None, bool(ai > 0.5) if math.isfinite(ai) else False
+        )
         counts[region] += 1
     counts["total"] = sum(counts.values())
     return counts
@@ -200,8 +206,12 @@ def _integrity_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any
     vpl, alarm, avail, det = s("vpl_m"), s("alarm"), s("available"), s("detected")
     herr, verr = s("h_error_m"), s("v_error_m")
     hpl_v = np.asarray(hpl.values)
-    res: dict[str, Any] = {"vehicle": v, "epochs": len(hpl),
-                           "hpl_median_m": _f(np.median(hpl_v)), "hpl_max_m": _f(np.max(hpl_v))}
+    res: dict[str, Any] = {
+        "vehicle": v,
+        "epochs": len(hpl),
+        "hpl_median_m": _f(np.median(hpl_v)),
+        "hpl_max_m": _f(np.max(hpl_v)),
+    }
     if vpl is not None and len(vpl):
         res["vpl_median_m"], res["vpl_max_m"] = _f(np.median(vpl.values)), _f(np.max(vpl.values))
     for leaf in ("hal_m", "val_m"):
@@ -222,7 +232,7 @@ def _integrity_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any
     res["alarm_events"] = sum(1 for x in texts if x.startswith("alarm"))
     excl = [x for x in texts if x.startswith("exclusion: ")]
     res["exclusion_events"] = len(excl)
-    res["excluded_sats"] = sorted({sat for x in excl for sat in x[len("exclusion: "):].split(",") if sat})
+    res["excluded_sats"] = sorted({sat for x in excl for sat in x[len("exclusion: ") :].split(",") if sat})
     if herr is not None and len(herr):
         e = np.abs(np.asarray(herr.values))
         pl_at, alarm_at = _align(herr, hpl), _align(herr, alarm)
@@ -243,7 +253,7 @@ def _faults_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any] |
     for ent, s in data.items():
         if not ent.startswith(root):
             continue
-        rest = ent[len(root):].split("/")
+        rest = ent[len(root) :].split("/")
         if len(rest) == 2 and rest[1] == "subsystem_isolated":
             sub_iso[rest[0]] = sum(1 for x in s.values if x == "isolated")
         elif len(rest) == 3 and rest[2] == "flagged":
@@ -259,15 +269,19 @@ def _faults_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any] |
     sharing: dict[str, dict[str, float | None]] = defaultdict(dict)
     for ent, s in data.items():
         if ent.startswith(sharing_root) and len(s):
-            local, _, state = ent[len(sharing_root):].partition("/")
+            local, _, state = ent[len(sharing_root) :].partition("/")
             sharing[local][state] = _f(s.values[-1])
     if not obs and not sub_iso and not sharing:
         return None
-    return {"vehicle": v, "observations": dict(sorted(obs.items())),
-            "flagged": {k: o["flagged"] for k, o in sorted(obs.items())},
-            "subsystem_isolated_epochs": dict(sorted(sub_iso.items())),
-            "sharing_last": {k: dict(sorted(d.items(), key=lambda kv: (len(kv[0]), kv[0])))
-                             for k, d in sorted(sharing.items())}}
+    return {
+        "vehicle": v,
+        "observations": dict(sorted(obs.items())),
+        "flagged": {k: o["flagged"] for k, o in sorted(obs.items())},
+        "subsystem_isolated_epochs": dict(sorted(sub_iso.items())),
+        "sharing_last": {
+            k: dict(sorted(d.items(), key=lambda kv: (len(kv[0]), kv[0]))) for k, d in sorted(sharing.items())
+        },
+    }
 
 
 def _health_summary(v: str, data: dict[str, Series]) -> dict[str, Any] | None:
@@ -302,7 +316,10 @@ def summarize(info: dict[str, Any], data: dict[str, Series], file: str) -> dict[
         "t_end": t_max / 1e9 if vehicles else None,
         "duration_s": (t_max - t_min) / 1e9 if vehicles else 0.0,
         "vehicles": vehicles,
-        "pipelines": {}, "integrity": {}, "faults": {}, "health": {},
+        "pipelines": {},
+        "integrity": {},
+        "faults": {},
+        "health": {},
     }
     for v in vehicles:
         for p in sorted(layout[v]):
@@ -332,55 +349,70 @@ def _fmt(x: float | None, spec: str = ".4g") -> str:
 
 
 def render_text(s: dict[str, Any]) -> str:
-    lines = [f"file: {s['file']}",
-             f"recording: {s['recording_id']} (application {s['application_id']}), "
-             f"blueprint embedded: {'yes' if s['has_blueprint'] else 'no'}"]
+    lines = [
+        f"file: {s['file']}",
+        f"recording: {s['recording_id']} (application {s['application_id']}), "
+        f"blueprint embedded: {'yes' if s['has_blueprint'] else 'no'}",
+    ]
     if s["t_start"] is None:
         lines.append("no data on the sensor_time timeline")
         return "\n".join(lines)
     lines.append(f"sensor time: {s['t_start']:.3f} .. {s['t_end']:.3f} s  (duration {s['duration_s']:.3f} s)")
     lines.append(f"vehicles: {', '.join(s['vehicles'])}")
     for key, p in s["pipelines"].items():
-        lines.append(f"pipeline {key}: {p['solutions']} solutions, final status {p['final_status']}, "
-                     f"{p['error_epochs']} epochs with errors vs truth")
+        lines.append(
+            f"pipeline {key}: {p['solutions']} solutions, final status {p['final_status']}, "
+            f"{p['error_epochs']} epochs with errors vs truth"
+        )
         if p["rms"]:
             lines.append(f"    {'error':<14}{'RMS':>12}{'max':>12}{'mean':>12}{'>3σ':>9}")
             for name in (*paths.ERROR_NAMES, "horizontal_m"):
                 if name in p["rms"]:
                     out = p["outside_3sigma"].get(name)
-                    lines.append(f"    {name:<14}{_fmt(p['rms'][name]):>12}{_fmt(p['max'][name]):>12}"
-                                 f"{_fmt(p['mean'].get(name)):>12}"
-                                 f"{'-' if out is None else format(100 * out, '.1f') + '%':>9}")
+                    lines.append(
+                        f"    {name:<14}{_fmt(p['rms'][name]):>12}{_fmt(p['max'][name]):>12}"
+                        f"{_fmt(p['mean'].get(name)):>12}"
+                        f"{'-' if out is None else format(100 * out, '.1f') + '%':>9}"
+                    )
     for key, f in s["faults"].items():
         lines.append(f"faults {key}:")
         for label, o in f["observations"].items():
-            lines.append(f"    {label:<24} flagged {o['flagged']}/{o['tests']} (isolated {o['isolated']}), "
-                         f"max statistic {_fmt(o['max_statistic'])}")
+            lines.append(
+                f"    {label:<24} flagged {o['flagged']}/{o['tests']} (isolated {o['isolated']}), "
+                f"max statistic {_fmt(o['max_statistic'])}"
+            )
         for sub, n in f["subsystem_isolated_epochs"].items():
             if n:
                 lines.append(f"    subsystem {sub} isolated in {n} epochs")
     for key, i in s["integrity"].items():
-        lines.append(f"integrity {key}: {i['epochs']} epochs, HPL median {_fmt(i['hpl_median_m'])} m "
-                     f"max {_fmt(i['hpl_max_m'])} m (HAL {_fmt(i['hal_m'])} m), VPL median "
-                     f"{_fmt(i.get('vpl_median_m'))} m max {_fmt(i.get('vpl_max_m'))} m "
-                     f"(VAL {_fmt(i['val_m'])} m)")
-        lines.append(f"    alarms {i['alarm_epochs']} epochs ({i['alarm_events']} events), detections "
-                     f"{i['detected_epochs']} epochs ({i['detection_events']} events), exclusions "
-                     f"{i['exclusion_events']} {i['excluded_sats']}, unavailable {i['unavailable_epochs']} "
-                     f"epochs, HMI epochs (error > HPL, no alarm) {_fmt(i['hmi_epochs'], 'd')}")
+        lines.append(
+            f"integrity {key}: {i['epochs']} epochs, HPL median {_fmt(i['hpl_median_m'])} m "
+            f"max {_fmt(i['hpl_max_m'])} m (HAL {_fmt(i['hal_m'])} m), VPL median "
+            f"{_fmt(i.get('vpl_median_m'))} m max {_fmt(i.get('vpl_max_m'))} m "
+            f"(VAL {_fmt(i['val_m'])} m)"
+        )
+        lines.append(
+            f"    alarms {i['alarm_epochs']} epochs ({i['alarm_events']} events), detections "
+            f"{i['detected_epochs']} epochs ({i['detection_events']} events), exclusions "
+            f"{i['exclusion_events']} {i['excluded_sats']}, unavailable {i['unavailable_epochs']} "
+            f"epochs, HMI epochs (error > HPL, no alarm) {_fmt(i['hmi_epochs'], 'd')}"
+        )
         for axis in ("h", "v"):
             st = i[f"stanford_{axis}"]
             if st:
-                lines.append(f"    Stanford ({'horizontal' if axis == 'h' else 'vertical'}): " +
-                             ", ".join(f"{k} {v}" for k, v in st.items()))
+                lines.append(
+                    f"    Stanford ({'horizontal' if axis == 'h' else 'vertical'}): "
+                    + ", ".join(f"{k} {v}" for k, v in st.items())
+                )
     for v, h in s["health"].items():
         lines.append(f"health {v} (last): " + ", ".join(f"{k} {_fmt(x, 'g')}" for k, x in h.items()))
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fednav-inspect",
-                                 description="Summarise a fednav Rerun recording (.rrd) without a viewer")
+    ap = argparse.ArgumentParser(
+        prog="fednav-inspect", description="Summarise a fednav Rerun recording (.rrd) without a viewer"
+    )
     ap.add_argument("file", type=Path, help="recording to read")
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     args = ap.parse_args(argv)

@@ -56,7 +56,7 @@ def guess_families(vehicle: str, pipelines: list[str], entity_paths: list[str]) 
     out = {}
     for p in pipelines:
         root = paths.pipeline_root(vehicle, p) + "/"
-        subtrees = {e[len(root):].split("/", 1)[0] for e in entity_paths if e.startswith(root)}
+        subtrees = {e[len(root) :].split("/", 1)[0] for e in entity_paths if e.startswith(root)}
         if "integrity" in subtrees:
             out[p] = "integrity"
         elif "sharing" in subtrees:
@@ -97,14 +97,19 @@ def _parse(entity: str):
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fednav-view",
-                                 description="Open a fednav recording in the Rerun viewer")
+    ap = argparse.ArgumentParser(
+        prog="fednav-view", description="Open a fednav recording in the Rerun viewer"
+    )
     ap.add_argument("file", type=Path, help="recording (.rrd)")
     bp = ap.add_mutually_exclusive_group()
-    bp.add_argument("--blueprint-from-file", action="store_true",
-                    help="use the blueprint embedded in the recording (default)")
-    bp.add_argument("--rebuild-blueprint", action="store_true",
-                    help="rebuild the blueprint from the recorded entities")
+    bp.add_argument(
+        "--blueprint-from-file",
+        action="store_true",
+        help="use the blueprint embedded in the recording (default)",
+    )
+    bp.add_argument(
+        "--rebuild-blueprint", action="store_true", help="rebuild the blueprint from the recorded entities"
+    )
     ap.add_argument("--web", action="store_true", help="serve the web viewer (no display needed)")
     ap.add_argument("--print-command", action="store_true", help="print the viewer command and exit")
     args = ap.parse_args(argv)
@@ -124,8 +129,11 @@ def main(argv: list[str] | None = None) -> int:
 
     exe = rerun_executable()
     if exe is None:
-        print("fednav-view: error: the 'rerun' command (rerun-sdk 0.41) is not installed in this "
-              "environment; install the project (make test / pip install -e .)", file=sys.stderr)
+        print(
+            "fednav-view: error: the 'rerun' command (rerun-sdk 0.41) is not installed in this "
+            "environment; install the project (make test / pip install -e .)",
+            file=sys.stderr,
+        )
         return EXIT_NO_VIEWER
 
     with tempfile.TemporaryDirectory(prefix="fednav-view-") as tmp:
@@ -144,12 +152,14 @@ def main(argv: list[str] | None = None) -> int:
             print(shlex.join(cmd))
             return 0
         if not args.web and not has_display():
-            print("fednav-view: error: no display (DISPLAY / WAYLAND_DISPLAY unset), the native viewer "
-                  "cannot open a window.\n"
-                  f"  on a machine with a display run:   {shlex.join([Path(exe).name, str(file)])}\n"
-                  f"  or serve the web viewer from here: fednav-view --web {shlex.quote(str(file))}\n"
-                  f"  or print a text summary:           fednav-inspect {shlex.quote(str(file))}",
-                  file=sys.stderr)
+            print(
+                "fednav-view: error: no display (DISPLAY / WAYLAND_DISPLAY unset), the native viewer "
+                "cannot open a window.\n"
+                f"  on a machine with a display run:   {shlex.join([Path(exe).name, str(file)])}\n"
+                f"  or serve the web viewer from here: fednav-view --web {shlex.quote(str(file))}\n"
+                f"  or print a text summary:           fednav-inspect {shlex.quote(str(file))}",
+                file=sys.stderr,
+            )
             return EXIT_NO_VIEWER
         try:
             rc = subprocess.run(cmd, check=False).returncode
@@ -159,8 +169,11 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             return 130
         if rc != 0:
-            print(f"fednav-view: the viewer exited with code {rc} ({shlex.join(cmd)}); without a GPU or "
-                  "display try --web, or fednav-inspect for a text summary", file=sys.stderr)
+            print(
+                f"fednav-view: the viewer exited with code {rc} ({shlex.join(cmd)}); without a GPU or "
+                "display try --web, or fednav-inspect for a text summary",
+                file=sys.stderr,
+            )
         return rc
 
 
