@@ -130,6 +130,11 @@ class TightlyCoupledConfig(Model):
     phase: Literal["en_route", "terminal", "npa", "lpv", "lpv200"] = "npa"
     p_fa: float = Field(1e-4, gt=0, lt=0.5, description="Total false-alarm probability per epoch")
     p_md: float = Field(1e-3, gt=0, lt=0.5, description="Missed-detection probability")
+    horizontal_threshold: Literal["gaussian", "chi2"] = Field(
+        "gaussian",
+        description="Horizontal separation multiplier: 'gaussian' K = Q^-1(P_FA/2N) (seed 001 eq 29);"
+        " 'chi2' K = sqrt(-2 ln(P_FA/N)), which bounds each 2-D test's false alarms by its share",
+    )
     exclusion: bool = True
     readmit_after_s: float = Field(
         60.0, gt=0, description="Healthy time before an excluded satellite returns"

@@ -21,6 +21,7 @@ from service.estimation.mhss import (
     cross_update,
     horizontal_false_alarm_probability,
     k_fa,
+    k_fa_horizontal,
     k_md,
     lambda_max_2x2,
     q_inv,
@@ -345,6 +346,35 @@ def test_false_alarm_rate_matches_p_fa(matched_mc):
     assert within(fired_v.sum(), p_fa, RUNS)  # sum of the N per-test counts: expectation P_FA
     any_v = fired_v.any(axis=1).mean()
     assert any_v <= p_fa + 4.5 * math.sqrt(p_fa / RUNS)  # union bound
+
+
+def test_chi2_horizontal_threshold_keeps_every_test_within_its_share(matched_mc):
+    """horizontal_threshold = "chi2": K = sqrt(-2 ln(P_FA/N)) bounds the exact false-alarm
+    probability of each 2-D test by P_FA/N for any separation ellipse (equality for a round one),
+    where the Gaussian K can exceed it (up to exp(-K^2/2)). Exact probabilities by quadrature on
+    the Monte Carlo's dP and on synthetic round/flat ellipses, and the MC counts (4.5 sigma)."""
+    bank, X, _, _, _ = matched_mc
+    p_fa, N = 0.05, bank.N
+    k2 = k_fa_horizontal(p_fa, N, "chi2")
+    assert k2 == pytest.approx(math.sqrt(-2.0 * math.log(p_fa / N)))
+    assert k_fa_horizontal(p_fa, N, "gaussian") == k_fa(p_fa, N)
+    with pytest.raises(ValueError):
+        k_fa_horizontal(p_fa, N, "nope")
+    share = p_fa / N
+    for ratio in (1.0, 0.5, 0.1, 1e-3):  # eigenvalue ratio of the separation ellipse
+        dP = np.diag([1.0, ratio])
+        assert horizontal_false_alarm_probability(dP, k2) <= share * 1.001
+    assert horizontal_false_alarm_probability(np.eye(2), k2) == pytest.approx(share, rel=1e-3)
+    assert horizontal_false_alarm_probability(np.eye(2), k_fa(p_fa, N)) > 2.0 * share  # the defect
+    t = bank.main_tests(k_fa(p_fa, N), k_md(1e-3), k2)
+    np.testing.assert_allclose(t.T_v, bank.main_tests(k_fa(p_fa, N), k_md(1e-3)).T_v)  # vertical unchanged
+    d_main, dP_main, _, _ = separations(bank, X)
+    fired_h = np.linalg.norm(d_main[:, :, :2], axis=2) > t.T_h[None]  # thresholds use covariances only
+    for j in range(N):
+        p_h = horizontal_false_alarm_probability(dP_main[j][:2, :2], k2)
+        assert p_h <= share * 1.001
+        n = fired_h[:, j].sum()
+        assert abs(n - RUNS * p_h) < 4.5 * math.sqrt(RUNS * p_h * (1 - p_h)), (j, n, RUNS * p_h)
 
 
 def test_hpl_and_vpl_bound_the_true_error_fault_free(matched_mc):

@@ -92,6 +92,23 @@ def k_fa(p_fa: float, n_tests: int) -> float:
     return q_inv(p_fa / (2.0 * max(n_tests, 1)))
 
 
+def k_fa_horizontal(p_fa: float, n_tests: int, mode: str = "gaussian") -> float:
+    """Multiplier of each horizontal separation test, T = K sqrt(lambda_max(dP_h)).
+
+    "gaussian": K_fa = Q^-1(P_FA / (2 N)) as seed 001 eq 29 (in the standard form). On the 2-D
+        statistic |dx_h| it gives a per-test false-alarm probability between P_FA/N (a flat
+        separation ellipse) and exp(-K^2/2), up to ~6x P_FA/N for a round one.
+    "chi2": K = sqrt(-2 ln(P_FA / N)), the chi-square(2) quantile: since |d|^2 <= lambda_max d' dP^-1 d,
+        P(|d| > K sqrt(lambda_max)) <= P(chi2_2 > K^2) = P_FA / N for ANY ellipse, so the budget
+        holds exactly for round ellipses and conservatively otherwise (thresholds ~7-9 % larger).
+    """
+    if mode == "gaussian":
+        return k_fa(p_fa, n_tests)
+    if mode == "chi2":
+        return math.sqrt(-2.0 * math.log(p_fa / max(n_tests, 1)))
+    raise ValueError(f"unknown horizontal threshold mode {mode!r}")
+
+
 def k_md(p_md: float) -> float:
     """K_md = Q^-1(P_MD) (seed 001 eq 31)."""
     return q_inv(p_md)
@@ -227,18 +244,22 @@ def solution_separation(
     kmd: float,
     h_idx: Sequence[int] = H_IDX,
     v_idx: int = V_IDX,
+    kfa_h: float | None = None,
 ) -> SeparationTests:
     """Tests of a reference filter against N children (seed 001 eq 27-32).
 
     x_ref (n,), P_ref (n, n); x_sub (N, n), P_sub (N, n, n); P_cross (N, n, n) = Cov(e_ref, e_sub).
+    ``kfa`` multiplies the vertical thresholds, ``kfa_h`` (default ``kfa``) the horizontal ones
+    (``k_fa_horizontal``).
     """
+    kh = kfa if kfa_h is None else kfa_h
     h = np.asarray(h_idx)
     dx = x_ref[None, :] - x_sub
     dP = P_ref[None] - P_cross - np.swapaxes(P_cross, 1, 2) + P_sub  # eq 27
     dPh = dP[:, h[:, None], h[None, :]]
     Psh = P_sub[:, h[:, None], h[None, :]]
     d_h = np.linalg.norm(dx[:, h], axis=1)  # eq 28
-    T_h = kfa * np.sqrt(np.maximum(lambda_max_2x2(dPh), 0.0))  # eq 29
+    T_h = kh * np.sqrt(np.maximum(lambda_max_2x2(dPh), 0.0))  # eq 29
     a_h = kmd * np.sqrt(np.maximum(lambda_max_2x2(Psh), 0.0))  # eq 31
     d_v = np.abs(dx[:, v_idx])
     T_v = kfa * np.sqrt(np.maximum(dP[:, v_idx, v_idx], 0.0))
@@ -480,12 +501,21 @@ class MhssBank:
         self.x -= np.asarray(dx, dtype=float)[None, :]
 
     # --- tests ----------------------------------------------------------------------------------------
-    def main_tests(self, kfa: float, kmd: float) -> SeparationTests:
+    def main_tests(self, kfa: float, kmd: float, kfa_h: float | None = None) -> SeparationTests:
         """Main filter against every sub-filter (detection and protection levels)."""
         if self.depth < 1 or self.N == 0:
             none = np.zeros((0, self.n, self.n))
             return solution_separation(
-                self.x[0], self.P[0], np.zeros((0, self.n)), none, none, kfa, kmd, self.h_idx, self.v_idx
+                self.x[0],
+                self.P[0],
+                np.zeros((0, self.n)),
+                none,
+                none,
+                kfa,
+                kmd,
+                self.h_idx,
+                self.v_idx,
+                kfa_h,
             )
         subs = 1 + np.arange(self.N)
         return solution_separation(
@@ -498,9 +528,10 @@ class MhssBank:
             kmd,
             self.h_idx,
             self.v_idx,
+            kfa_h,
         )
 
-    def sub_tests(self, r: int, kfa: float, kmd: float) -> SeparationTests:
+    def sub_tests(self, r: int, kfa: float, kmd: float, kfa_h: float | None = None) -> SeparationTests:
         """Sub-filter r against its sub-sub filters (r, m), m != r (in satellite order, skipping r)."""
         if self.depth < 2:
             raise ValueError("sub-sub filters are off (depth < 2)")
@@ -516,6 +547,7 @@ class MhssBank:
             kmd,
             self.h_idx,
             self.v_idx,
+            kfa_h,
         )
 
     def find_exclusion(
@@ -527,6 +559,7 @@ class MhssBank:
         n_families: int = 1,
         extra_flagged: np.ndarray | None = None,
         extra_score: np.ndarray | None = None,
+        horizontal_threshold: str = "gaussian",
     ) -> int | None:
         """Satellite index to exclude after a detection, or None (module docstring "Exclusion").
 
@@ -537,6 +570,7 @@ class MhssBank:
         if self.depth < 2 or self.N < 2:
             return None
         kfa_sub = k_fa(p_fa, (self.N - 1) * n_families)
+        kfa_sub_h = k_fa_horizontal(p_fa, (self.N - 1) * n_families, horizontal_threshold)
         flagged = tests.flagged(use_vertical)
         score = tests.normalised(use_vertical)
         if extra_flagged is not None:
@@ -545,7 +579,9 @@ class MhssBank:
             score = np.maximum(score, np.asarray(extra_score, dtype=float))
         failed = np.flatnonzero(flagged)
         cands = [
-            int(r) for r in failed if not np.any(self.sub_tests(int(r), kfa_sub, kmd).flagged(use_vertical))
+            int(r)
+            for r in failed
+            if not np.any(self.sub_tests(int(r), kfa_sub, kmd, kfa_sub_h).flagged(use_vertical))
         ]
         if not cands:
             return None
@@ -591,6 +627,7 @@ __all__ = [
     "cross_update",
     "horizontal_false_alarm_probability",
     "k_fa",
+    "k_fa_horizontal",
     "k_md",
     "lambda_max_2x2",
     "q_inv",

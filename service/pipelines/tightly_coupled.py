@@ -56,7 +56,15 @@ from service.estimation import gnss_models as gm
 from service.estimation import integrity
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.kalman import is_positive_definite
-from service.estimation.mhss import BankUpdate, MhssBank, SeparationTests, k_fa, k_md, residual_test
+from service.estimation.mhss import (
+    BankUpdate,
+    MhssBank,
+    SeparationTests,
+    k_fa,
+    k_fa_horizontal,
+    k_md,
+    residual_test,
+)
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, Integrity, SatelliteTest, WireModel
@@ -299,21 +307,24 @@ class TightlyCoupled(Pipeline):
         # MHSS tests, exclusion, protection levels
         p_fa, nf, usev = cfg.p_fa, self.n_families, self.use_vertical
         kfa = k_fa(p_fa, mh.N * nf)
-        tests = mh.main_tests(kfa, self.kmd)
+        hmode = cfg.horizontal_threshold
+        tests = mh.main_tests(kfa, self.kmd, k_fa_horizontal(p_fa, mh.N * nf, hmode))
         res = self.residual.tests(mh.sats, kfa)
         ss_detected = bool(np.any(tests.flagged(usev)))
         res_detected = bool(np.any(res.flagged))
         detected = ss_detected or res_detected
         resolved, excluded_now = not detected, None
         if detected and cfg.exclusion:
-            r = mh.find_exclusion(tests, p_fa, self.kmd, usev, nf, res.flagged, res.normalised)
+            r = mh.find_exclusion(tests, p_fa, self.kmd, usev, nf, res.flagged, res.normalised, hmode)
             if r is not None:
                 excluded_now = mh.sats[r]
                 mh = bank.mhss = mh.rebuild([s for s in mh.sats if s != excluded_now], purge=[excluded_now])
                 bank.feedback(mh.x[0].copy())  # the new main (old sub-filter r) becomes the solution
                 self.book.exclude(excluded_now, msg.t)
                 self.residual.clear()  # past residuals were taken against filters that used it
-                tests = mh.main_tests(k_fa(p_fa, mh.N * nf), self.kmd)
+                tests = mh.main_tests(
+                    k_fa(p_fa, mh.N * nf), self.kmd, k_fa_horizontal(p_fa, mh.N * nf, hmode)
+                )
                 resolved = not bool(np.any(tests.flagged(usev)))
         verdict = integrity.assess(tests.hpl, tests.vpl, cfg.phase, detected, resolved)
         self.last = EpochResult(
