@@ -12,6 +12,7 @@ import pytest
 
 from service.config import SharingName
 from service.estimation import sharing
+from service.estimation.kalman import information_fusion
 from service.estimation.sharing import MIN_SHARE, SharingContext, get_strategy
 
 ALL = sorted(sharing.STRATEGIES)
@@ -227,7 +228,7 @@ def test_vector_reset_loses_off_diagonal_information_by_the_hadamard_factor():
 # --- vector sharing along the eigen-directions of P_g (seed 000 eq 11) ------------------------------
 def _eigen_case(rng, N=2, scales=None):
     P_locals = np.stack([_random_spd(rng, 15, scales) for _ in range(N)])
-    return P_locals, sharing.fuse_covariances(P_locals)
+    return P_locals, information_fusion(np.zeros(P_locals.shape[:2]), P_locals)[1]
 
 
 @pytest.mark.parametrize("N", [2, 3])
@@ -267,7 +268,7 @@ def test_vector_eigen_is_unit_free_and_prefers_the_accurate_local():
     P0 = _random_spd(rng, 15)
     P1 = 100.0 * P0  # local 1 is 100x worse along every direction
     P_locals = np.stack([P0, P1])
-    P_g = sharing.fuse_covariances(P_locals)
+    P_g = information_fusion(np.zeros(P_locals.shape[:2]), P_locals)[1]
     strat = get_strategy("vector_eigen")
     b = strat.plan(P_locals, P_g).shares
     np.testing.assert_allclose(b[0], 100.0 / 101.0, rtol=1e-9)
@@ -280,7 +281,7 @@ def test_vector_eigen_floor_applies_to_directions_on_flagged_states():
     """Eq (22) per direction: with P_g diagonal the directions are the states, so a state local 0
     saw only through flagged rows gets exactly the floor share there, the others are untouched."""
     P_locals = np.stack([np.diag(np.linspace(1.0, 2.0, 15)), np.diag(np.linspace(3.0, 1.0, 15))])
-    P_g = sharing.fuse_covariances(P_locals)
+    P_g = information_fusion(np.zeros(P_locals.shape[:2]), P_locals)[1]
     fl = np.zeros((2, 15), dtype=bool)
     fl[0, 3:6] = True
     strat = get_strategy("vector_eigen")

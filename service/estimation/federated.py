@@ -51,6 +51,7 @@ from scipy.linalg import solve_triangular
 
 from service.estimation import kalman
 from service.estimation.fault_tests import FaultDecision, FaultTest
+from service.estimation.kalman import information_fusion
 from service.estimation.sharing import SharingContext, SharingStrategy
 
 ResetMode = Literal["fusion_reset", "no_reset"]
@@ -119,43 +120,6 @@ class LocalUpdate:
     @property
     def rows_used(self) -> int:
         return int(np.count_nonzero(self.decision.used))
-
-
-def _chol(A: np.ndarray, what: str) -> np.ndarray:
-    try:
-        return np.linalg.cholesky(A)
-    except np.linalg.LinAlgError as exc:
-        raise kalman.NotPositiveDefinite(f"{what} is not positive definite") from exc
-
-
-def information_fusion(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """P_g = (sum_i P_i^-1)^-1, x_g = P_g sum_i P_i^-1 x_i for x (B, c), P (B, c, c).
-
-    Computed without inverting any P_i, by sequential pairwise fusion in covariance form
-    (information adds, so the order does not matter):
-        (P_a^-1 + P_b^-1)^-1 = P_a (P_a + P_b)^-1 P_b,
-        x = x_a + P_a (P_a + P_b)^-1 (x_b - x_a),
-    with one Cholesky factorisation of P_a + P_b per pair, on D^-1 P D^-1 with
-    D = diag(sqrt(mean_i P_i,jj)) (exact: fusion commutes with a common change of variables;
-    raw INS covariances have condition numbers up to ~1e17). B - 1 small solves: this runs at
-    every solution output, so it is kept cheap (~30 us per pair).
-    """
-    B, c = x.shape
-    diag = np.diagonal(P, axis1=1, axis2=2)
-    if not (np.isfinite(P).all() and np.isfinite(x).all() and (diag > 0.0).all()):
-        raise kalman.NotPositiveDefinite("local covariances to fuse are not finite / positive")
-    d = np.sqrt(np.mean(diag, axis=0))  # (c,) scaling
-    dd = np.outer(d, d)
-    Ps = P / dd
-    xs = x / d
-    Pg, xg = Ps[0], xs[0]
-    for i in range(1, B):
-        L = _chol(Pg + Ps[i], "sum of local covariances")  # P_a + P_b = L L'
-        rhs = np.concatenate([Ps[i], (xs[i] - xg)[:, None]], axis=1)
-        M = np.linalg.solve(L.T, np.linalg.solve(L, rhs))  # (P_a + P_b)^-1 [P_b, x_b - x_a]
-        xg = xg + Pg @ M[:, c]  # x_a + P_a (P_a + P_b)^-1 (x_b - x_a)
-        Pg = kalman.symmetrise(Pg @ M[:, :c])  # P_a (P_a + P_b)^-1 P_b
-    return xg * d, Pg * dd
 
 
 class FederatedCore:
@@ -279,7 +243,7 @@ class FederatedCore:
             P_owner = P_new[owner]
             if not np.isfinite(P_owner).all():
                 raise kalman.NotPositiveDefinite("updated local covariance is not finite")
-            _chol(P_owner, "updated local covariance")  # PD check (cheaper than eigenvalues)
+            kalman.cholesky(P_owner, "updated local covariance")  # PD check (cheaper than eigenvalues)
             if N == self.B:
                 b.x, b.P = x_new, P_new
             else:
@@ -374,7 +338,7 @@ class FederatedCore:
         if P.shape[1] > c:  # private states: keep p | c, follow the new common marginal
             Pcc_old = Pm[:, :c, :c]
             Pcp = Pm[:, :c, c:]
-            Lc = _chol(Pcc_old, "local common covariance")
+            Lc = kalman.cholesky(Pcc_old, "local common covariance")
             At = solve_triangular(np.swapaxes(Lc, 1, 2), solve_triangular(Lc, Pcp, lower=True), lower=False)
             A = np.swapaxes(At, 1, 2)  # A = P_pc P_cc^-1   (members, p, c)
             xm[:, c:] += np.einsum("bpc,bc->bp", A, x_g[None] - xm[:, :c])

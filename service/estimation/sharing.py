@@ -61,6 +61,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from service.estimation.kalman import information_fusion
+
 # Smallest share any strategy may hand out (numerical guard, not a modelling choice): the reset
 # divides by the share, so it must never be 0.
 MIN_SHARE = 1e-9
@@ -356,15 +358,6 @@ class VectorConservative(SharingStrategy):
         return vector_shares(P, ctx).mean(axis=1)
 
 
-def fuse_covariances(P: np.ndarray) -> np.ndarray:
-    """(sum_i P_i^-1)^-1 of (N, c, c) covariances, after a diagonal scaling (INS covariances are
-    badly conditioned in raw units). For strategies that need P_g without the core's fusion."""
-    d = np.sqrt(np.mean(_diag(P), axis=0))
-    Ps = P / np.outer(d, d)
-    Y = np.linalg.inv(Ps).sum(axis=0)
-    return np.linalg.inv(Y) * np.outer(d, d)
-
-
 def eigen_directions(P_g: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(scale, U, lam): P_g = diag(scale) U diag(lam) U' diag(scale), the eigendecomposition of
     seed 000 eq (11) taken on the correlation matrix of P_g (unit-free: raw INS covariances mix
@@ -404,7 +397,7 @@ class VectorEigen(SharingStrategy):
     scalar = False
 
     def _weights(self, P, ctx):  # per-state view (display, ``shares``): the diagonal of each G_i
-        return self.plan(P, fuse_covariances(P), ctx).state_shares()
+        return self.plan(P, information_fusion(np.zeros(P.shape[:2]), P)[1], ctx).state_shares()
 
     def plan(self, P_locals, P_fused, context=None):
         P = np.asarray(P_locals, dtype=float)
@@ -472,7 +465,6 @@ __all__ = [
     "SharingContext",
     "ResetPlan",
     "eigen_directions",
-    "fuse_covariances",
     "STRATEGIES",
     "get_strategy",
     "vector_shares",
