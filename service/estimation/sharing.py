@@ -388,7 +388,7 @@ class VectorEigen(SharingStrategy):
     again lose information, so the process noise is split with one scalar per local,
     Q_i = Q / q_i, q_i = mean_j beta_{j,i}, which conserves it (sum_i Q_i^-1 = Q^-1): the fused
     predicted information can then only be smaller than the centralised filter's (the parallel
-    sum is superadditive), i.e. the filter is conservative and never overconfident.
+    sum is superadditive), i.e. in the linear model the filter is conservative, never overconfident.
     Eq (22) floor: a direction whose weight sum_k U_kj^2 lies mostly (> 1/2) on states local i
     saw only through flagged rows gets the floor share in local i.
     """
