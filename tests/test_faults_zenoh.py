@@ -9,22 +9,15 @@ fednav decoding) collects the Faults messages; the recording is read back with R
 
 from __future__ import annotations
 
-import json
 import re
-import signal
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 
-from simulators.processes import free_port, start_service, start_sim, wait_idle
-
-from .plain_zenoh import client as zenoh_client
+from .plain_zenoh import run_and_collect
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,31 +65,8 @@ def faults_run(tmp_path_factory):
     sc = load_scenario(scenario)  # the variant is a valid scenario
     assert [(f.start_s, f.duration_s) for f in sc.faults] == [(BOTH[0], 5.0), (VEL[0], 10.0)]
     assert [p["name"] for p in sc.service["pipelines"]] == ["fed_vector", "fed_vector_sysiso"]
-    port = free_port()
     rrd = tmp / "faults.rrd"
-    svc = start_service(port, config=scenario, table="service", rrd=rrd)
-    client = zenoh_client(port)
-    got: list[tuple[str, dict]] = []
-    lock = threading.Lock()
-
-    def cb(sample: zenoh.Sample) -> None:
-        with lock:
-            got.append((str(sample.key_expr), json.loads(sample.payload.to_bytes())))
-
-    sub = client.declare_subscriber("fednav/**/faults", cb)
-    try:
-        sim = start_sim(port, scenario, speed=0.0, seed=3)
-        assert sim.wait(timeout=180) == 0, sim.output()
-        assert wait_idle(port, timeout_s=120) is not None, "service did not become idle"
-        time.sleep(0.3)
-    finally:
-        svc.signal(signal.SIGTERM)
-        rc = svc.wait(timeout=60)
-        sub.undeclare()
-        client.close()
-    with lock:
-        items = list(got)
-    return {"items": items, "rc": rc, "out": svc.output(), "rrd": rrd}
+    return run_and_collect(scenario, "fednav/**/faults", seed=3, rrd=rrd) | {"rrd": rrd}
 
 
 def _bds(msgs, pipeline, t0, t1):

@@ -8,19 +8,12 @@ tmp_path; the service runs its [service] table (tightly coupled + MHSS, NPA); a 
 
 from __future__ import annotations
 
-import json
 import re
-import signal
-import threading
-import time
 from pathlib import Path
 
 import pytest
-import zenoh
 
-from simulators.processes import free_port, start_service, start_sim, wait_idle
-
-from .plain_zenoh import client as zenoh_client
+from .plain_zenoh import run_and_collect
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,30 +42,7 @@ def integrity_run(tmp_path_factory):
 
     sc = load_scenario(scenario)  # the variant is a valid scenario
     assert sc.duration_s == DURATION_S and sc.faults[0].channels == ["C03.pseudorange"]
-    port = free_port()
-    svc = start_service(port, config=scenario, table="service")
-    client = zenoh_client(port)
-    got: list[tuple[str, dict]] = []
-    lock = threading.Lock()
-
-    def cb(sample: zenoh.Sample) -> None:
-        with lock:
-            got.append((str(sample.key_expr), json.loads(sample.payload.to_bytes())))
-
-    sub = client.declare_subscriber("fednav/**/integrity", cb)
-    try:
-        sim = start_sim(port, scenario, speed=0.0, seed=1)
-        assert sim.wait(timeout=180) == 0, sim.output()
-        assert wait_idle(port, timeout_s=120) is not None, "service did not become idle"
-        time.sleep(0.3)
-    finally:
-        svc.signal(signal.SIGINT)
-        rc = svc.wait(timeout=60)
-        sub.undeclare()
-        client.close()
-    with lock:
-        items = list(got)
-    return {"items": items, "rc": rc, "out": svc.output()}
+    return run_and_collect(scenario, "fednav/**/integrity", seed=1)
 
 
 def test_integrity_messages_arrive_with_protection_levels_and_satellite_tests(integrity_run):
