@@ -1,4 +1,5 @@
-"""A plain eclipse-zenoh client for the tests (no fednav import: what any other client would do)."""
+"""A plain eclipse-zenoh client for the tests: ``client`` uses no fednav code (what any other client
+would do); ``run_and_collect`` starts the fednav processes around such a client."""
 
 import json
 
