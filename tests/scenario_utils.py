@@ -28,3 +28,24 @@ def shortened(name: str, duration_s: float, **overrides):
     for k, v in overrides.items():
         data[k] = v
     return parse_scenario(data, f"{name} shortened to {duration_s} s")
+
+
+def initial_nav_message(t: float, nav, pos_std_enu_m, vel_std_enu_mps, rpy_std_deg):
+    """The InitialNav wire message for a NavState-like ``nav`` (lat_rad, lon_rad, h_m, vel_enu_mps,
+    rpy_rad) and the given 1-sigma uncertainties."""
+    import math
+
+    from service import earth
+    from service.messages import InitialNav
+
+    return InitialNav(
+        t=t,
+        lat_deg=math.degrees(nav.lat_rad),
+        lon_deg=math.degrees(nav.lon_rad),
+        height_m=nav.h_m,
+        vel_enu_mps=tuple(float(v) for v in nav.vel_enu_mps),
+        rpy_deg=tuple(float(v) for v in earth.rpy_msg_deg(nav.rpy_rad)),
+        pos_std_enu_m=tuple(float(v) for v in pos_std_enu_m),
+        vel_std_enu_mps=tuple(float(v) for v in vel_std_enu_mps),
+        rpy_std_deg=tuple(float(v) for v in rpy_std_deg),
+    )

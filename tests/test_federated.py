@@ -32,6 +32,8 @@ from service.messages import Faults, GnssFix, StarAttitude
 from service.pipelines.base import InitStd, nav_errors, nees
 from service.pipelines.federated import Centralized, Federated
 
+from .scenario_utils import initial_nav_message
+
 SCALAR = [
     "fixed",
     "trace",
@@ -687,7 +689,7 @@ def test_engine_runs_federated_and_centralised_pipelines():
     from the federated pipeline, none from the centralised one without fault handling, solutions
     from both with finite covariances."""
     from service.engine import VehicleEngine
-    from service.messages import ImuSample, InitialNav
+    from service.messages import ImuSample
 
     class Sink:
         def __init__(self):
@@ -709,19 +711,7 @@ def test_engine_runs_federated_and_centralised_pipelines():
     engine = VehicleEngine("v1", cfg, sink)
     rs = np.degrees(std.att_rad)
     engine.handle(
-        "init",
-        "0",
-        InitialNav(
-            t=T0,
-            lat_deg=math.degrees(init.lat_rad),
-            lon_deg=math.degrees(init.lon_rad),
-            height_m=init.h_m,
-            vel_enu_mps=tuple(float(v) for v in init.vel_enu_mps),
-            rpy_deg=tuple(earth.rpy_msg_deg(init.rpy_rad)),
-            pos_std_enu_m=tuple(float(v) for v in std.pos_enu_m),
-            vel_std_enu_mps=tuple(float(v) for v in std.vel_enu_mps),
-            rpy_std_deg=(float(rs[1]), float(rs[0]), float(rs[2])),
-        ),
+        "init", "0", initial_nav_message(T0, init, std.pos_enu_m, std.vel_enu_mps, (rs[1], rs[0], rs[2]))
     )
     for ev in events:
         if ev[0] == "imu":

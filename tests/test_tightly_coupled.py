@@ -16,7 +16,7 @@ from service import earth
 from service.config import ClockModel, ImuModel, TightlyCoupledConfig
 from service.estimation import gnss_models as gm
 from service.ins.mechanisation import NavState
-from service.messages import GnssRaw, ImuSample, InitialNav
+from service.messages import GnssRaw, ImuSample
 from service.pipelines.base import InitStd, nav_errors
 from service.pipelines.tightly_coupled import TightlyCoupled, clock_transition
 from simulators.gnss.orbits import NominalConstellation
@@ -24,6 +24,8 @@ from simulators.gnss.orbits import range_geometry as sim_range_geometry
 from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec
 from simulators.gnss.raw_sensor import clock_transition as sim_clock_transition
 from simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
+
+from .scenario_utils import initial_nav_message
 
 T0 = 1_300_000_000.0
 DUR_S = 60.0
@@ -334,22 +336,7 @@ def test_runs_through_the_engine(scenario):
     cfg = ServiceConfig(pipelines=[TightlyCoupledConfig(name="tc")])
     eng = VehicleEngine("v1", cfg, Sink())
     nav, std = initial_nav(traj)
-    rpy = earth.rpy_msg_deg(nav.rpy_rad)
-    eng.handle(
-        "init",
-        "init",
-        InitialNav(
-            t=T0,
-            lat_deg=math.degrees(nav.lat_rad),
-            lon_deg=math.degrees(nav.lon_rad),
-            height_m=nav.h_m,
-            vel_enu_mps=tuple(float(v) for v in nav.vel_enu_mps),
-            rpy_deg=tuple(float(v) for v in rpy),
-            pos_std_enu_m=(10.0, 10.0, 10.0),
-            vel_std_enu_mps=(0.3, 0.3, 0.3),
-            rpy_std_deg=(0.1, 0.1, 0.3),
-        ),
-    )
+    eng.handle("init", "init", initial_nav_message(T0, nav, (10.0,) * 3, (0.3,) * 3, (0.1, 0.1, 0.3)))
     for k in range(1, 501):
         if k in epochs:
             assert eng.handle("gnss_raw", "gnss0", epochs[k].message)
