@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 
 from service import earth  # noqa: E402
 from service.config import ImuModel, TightlyCoupledConfig  # noqa: E402
-from service.estimation.mhss import MhssBank, cross_update  # noqa: E402
+from service.estimation.integrity.mhss import MhssBank, cross_update  # noqa: E402
 from service.ins.mechanisation import NavState  # noqa: E402
 from service.pipelines.base import InitStd  # noqa: E402
 from service.pipelines.tightly_coupled import TightlyCoupled  # noqa: E402

@@ -278,7 +278,7 @@ def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.nd
     satellite excluded at some epoch. Epochs without truth are counted in ``epochs_without_truth``
     and classified without the error criteria (never hazardous, never HMI).
     """
-    from service.estimation.integrity import limits
+    from service.estimation.integrity.monitor import limits
 
     faults = _raw_faults(scenario)
     rate = scenario.imu.rate_hz
@@ -370,7 +370,7 @@ def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.nd
 
 
 def _tta(runs: list) -> float:
-    from service.estimation.integrity import limits
+    from service.estimation.integrity.monitor import limits
 
     for pairs in runs:
         for m, _ in pairs:

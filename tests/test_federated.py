@@ -23,10 +23,11 @@ from service.config import (
     ServiceConfig,
     SubsystemConfig,
 )
-from service.estimation import fault_tests, kalman
-from service.estimation.fault_tests import make_fault_test
-from service.estimation.federated import FederatedCore, LinearBank, information_fusion
-from service.estimation.sharing import get_strategy
+from service.estimation import kalman
+from service.estimation.federated import fault_tests
+from service.estimation.federated.core import FederatedCore, LinearBank, information_fusion
+from service.estimation.federated.fault_tests import make_fault_test
+from service.estimation.federated.sharing import get_strategy
 from service.ins.mechanisation import NavState
 from service.messages import Faults, GnssFix, StarAttitude
 from service.pipelines.base import InitStd, nav_errors, nees

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from service.estimation import kalman
-from service.estimation.mhss import (
+from service.estimation.integrity.mhss import (
     MhssBank,
     cross_predict,
     cross_update,

@@ -15,8 +15,8 @@ import pytest
 from scipy import stats
 
 from service import keys
-from service.estimation.integrity import ResidualWindows
-from service.estimation.mhss import MhssBank
+from service.estimation.integrity.mhss import MhssBank
+from service.estimation.integrity.monitor import ResidualWindows
 from service.messages import GnssRaw, ImuSample, Truth
 from simulators.evaluate import INTEGRITY_CLASSES, evaluate, format_table
 from simulators.papers import SEED001_TABLE1, reference

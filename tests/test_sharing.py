@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from service.config import SharingName
-from service.estimation import sharing
+from service.estimation.federated import sharing
+from service.estimation.federated.sharing import MIN_SHARE, SharingContext, get_strategy
 from service.estimation.kalman import information_fusion
-from service.estimation.sharing import MIN_SHARE, SharingContext, get_strategy
 
 ALL = sorted(sharing.STRATEGIES)
 

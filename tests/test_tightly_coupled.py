@@ -14,7 +14,7 @@ import pytest
 
 from service import earth
 from service.config import ClockModel, ImuModel, TightlyCoupledConfig
-from service.estimation import gnss_models as gm
+from service.estimation.measurements import gnss_raw as gm
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, ImuSample
 from service.pipelines.base import InitStd, nav_errors

@@ -1,7 +1,7 @@
 """Federated (seed 000/002/004) and centralised INS pipelines on the federated core.
 
 Both own ONE INS and ONE ``InsFilterBank`` around it (all members share the INS linearisation
-point, closed loop) driven by ``service.estimation.federated.FederatedCore``:
+point, closed loop) driven by ``service.estimation.federated.core.FederatedCore``:
 
 * ``Federated``: one local filter per configured subsystem (e.g. INS/BDS on ``gnss_fix``,
   INS/CNS on ``star``), plus a master member when ``master_share`` > 0. Each aiding message
@@ -34,10 +34,10 @@ import numpy as np
 
 from service.config import CentralizedConfig, FederatedConfig, ImuModel
 from service.estimation import measurements
-from service.estimation.fault_tests import FaultTest, make_fault_test
-from service.estimation.federated import FederatedCore
+from service.estimation.federated.core import FederatedCore
+from service.estimation.federated.fault_tests import FaultTest, make_fault_test
+from service.estimation.federated.sharing import get_strategy
 from service.estimation.ins_filter import InsFilterBank
-from service.estimation.sharing import get_strategy
 from service.ins import error_model as em
 from service.ins.mechanisation import Ins, NavState
 from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel

@@ -10,10 +10,10 @@ discretised exactly (Van Loan). The clock's linearisation point ``clock_ref`` (b
 next to the INS; the main filter's clock correction is fed back into it like the INS states, so
 the whole 17-state correction is closed loop. Measurement rows per satellite: pseudorange and
 (``use_range_rate``) range rate, z = predicted - measured, from
-:mod:`service.estimation.gnss_models`. At the first epoch the clock reference is the mean
+:mod:`service.estimation.measurements.gnss_raw`. At the first epoch the clock reference is the mean
 residual of the visible satellites (the clock prior keeps ``ClockModel.init_*_std``).
 
-Integrity (``integrity = true``): the bank is an :class:`~service.estimation.mhss.MhssBank` --
+Integrity (``integrity = true``): the bank is an :class:`~service.estimation.integrity.mhss.MhssBank` --
 main + one sub-filter per satellite (+ sub-sub filters with ``sub_sub_filters``), one batched
 bank sharing the INS; only the main correction is fed back and every member shifts by it. The
 cross-covariances are propagated together with the member covariances in the bank's own time
@@ -21,13 +21,13 @@ update (this class overrides :meth:`InsFilterBank.propagate`). Per epoch:
 
 1. satellites below the elevation mask (seen from the INS) and excluded satellites are not used;
    excluded satellites are tested against the main for re-admission
-   (:class:`~service.estimation.integrity.ExclusionBook`);
+   (:class:`~service.estimation.integrity.monitor.ExclusionBook`);
 2. a change of the used set rebuilds the bank (:meth:`MhssBank.rebuild`: exact for rising and
    setting satellites);
 3. batched update of all members and cross blocks, feedback of the main correction;
 4. main-vs-sub tests (horizontal; + vertical in phases with a VAL) and the satellite residual
    tests (each satellite's pseudorange against the sub-filter that excludes it, over windows of
-   ``RESIDUAL_WINDOWS`` epochs: :class:`~service.estimation.integrity.ResidualWindows`) ->
+   ``RESIDUAL_WINDOWS`` epochs: :class:`~service.estimation.integrity.monitor.ResidualWindows`) ->
    detection; on detection the exclusion search (sub-sub tests; residual-flagged satellites are
    candidates too); an excluded satellite is purged (new main = its sub-filter, whose correction
    is fed back at once) and the tests/PLs are recomputed on the new bank;
@@ -52,11 +52,9 @@ import numpy as np
 import scipy.linalg
 
 from service.config import ClockModel, ImuModel, TightlyCoupledConfig
-from service.estimation import gnss_models as gm
-from service.estimation import integrity
 from service.estimation.ins_filter import InsFilterBank
-from service.estimation.kalman import is_positive_definite
-from service.estimation.mhss import (
+from service.estimation.integrity import monitor as integrity
+from service.estimation.integrity.mhss import (
     BankUpdate,
     MhssBank,
     SeparationTests,
@@ -65,6 +63,8 @@ from service.estimation.mhss import (
     k_md,
     residual_test,
 )
+from service.estimation.kalman import is_positive_definite
+from service.estimation.measurements import gnss_raw as gm
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, Integrity, SatelliteTest, WireModel

@@ -47,9 +47,9 @@ import numpy as np
 
 from service.earth import A_M, GM_M3PS2, OMEGA_IE_RPS
 
-# The ranging model is the receiver's (service.estimation.gnss_models), re-exported here: one copy
+# The ranging model is the receiver's (service.estimation.measurements.gnss_raw), re-exported here: one copy
 # shared by the simulator and the filter, so simulated and predicted pseudoranges agree exactly.
-from service.estimation.gnss_models import (  # noqa: F401
+from service.estimation.measurements.gnss_raw import (  # noqa: F401
     RangeGeometry,
     earth_rotation_matrices,
     range_geometry,

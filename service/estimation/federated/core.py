@@ -50,9 +50,9 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from service.estimation import kalman
-from service.estimation.fault_tests import FaultDecision, FaultTest
+from service.estimation.federated.fault_tests import FaultDecision, FaultTest
+from service.estimation.federated.sharing import SharingContext, SharingStrategy
 from service.estimation.kalman import information_fusion
-from service.estimation.sharing import SharingContext, SharingStrategy
 
 ResetMode = Literal["fusion_reset", "no_reset"]
 
