@@ -70,7 +70,11 @@ class SubsystemConfig(Model):
     """A local filter of a federated pipeline: the sensor kinds it uses."""
 
     name: str = Field(pattern=r"^[A-Za-z0-9_\-/]+$")
-    sensors: list[Literal["gnss_fix", "star", "dvl", "usbl", "gnss_raw"]] = Field(min_length=1)
+    sensors: list[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")]] = Field(
+        min_length=1,
+        description="Sensor kinds of this local (e.g. gnss_fix, star); checked at load against the "
+        "measurement models a federated pipeline implements",
+    )
 
 
 def _default_subsystems() -> list[SubsystemConfig]:
@@ -208,10 +212,20 @@ def _format(err: ValidationError, source: str) -> str:
 
 
 def from_dict(data: dict, source: str = "<dict>") -> ServiceConfig:
+    """Validate a configuration whole: the schema, then what is implemented (every pipeline is
+    built once, so an option no code runs is refused here, naming the field, not at the first
+    message)."""
     try:
-        return ServiceConfig.model_validate(data)
+        cfg = ServiceConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(_format(err, source)) from None
+    from service.pipelines import config_errors  # the pipelines import this module
+
+    errors = config_errors(cfg)
+    if errors:
+        lines = [f"invalid configuration in {source}:"] + [f"  {loc}: {msg}" for loc, msg in errors]
+        raise ConfigError("\n".join(lines))
+    return cfg
 
 
 def load(path: Path | str, table: str | None = None) -> ServiceConfig:

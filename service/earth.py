@@ -194,10 +194,6 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
-def quat_conj(q: np.ndarray) -> np.ndarray:
-    return np.array([q[0], -q[1], -q[2], -q[3]])
-
-
 def rotvec_to_quat(rv: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) -> unit quaternion, series-safe near zero."""
     x, y, z = float(rv[0]), float(rv[1]), float(rv[2])
@@ -250,10 +246,6 @@ def mat_to_quat(m: np.ndarray) -> np.ndarray:
         q = np.array([(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s])
     q = q / np.linalg.norm(q)
     return q if q[0] >= 0 else -q
-
-
-def rotvec_to_mat(rv: np.ndarray) -> np.ndarray:
-    return quat_to_mat(rotvec_to_quat(rv))
 
 
 def wrap_pi(a):

@@ -18,7 +18,7 @@ from service.estimation.measurements import gnss_raw as gm
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, ImuSample
 from service.pipelines.base import InitStd, nav_errors
-from service.pipelines.tightly_coupled import TightlyCoupled, clock_transition
+from service.pipelines.tightly_coupled import TightlyCoupled
 from simulators.gnss.orbits import NominalConstellation
 from simulators.gnss.orbits import range_geometry as sim_range_geometry
 from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec
@@ -58,7 +58,7 @@ def test_range_model_equals_the_simulators():
 def test_clock_transition_equals_the_simulators():
     c = ClockModel(bias_psd_m2ps=0.2, drift_psd_m2ps3=0.03, correlation_time_s=300.0)
     for T in (0.01, 0.1, 1.0):
-        a = clock_transition(T, c)
+        a = gm.clock_transition(T, c.correlation_time_s, c.bias_psd_m2ps, c.drift_psd_m2ps3)
         b = sim_clock_transition(T, c.correlation_time_s, c.bias_psd_m2ps, c.drift_psd_m2ps3)
         np.testing.assert_allclose(a[0], b[0], rtol=1e-14, atol=1e-16)
         np.testing.assert_allclose(a[1], b[1], rtol=1e-12, atol=1e-18)
@@ -208,8 +208,8 @@ def test_fault_free_accuracy_clock_and_bank_shape(fault_free, scenario):
     assert np.sqrt(np.mean(late[:, :3] ** 2, axis=0)).max() < 1.0  # m
     assert np.sqrt(np.mean(late[:, 3:6] ** 2, axis=0)).max() < 0.03  # m/s
     truth = log[-1][4]
-    assert abs(p.bank.clock_ref[0] - truth.rx_clock_bias_m) < 2.0
-    assert abs(p.bank.clock_ref[1] - truth.rx_clock_drift_mps) < 0.05
+    assert abs(p.bank.reference["clock"][0] - truth.rx_clock_bias_m) < 2.0
+    assert abs(p.bank.reference["clock"][1] - truth.rx_clock_drift_mps) < 0.05
     assert p.status == "aided"
 
 

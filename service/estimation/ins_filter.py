@@ -3,7 +3,12 @@
 All members of the bank share the INS as their linearisation point and the same transition
 matrix; each member may have its own process-noise scale (federated sharing: Q_i = Q / beta_i).
 After a correction the INS absorbs the chosen error estimate and every member's state shifts by
-the same amount (x_i <- x_i - dx), which keeps the bank consistent (DESIGN.md "MHSS").
+the same amount (x_i <- x_i - dx), which keeps the bank consistent (docs/DESIGN.md "MHSS").
+
+Private states (declared by measurement models, :class:`~service.estimation.measurements.base.
+PrivateStates`) follow the 15 INS states, block diagonal in the process model. They are closed
+loop too: each block has a linearisation point ``reference[name]`` that propagates with the
+block's transition and absorbs the block's part of every feedback, like the INS.
 """
 
 from __future__ import annotations
@@ -11,6 +16,12 @@ from __future__ import annotations
 import numpy as np
 
 from service.estimation import kalman
+from service.estimation.measurements.base import (
+    ModelContext,
+    PrivateStates,
+    private_layout,
+    private_transition,
+)
 from service.ins import error_model as em
 from service.ins.mechanisation import Ins, NavState
 
@@ -23,13 +34,12 @@ class InsFilterBank:
     nav : NavState
         Initial navigation state.
     P0 : (n, n) or (B, n, n)
-        Initial covariance (n = 15 + n_private).
+        Initial covariance (n = 15 + private states).
     noise : ImuNoise
         Process model of the IMU.
     bank_size : int
         Number of filters B.
-    Fq_private : callable(T) -> (Phi_pp, Qd_pp), optional
-        Discrete model of the private states (block diagonal with the INS states).
+    private : PrivateStates blocks after the 15 INS states (their columns: ``columns``).
     """
 
     def __init__(
@@ -39,17 +49,22 @@ class InsFilterBank:
         noise: em.ImuNoise,
         bank_size: int = 1,
         major_interval_s: float = 0.1,
-        private_model=None,
+        private: tuple[PrivateStates, ...] = (),
     ):
         self.ins = Ins(nav, major_interval_s)
         self.noise = noise
         P0 = np.asarray(P0, dtype=float)
         self.n = P0.shape[-1]
+        self.private = tuple(private)
+        self.columns = private_layout(self.private)
+        if self.n != em.N_STATES + sum(b.size for b in self.private):
+            raise ValueError(f"P0 is {self.n} states; the INS and private blocks need a different size")
+        self.private_model = private_transition(self.private)
+        self.reference = {b.name: np.zeros(b.size) for b in self.private}
         self.B = bank_size
         self.P = np.broadcast_to(P0, (bank_size, self.n, self.n)).copy()
         self.x = np.zeros((bank_size, self.n))
         self.q_scale = np.ones((bank_size, self.n))  # per-member, per-state process-noise scale
-        self.private_model = private_model
         self.last_Phi = np.eye(self.n)
 
     # --- time ---------------------------------------------------------------------------------
@@ -83,7 +98,7 @@ class InsFilterBank:
 
     def transition(self, T: float) -> tuple[np.ndarray, np.ndarray]:
         """(Phi, Qd) over T at the current INS state: the 15 INS error states, block-diagonal
-        with the private states' model ``private_model(T)``."""
+        with the private states' model."""
         s = self.ins.state
         c_nb = s.mat_nb
         F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
@@ -99,6 +114,11 @@ class InsFilterBank:
     def propagate(self, T: float) -> None:
         Phi, Qd = self.transition(T)
         self.last_Phi = Phi
+        self.predict_members(Phi, Qd)
+        self._propagate_reference(Phi)
+
+    def predict_members(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
+        """Time update of the members (banks with more to propagate override this)."""
         if np.all(self.q_scale == 1.0):
             Qb = Qd
         else:
@@ -107,13 +127,25 @@ class InsFilterBank:
             Qb = s_half[:, :, None] * Qd[None] * s_half[:, None, :]
         self.x, self.P = kalman.predict(self.x, self.P, Phi, Qb)
 
+    def _propagate_reference(self, Phi: np.ndarray) -> None:
+        for name, cols in self.columns.items():
+            self.reference[name] = Phi[cols, cols] @ self.reference[name]
+
     # --- feedback -----------------------------------------------------------------------------
     def feedback(self, dx: np.ndarray) -> None:
-        """Feed the 15 INS error states of ``dx`` back into the INS; shift every member."""
+        """Feed ``dx`` back: the 15 INS error states into the INS, each private block into its
+        reference; every member shifts by the fed-back amount."""
         dx = np.asarray(dx, dtype=float)
         self.ins.correct(dx[em.POS], dx[em.VEL], dx[em.ATT], dx[em.GYRO], dx[em.ACC])
         self.x[:, :15] -= dx[:15]
+        for name, cols in self.columns.items():
+            self.reference[name] = self.reference[name] - dx[cols]
+            self.x[:, cols] -= dx[cols]
 
     # --- outputs --------------------------------------------------------------------------------
     def nav(self) -> NavState:
         return self.ins.state
+
+    def context(self, dt_late_s: float = 0.0) -> ModelContext:
+        """Where a measurement model's rows go in this bank (the hook's context)."""
+        return ModelContext(self.n, dt_late_s, self.columns, self.reference)

@@ -56,6 +56,93 @@ def predict(x: np.ndarray, P: np.ndarray, Phi: np.ndarray, Qd: np.ndarray) -> tu
     return x, symmetrise(P)
 
 
+def _solve_lower(L: np.ndarray, Y: np.ndarray, inv_diag: np.ndarray) -> np.ndarray:
+    """X = L^-1 Y for lower-triangular L (B, m, m), Y (B, m, k): forward substitution vectorised
+    over the bank (numpy has no batched triangular solve; this beats a batched LU by ~3x and,
+    unlike LU with pivoting, is exact substitution)."""
+    m = L.shape[1]
+    X = np.empty_like(Y)
+    X[:, 0] = Y[:, 0] * inv_diag[:, 0, None]
+    for i in range(1, m):
+        X[:, i] = (Y[:, i] - (L[:, i, None, :i] @ X[:, :i])[:, 0]) * inv_diag[:, i, None]
+    return X
+
+
+def _solve_upper_from_lower(L: np.ndarray, Y: np.ndarray, inv_diag: np.ndarray) -> np.ndarray:
+    """X = L'^-1 Y (back substitution with the transpose of lower-triangular L)."""
+    m = L.shape[1]
+    X = np.empty_like(Y)
+    X[:, m - 1] = Y[:, m - 1] * inv_diag[:, m - 1, None]
+    for i in range(m - 2, -1, -1):
+        X[:, i] = (Y[:, i] - (L[:, None, i + 1 :, i] @ X[:, i + 1 :])[:, 0]) * inv_diag[:, i, None]
+    return X
+
+
+@dataclass(frozen=True)
+class Gain:
+    """The gain step of a masked batched update (:func:`gain`), before any covariance update.
+
+    x (B, n) updated states; K (B, n, m) gains (zero columns on masked rows); IKH (B, n, n) = I - K H;
+    R (B, m, m) noise as used (identity on masked rows); result: the innovation statistics.
+    """
+
+    x: np.ndarray
+    K: np.ndarray
+    IKH: np.ndarray
+    R: np.ndarray
+    result: UpdateResult
+
+
+def gain(
+    x: np.ndarray,
+    P: np.ndarray,
+    z: np.ndarray,
+    H: np.ndarray,
+    R: np.ndarray,
+    mask: np.ndarray | None = None,
+) -> Gain:
+    """Innovations, Cholesky-solved gains and updated states of a bank (the one masked batched
+    update every bank uses: :func:`update` adds the Joseph covariance, the MHSS bank its cross
+    blocks). Shapes as :func:`update`; ``R`` may also be (m,), a diagonal."""
+    B, n = x.shape
+    m = H.shape[-2]
+    shared_H = H.ndim == 2
+    R = np.asarray(R, dtype=float)
+    if R.ndim == 1:
+        R = R[:, None] * np.eye(m)
+    R = np.broadcast_to(R, (B, m, m))
+    z = np.broadcast_to(z, (B, m))
+    if mask is not None:
+        keep_b = np.asarray(mask, dtype=bool)
+        keep = keep_b.astype(float)
+        PHt = (P @ np.swapaxes(H, -1, -2)) * keep[:, None, :]  # P H_b' (masked rows' columns zero)
+        HPHt = H @ PHt * keep[:, :, None]
+        R = R * (keep[:, :, None] * keep[:, None, :]) + np.eye(m) * (1.0 - keep)[:, :, None]
+        r = (z - np.einsum("...ij,...j->...i", H, x) if not shared_H else z - x @ H.T) * keep
+        dof = keep_b.sum(axis=1)
+    else:
+        PHt = P @ np.swapaxes(H, -1, -2)  # (B, n, m)
+        HPHt = H @ PHt
+        r = z - (np.einsum("bij,bj->bi", H, x) if not shared_H else x @ H.T)
+        dof = np.full(B, m)
+    S = symmetrise(HPHt + R)
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError as exc:
+        raise NotPositiveDefinite("innovation covariance S is not positive definite") from exc
+    inv_d = 1.0 / np.diagonal(L, axis1=1, axis2=2)
+    # [L^-1 H P | L^-1 r] by one forward substitution, then K' = L'^-1 (L^-1 H P)
+    W = _solve_lower(L, np.concatenate([np.swapaxes(PHt, 1, 2), r[:, :, None]], axis=2), inv_d)
+    Kt = _solve_upper_from_lower(L, W[:, :, :n], inv_d)
+    w = W[:, :, n]  # whitened innovation L^-1 r
+    K = np.swapaxes(Kt, 1, 2)  # (B, n, m)
+    x_new = x + np.einsum("bij,bj->bi", K, r)
+    IKH = np.eye(n) - K @ H
+    std = r / np.sqrt(np.diagonal(S, axis1=1, axis2=2))
+    res = UpdateResult(r, S, w, std, np.einsum("bi,bi->b", w, w), dof, K)
+    return Gain(x_new, K, IKH, R, res)
+
+
 def update(
     x: np.ndarray,
     P: np.ndarray,
@@ -69,7 +156,7 @@ def update(
     Parameters
     ----------
     x : (B, n) states; P : (B, n, n) covariances.
-    z : (B, m) or (m,) measurements; H : (B, m, n) or (m, n); R : (B, m, m) or (m, m).
+    z : (B, m) or (m,) measurements; H : (B, m, n) or (m, n); R : (B, m, m), (m, m) or (m,) diagonal.
     mask : (B, m) bool, optional. False excludes that row for that member.
 
     Returns
@@ -77,46 +164,10 @@ def update(
     x, P : updated bank (new arrays).
     UpdateResult : innovation statistics per member.
     """
-    B, n = x.shape
-    m = H.shape[-2]
-    H = np.broadcast_to(H, (B, m, n))
-    R = np.broadcast_to(R, (B, m, m))
-    z = np.broadcast_to(z, (B, m))
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        keep = mask.astype(float)
-        H = H * keep[:, :, None]
-        eye_m = np.eye(m)
-        both = keep[:, :, None] * keep[:, None, :]
-        R = R * both + eye_m * (1.0 - keep)[:, :, None]
-        dof = mask.sum(axis=1)
-    else:
-        keep = None
-        dof = np.full(B, m)
-    Hx = np.einsum("bij,bj->bi", H, x)
-    r = z - Hx
-    if keep is not None:
-        r = r * keep
-    PHt = P @ np.swapaxes(H, 1, 2)  # (B, n, m)
-    S = symmetrise(H @ PHt + R)
-    try:
-        L = np.linalg.cholesky(S)
-    except np.linalg.LinAlgError as exc:
-        raise NotPositiveDefinite("innovation covariance S is not positive definite") from exc
-    # K = P H' S^-1 = (L'^-1 L^-1 H P)': two solves with the Cholesky factor. numpy's batched
-    # solve is used on the triangular factors (scipy's batched solve_triangular costs ~5 ms a
-    # call for these small stacks); on a triangular matrix it is exact forward/back substitution.
-    Y = np.linalg.solve(L, np.concatenate([np.swapaxes(PHt, 1, 2), r[:, :, None]], axis=2))
-    w = Y[:, :, -1]  # whitened innovation L^-1 r
-    Kt = np.linalg.solve(np.swapaxes(L, 1, 2), Y[:, :, :-1])  # S^-1 H P   (B, m, n)
-    K = np.swapaxes(Kt, 1, 2)
-    x_new = x + np.einsum("bij,bj->bi", K, r)
-    IKH = np.eye(n) - K @ H
-    P_new = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ R @ Kt
-    sdiag = np.sqrt(np.diagonal(S, axis1=1, axis2=2))
-    std = r / sdiag
-    res = UpdateResult(r, S, w, std, np.einsum("bi,bi->b", w, w), dof, K)
-    return x_new, symmetrise(P_new), res
+    g = gain(x, P, z, H, R, mask)
+    Kt = np.swapaxes(g.K, 1, 2)
+    P_new = g.IKH @ P @ np.swapaxes(g.IKH, 1, 2) + g.K @ g.R @ Kt
+    return g.x, symmetrise(P_new), g.result
 
 
 def is_positive_definite(P: np.ndarray) -> np.ndarray:

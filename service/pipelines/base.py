@@ -1,13 +1,23 @@
-"""The pipeline interface: a configured chain sensors -> models -> filters -> outputs.
+"""The pipeline contract: a configured chain sensors -> measurement models -> filter bank -> outputs.
 
-Each pipeline owns its INS (closed loop makes references differ per pipeline), so several run
-side by side on one input stream. The engine calls, in sensor-time order:
-  ``initialise(nav, std)`` once (and again on re-initialisation),
-  ``advance(pre)`` with the vehicle's shared preintegrated IMU interval at every major update
-  (or ``push_imu(dtheta, dvel, dt, t_end)`` per IMU interval, with the pipeline's own minor loop),
-  ``sync()`` before reading the state at an aiding or output epoch,
-  ``apply(kind, sensor_id, msg, dt_late)`` per aiding measurement -> extra outputs (Faults, ...),
-  ``solution(t)`` at output epochs, ``estimate()`` for errors/NEES against truth.
+Each pipeline owns its INS inside its filter bank (``self.bank``, an
+:class:`~service.estimation.ins_filter.InsFilterBank` or a subclass; closed loop makes references
+differ per pipeline), so several run side by side on one input stream. A family is one module
+under ``service/pipelines/`` with one class per configuration ``kind`` (registered in
+``service/pipelines/__init__.py``). The engine calls, in sensor-time order:
+
+  ``start(nav, std, after_loss)``  once, and again on re-initialisation (calls ``initialise``);
+  ``advance(pre)``                 the vehicle's shared preintegrated IMU interval at every major
+                                   update (``push_imu`` is the per-pipeline equivalent);
+  ``sync()``                       before reading the state at an aiding or output epoch;
+  ``apply(kind, sensor_id, msg, dt_late_s)``  per aiding message -> extra outputs (Faults, ...);
+  ``estimate()`` / ``solution()``  at output epochs; ``recover_covariance()`` after a
+                                   numerical failure (the engine catches ``LinAlgError``).
+
+A subclass implements ``initialise`` (build ``self.bank``), ``apply`` (measurement models from
+:mod:`service.estimation.measurements`, one update on the bank) and ``estimate``; the base class
+provides the time path, status and Solution. The pipeline owns its status (``status``,
+``updates``, ``reinitialisations``); nobody else writes them.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ import numpy as np
 
 from service import earth
 from service.config import ImuModel
+from service.estimation.ins_filter import InsFilterBank
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import Solution, WireModel
@@ -57,9 +68,8 @@ class Estimate:
 
 
 class Pipeline(ABC):
-    family: str = "loosely_coupled"
-
     def __init__(self, name: str, imu: ImuModel, major_interval_s: float):
+        self.bank: InsFilterBank | None = None  # built by ``initialise``
         self.name = name
         self.imu = imu
         self.major_interval_s = major_interval_s
@@ -85,19 +95,32 @@ class Pipeline(ABC):
             return "ins_only"
         return self.status
 
+    @classmethod
+    def sensor_kinds(cls) -> frozenset[str]:
+        """Sensor kinds this pipeline kind can consume (its configuration is checked against it)."""
+        return frozenset()
+
+    @classmethod
+    def config_errors(cls, cfg) -> list[tuple[str, str]]:
+        """(field inside the pipeline's config, message) for options this kind does not
+        implement; checked when the configuration is loaded (``service.pipelines.config_errors``)."""
+        return []
+
     @abstractmethod
     def initialise(self, nav: NavState, std: InitStd) -> None: ...
 
-    @abstractmethod
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None: ...
+    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
+        """One IMU interval through the pipeline's own minor loop (tests and single pipelines)."""
+        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
 
     def advance(self, pre) -> None:
         """Apply a preintegrated IMU interval shared by all pipelines of the vehicle (the
         engine's path; ``push_imu`` is the per-pipeline equivalent)."""
         self.bank.advance(pre)
 
-    @abstractmethod
-    def sync(self) -> None: ...
+    def sync(self) -> None:
+        """Bring the filter to the INS time (pending minor-loop increments, propagation)."""
+        self.bank.sync()
 
     @abstractmethod
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:

@@ -27,7 +27,6 @@ the feedback the fused error state is zero with fusion-reset, ~zero with no_rese
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,24 +37,19 @@ from service.estimation.federated.core import FederatedCore
 from service.estimation.federated.fault_tests import FaultTest, make_fault_test
 from service.estimation.federated.sharing import get_strategy
 from service.estimation.ins_filter import InsFilterBank
+from service.estimation.measurements import MeasurementModel
 from service.ins import error_model as em
 from service.ins.mechanisation import Ins, NavState
 from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
-# Measurement models by sensor kind: (nav, msg, n_states, dt_late_s) -> Measurement.
-# A sensor kind without an entry cannot be configured in a federated/centralised pipeline.
-MeasurementModel = Callable[[NavState, WireModel, int, float], measurements.Measurement]
-MEASUREMENT_MODELS: dict[str, MeasurementModel] = {
-    "gnss_fix": lambda nav, msg, n, dt_late: measurements.gnss_fix(nav, msg, n_states=n, dt_late_s=dt_late),
-    "star": lambda nav, msg, n, dt_late: measurements.star_attitude(nav, msg, n_states=n),
-}
-
 
 @dataclass
 class _Channel:
-    """Where one sensor kind goes: the owning local, the report name and its fault test."""
+    """Where one sensor kind goes: its measurement model, the owning local, the report name and
+    its fault test."""
 
+    model: MeasurementModel
     owner: int
     name: str
     test: FaultTest
@@ -64,7 +58,11 @@ class _Channel:
 class _CorePipeline(Pipeline):
     """Shared machinery of Federated and Centralized (one core, two configurations)."""
 
-    family = "federated"
+    @classmethod
+    def sensor_kinds(cls) -> frozenset[str]:
+        """Every registered model without private states (the locals share the 15 INS states;
+        private states per local are not implemented yet)."""
+        return measurements.plain_kinds()
 
     def __init__(
         self,
@@ -91,18 +89,19 @@ class _CorePipeline(Pipeline):
         self.channels: dict[str, _Channel] = {}
         for i, (sub_name, kinds) in enumerate(subsystems):
             for kind in kinds:
-                if kind not in MEASUREMENT_MODELS:
+                if kind not in self.sensor_kinds():
                     raise ValueError(
                         f"pipeline {name!r}: no measurement model for sensor kind {kind!r} "
-                        f"(subsystem {sub_name!r}); supported: {sorted(MEASUREMENT_MODELS)}"
+                        f"(subsystem {sub_name!r}); supported: {sorted(self.sensor_kinds())}"
                     )
                 if kind in self.channels:
                     raise ValueError(
                         f"pipeline {name!r}: sensor kind {kind!r} is in two subsystems "
                         f"({self.channels[kind].name!r}, {sub_name!r}); it would be counted twice"
                     )
-                self.channels[kind] = _Channel(i, sub_name, make_fault_test(fault_handling, false_alarm_prob))
-        self.bank: InsFilterBank | None = None
+                self.channels[kind] = _Channel(
+                    measurements.make(kind), i, sub_name, make_fault_test(fault_handling, false_alarm_prob)
+                )
         self.core: FederatedCore | None = None
         self._version = 0
         self._epoch_t: float | None = None  # time of an aiding epoch whose fusion is pending
@@ -150,9 +149,6 @@ class _CorePipeline(Pipeline):
             self._end_epoch()  # time moves on: the aiding epoch is complete
         self.bank.advance(pre)
 
-    def sync(self) -> None:
-        self.bank.sync()
-
     def _end_epoch(self) -> None:
         """Seed 000 algorithm 2 once per aiding epoch: master fusion, reset, feedback.
 
@@ -187,7 +183,9 @@ class _CorePipeline(Pipeline):
         bank, core = self.bank, self.core
         if self._epoch_t is not None and bank.t != self._epoch_t:
             self._end_epoch()
-        meas = MEASUREMENT_MODELS[kind](bank.nav(), msg, bank.n, dt_late_s)
+        meas = ch.model(bank.nav(), msg, bank.context(dt_late_s))
+        if meas is None:
+            return []
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
@@ -262,7 +260,25 @@ class _CorePipeline(Pipeline):
 class Federated(_CorePipeline):
     """Federated filter: one local per ``FederatedConfig.subsystems`` entry (see module doc)."""
 
-    family = "federated"
+    @classmethod
+    def config_errors(cls, cfg: FederatedConfig) -> list[tuple[str, str]]:
+        out, owner = [], {}
+        for i, sub in enumerate(cfg.subsystems):
+            for j, kind in enumerate(sub.sensors):
+                loc = f"subsystems.{i}.sensors.{j}"
+                if kind not in cls.sensor_kinds():
+                    out.append(
+                        (
+                            loc,
+                            f"sensor kind {kind!r} is not implemented in a federated pipeline "
+                            f"(implemented: {', '.join(sorted(cls.sensor_kinds()))})",
+                        )
+                    )
+                elif kind in owner:
+                    out.append((loc, f"sensor kind {kind!r} is already in subsystem {owner[kind]!r}"))
+                else:
+                    owner[kind] = sub.name
+        return out
 
     def __init__(self, cfg: FederatedConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(
@@ -287,14 +303,12 @@ class Centralized(_CorePipeline):
     Family "loosely_coupled" for dashboards: a single INS/GNSS(/CNS) filter, no sharing.
     """
 
-    family = "loosely_coupled"
-
     def __init__(self, cfg: CentralizedConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(
             cfg.name,
             imu,
             major_interval_s,
-            subsystems=[("central", list(MEASUREMENT_MODELS))],
+            subsystems=[("central", sorted(self.sensor_kinds()))],
             sharing="fixed",
             fault_handling=cfg.fault_handling,
             false_alarm_prob=cfg.false_alarm_prob,
@@ -309,4 +323,4 @@ class Centralized(_CorePipeline):
         return {}
 
 
-__all__ = ["Federated", "Centralized", "MEASUREMENT_MODELS"]
+__all__ = ["Federated", "Centralized"]

@@ -10,18 +10,22 @@ import numpy as np
 from service.config import ImuModel, LooselyCoupledConfig
 from service.estimation import kalman, measurements
 from service.estimation.ins_filter import InsFilterBank
+from service.estimation.measurements import MeasurementModel
 from service.ins.mechanisation import NavState
 from service.messages import WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
 class LooselyCoupled(Pipeline):
-    family = "loosely_coupled"
+    @classmethod
+    def sensor_kinds(cls) -> frozenset[str]:
+        return frozenset({"gnss_fix", "star"})
 
     def __init__(self, cfg: LooselyCoupledConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(cfg.name, imu, major_interval_s)
         self.cfg = cfg
-        self.bank: InsFilterBank | None = None
+        kinds = ["gnss_fix"] + (["star"] if cfg.use_star else [])
+        self.models: dict[str, MeasurementModel] = {k: measurements.make(k) for k in kinds}
         self.last_nis: float | None = None
         self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
 
@@ -32,20 +36,14 @@ class LooselyCoupled(Pipeline):
         self.bank = InsFilterBank(nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s)
         self.status = "aligned"
 
-    def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
-        self.bank.push_imu(dtheta_rad, dvel_mps, dt_s, t_end)
-
-    def sync(self) -> None:
-        self.bank.sync()
-
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
+        model = self.models.get(kind)
+        if model is None:
+            return []
         bank = self.bank
         nav = bank.nav()
-        if kind == "gnss_fix":
-            meas = measurements.gnss_fix(nav, msg, dt_late_s=dt_late_s)
-        elif kind == "star" and self.cfg.use_star:
-            meas = measurements.star_attitude(nav, msg)
-        else:
+        meas = model(nav, msg, bank.context(dt_late_s))
+        if meas is None:
             return []
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
         if (

@@ -355,10 +355,5 @@ class FederatedCore:
         q_scale[members, :c] = q_scale_new  # seed 000 eq (15)/(26) (see sharing.ResetPlan)
         b.q_scale = q_scale
 
-    @property
-    def local_shares(self) -> np.ndarray:
-        """(n_locals, c) last shares of the local filters."""
-        return self.shares[: self.n_locals]
-
 
 __all__ = ["FederatedCore", "FilterBank", "LinearBank", "LocalUpdate", "information_fusion", "ResetMode"]

@@ -1,5 +1,11 @@
-"""Integrity bookkeeping around MHSS: alert limits per flight phase, alarm and availability,
-exclusion memory and re-admission.
+"""The integrity monitor around an MHSS bank: one call per GNSS epoch (:class:`MhssMonitor`).
+
+It owns everything integrity does with an epoch's rows: re-admission tests of excluded
+satellites, the used satellite set (bank rebuild), the batched update of every member and cross
+block, the satellite residual windows, the separation tests, exclusion, protection levels and the
+verdict; the pipeline only builds the rows (measurement hook) and turns the result into a message.
+Also here: alert limits per flight phase, alarm and availability, exclusion memory and
+re-admission.
 
 Alert limits (SEEDS.md seed 001, ICAO Annex 10 as commonly tabulated)
 --------------------------------------------------------------------
@@ -54,6 +60,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from service.estimation.integrity.mhss import (
+    BankUpdate,
+    SeparationTests,
+    k_fa,
+    k_fa_horizontal,
+    k_md,
+    residual_test,
+)
+from service.estimation.kalman import NotPositiveDefinite, is_positive_definite
+from service.estimation.measurements.base import Measurement
 
 PhaseName = str
 
@@ -234,7 +251,175 @@ class ResidualWindows:
         return ResidualTests(tuple(sats), self.windows, stat, thr, cnt)
 
 
+# --- the monitor ---------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MonitorSettings:
+    """What the monitor needs from a pipeline's configuration (see TightlyCoupledConfig)."""
+
+    phase: PhaseName = "npa"
+    p_fa: float = 1e-4
+    p_md: float = 1e-3
+    depth: int = 2  # 0 main only (no integrity), 1 + sub-filters, 2 + sub-sub filters (exclusion search)
+    exclusion: bool = True
+    readmit_after_s: float = 60.0
+    horizontal_threshold: str = "gaussian"
+    residual_windows: tuple[int, ...] = (1, 10)
+
+
+@dataclass(frozen=True)
+class EpochResult:
+    """Diagnostics of one GNSS epoch (tests, evaluation, dashboards and the Integrity message).
+
+    ``tests`` is None when the monitor runs without integrity (depth 0); ``detected_by`` is
+    "separation", "residual", "separation+residual" or "" (no detection); ``residual_by_sat``:
+    per satellite the (statistic, threshold) of its window with the largest ratio.
+    """
+
+    t: float
+    used: tuple[str, ...]
+    update: BankUpdate | None
+    tests: SeparationTests | None
+    detected: bool
+    excluded_now: str | None
+    resolved: bool
+    readmitted: tuple[str, ...]
+    residual: ResidualTests | None = None
+    detected_by: str = ""
+    assessment: Assessment | None = None
+    excluded: tuple[str, ...] = ()
+    residual_by_sat: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+class MhssMonitor:
+    """Integrity monitoring of one MHSS bank, epoch by epoch (module docstring).
+
+    False-alarm budget: ``p_fa`` per epoch is split evenly over the test families -- horizontal
+    separation (+ vertical with a VAL) and one family per residual window -- each of N two-sided
+    tests: K = Q^-1(p_fa / (2 N n_families)). The protection levels use the separation K (the
+    residual tests only add detections, so the PLs stay valid).
+    """
+
+    def __init__(self, settings: MonitorSettings):
+        self.settings = s = settings
+        self.limits = limits(s.phase)
+        self.use_vertical = uses_vertical(s.phase)
+        self.residual = ResidualWindows(s.residual_windows)
+        self.n_families = n_families(s.phase) + self.residual.n_families
+        self.kmd = k_md(s.p_md)
+        self.k_single = k_fa(s.p_fa, 1)  # one two-sided test (re-admission residuals)
+        self.book = ExclusionBook(s.readmit_after_s)
+
+    def reset(self) -> None:
+        """Forget exclusions and residual windows (re-initialisation)."""
+        self.book.clear()
+        self.residual.clear()
+
+    def restart_windows(self) -> None:
+        """Covariance recovery: the residual windows restart; exclusions are kept."""
+        self.residual.clear()
+
+    def epoch(self, bank, meas: Measurement, t: float) -> EpochResult:
+        """One GNSS epoch on ``bank`` (an :class:`~service.estimation.integrity.ins_bank.MhssInsBank`).
+
+        ``meas``: rows of the usable satellites grouped by satellite (``groups``/``group_ids``),
+        pseudorange rows labelled ``<id>.pr``. Updates the bank, feeds the main correction back,
+        excludes a faulty satellite when it can. Raises ``NotPositiveDefinite`` (bank unchanged
+        since the update) when the main covariance lost positive definiteness.
+        """
+        cfg = self.settings
+        mh = bank.mhss
+        ids, groups = meas.group_ids, meas.groups
+        r_var = meas.r_var
+        # 1. re-admission tests of excluded satellites against the current main filter
+        health: dict[str, bool] = {}
+        for g, sid in enumerate(ids):
+            if sid in self.book:
+                sel = groups == g
+                std = residual_test(mh.x[0], mh.P[0], meas.z[sel], meas.H[sel], r_var[sel])
+                health[sid] = bool(np.all(np.abs(std) <= self.k_single))
+        readmitted = tuple(self.book.observe(t, health))
+        # 2. the used set; a change rebuilds the bank
+        used = tuple(sid for sid in ids if sid not in self.book)
+        if set(used) != set(mh.sats):
+            mh = bank.mhss = mh.rebuild(used)
+            self.residual.retain(mh.sats)
+        # 3. batched update of members and cross blocks, residual windows, feedback
+        upd = None
+        if used:
+            col = {sid: j for j, sid in enumerate(mh.sats)}
+            sat_col = np.array([col.get(sid, -1) for sid in ids])
+            sel = sat_col[groups] >= 0
+            z, H, rv, rcol = meas.z[sel], meas.H[sel], r_var[sel], sat_col[groups[sel]]
+            upd = mh.update(z, H, rv, rcol)
+            if not is_positive_definite(mh.P[:1])[0]:
+                raise NotPositiveDefinite("main filter covariance after the MHSS update")
+            if mh.depth >= 1 and self.residual.windows:
+                # the pseudorange row of each bank column (one per used satellite)
+                labels = [lab for lab, s in zip(meas.labels, sel, strict=True) if s]
+                is_pr = np.array([lab.endswith(".pr") for lab in labels])
+                pr_idx = np.flatnonzero(is_pr)
+                pr_row = np.full(mh.N, -1)
+                pr_row[rcol[pr_idx]] = pr_idx
+                if np.all(pr_row >= 0):
+                    self.residual.push(mh.sats, *mh.excluded_residuals(z, H, rv, pr_row))
+            bank.feedback(mh.x[0].copy())
+        if mh.depth == 0:
+            return EpochResult(t, used, upd, None, False, None, True, readmitted)
+        # 4. separation and residual tests -> detection -> exclusion
+        p_fa, nf, usev, hmode = cfg.p_fa, self.n_families, self.use_vertical, cfg.horizontal_threshold
+        kfa = k_fa(p_fa, mh.N * nf)
+        tests = mh.main_tests(kfa, self.kmd, k_fa_horizontal(p_fa, mh.N * nf, hmode))
+        res = self.residual.tests(mh.sats, kfa)
+        ss_detected = bool(np.any(tests.flagged(usev)))
+        res_detected = bool(np.any(res.flagged))
+        detected = ss_detected or res_detected
+        resolved, excluded_now = not detected, None
+        if detected and cfg.exclusion:
+            r = mh.find_exclusion(tests, p_fa, self.kmd, usev, nf, res.flagged, res.normalised, hmode)
+            if r is not None:
+                excluded_now = mh.sats[r]
+                mh = bank.mhss = mh.rebuild([s for s in mh.sats if s != excluded_now], purge=[excluded_now])
+                bank.feedback(mh.x[0].copy())  # the new main (old sub-filter r) becomes the solution
+                self.book.exclude(excluded_now, t)
+                self.residual.clear()  # past residuals were taken against filters that used it
+                tests = mh.main_tests(
+                    k_fa(p_fa, mh.N * nf), self.kmd, k_fa_horizontal(p_fa, mh.N * nf, hmode)
+                )
+                resolved = not bool(np.any(tests.flagged(usev)))
+        # 5. protection levels against the alert limits
+        verdict = assess(tests.hpl, tests.vpl, cfg.phase, detected, resolved)
+        by_sat = {}
+        if res.statistic.size:
+            ratio = res.statistic / np.maximum(res.threshold, 1e-300)
+            for j, sid in enumerate(res.sats):
+                w = int(np.argmax(ratio[j]))
+                by_sat[sid] = (float(res.statistic[j, w]), float(res.threshold[j, w]))
+        detected_by = (
+            ("separation" if ss_detected else "")
+            + ("+" if ss_detected and res_detected else "")
+            + ("residual" if res_detected else "")
+        )
+        return EpochResult(
+            t,
+            mh.sats,
+            upd,
+            tests,
+            detected,
+            excluded_now,
+            resolved,
+            readmitted,
+            res,
+            detected_by,
+            verdict,
+            tuple(self.book.ids),
+            by_sat,
+        )
+
+
 __all__ = [
+    "EpochResult",
+    "MhssMonitor",
+    "MonitorSettings",
     "PHASES",
     "Assessment",
     "ExclusionBook",

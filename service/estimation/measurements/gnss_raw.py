@@ -46,8 +46,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from service import earth
+from service.estimation.measurements.base import Measurement, ModelContext, PrivateStates
 from service.ins import error_model as em
 from service.messages import GnssRaw
 
@@ -225,13 +227,19 @@ class RawRows:
 
 
 def raw_rows(
-    pred: Predicted, sats: SatArrays, use_range_rate: bool = True, n_states: int = N_STATES_TC
+    pred: Predicted,
+    sats: SatArrays,
+    use_range_rate: bool = True,
+    n_states: int = N_STATES_TC,
+    clock: slice = CLOCK,
 ) -> RawRows:
-    """Rows of the tightly coupled EKF (module docstring for the derivation and signs)."""
+    """Rows of the tightly coupled EKF (module docstring for the derivation and signs); ``clock``
+    the filter columns of the clock bias and drift errors."""
     n = len(sats.ids)
+    clk_bias, clk_drift = clock.start, clock.start + 1
     H_pr = np.zeros((n, n_states))
     H_pr[:, em.POS] = -pred.los_enu
-    H_pr[:, CLK_BIAS] = 1.0
+    H_pr[:, clk_bias] = 1.0
     z = [pred.pseudorange_m - sats.pseudorange_m]
     H = [H_pr]
     r = [np.square(sats.pseudorange_sigma_m)]
@@ -240,7 +248,7 @@ def raw_rows(
     if use_range_rate:
         H_rr = np.zeros((n, n_states))
         H_rr[:, em.VEL] = -pred.doppler_factor[:, None] * pred.los_enu
-        H_rr[:, CLK_DRIFT] = 1.0
+        H_rr[:, clk_drift] = 1.0
         z.append(pred.range_rate_mps - sats.range_rate_mps)
         H.append(H_rr)
         r.append(np.square(sats.range_rate_sigma_mps))
@@ -272,7 +280,109 @@ def elevation_mask(pred: Predicted, mask_deg: float) -> np.ndarray:
     return pred.elevation_rad >= math.radians(mask_deg) - 1e-12
 
 
+# --- the measurement model (the hook) -----------------------------------------------------------------
+def clock_transition(
+    T: float, correlation_time_s: float, bias_psd_m2ps: float, drift_psd_m2ps3: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discrete receiver-clock model over T: (Phi (2, 2), Qd (2, 2)) for x = [bias_m, drift_mps]
+
+        d(b)/dt = d + w_b,   d(d)/dt = -beta d + w_d    (first-order Markov drift, beta = 1/tau)
+
+    F = [[0, 1], [0, -beta]], Qc = diag(S_b, S_d); Van Loan: expm([[-F, Qc], [0, F']] T).
+    """
+    beta = 1.0 / correlation_time_s
+    F = np.array([[0.0, 1.0], [0.0, -beta]])
+    M = np.zeros((4, 4))
+    M[:2, :2] = -F
+    M[:2, 2:] = np.diag([bias_psd_m2ps, drift_psd_m2ps3])
+    M[2:, 2:] = F.T
+    E = scipy.linalg.expm(M * T)
+    Phi = E[2:, 2:].T
+    Qd = Phi @ E[:2, 2:]
+    return Phi, 0.5 * (Qd + Qd.T)
+
+
+class GnssRawModel:
+    """Pseudorange (+ range rate) rows of every usable satellite, receiver clock as private states.
+
+    Usable: at or above the elevation mask seen from the INS, first observation of its id in the
+    message. Rows are grouped by satellite (``groups`` / ``group_ids``), pseudorange rows first,
+    then range-rate rows, satellites in message order. The clock's linearisation point is
+    ``ctx.reference["clock"]`` = [bias_m, drift_mps] (closed loop, kept by the filter bank).
+    """
+
+    kind = "gnss_raw"
+
+    def __init__(
+        self,
+        *,
+        correlation_time_s: float,
+        bias_psd_m2ps: float,
+        drift_psd_m2ps3: float,
+        init_bias_std_m: float,
+        init_drift_std_mps: float,
+        elevation_mask_deg: float = 5.0,
+        use_range_rate: bool = True,
+    ):
+        self.elevation_mask_deg = float(elevation_mask_deg)
+        self.use_range_rate = bool(use_range_rate)
+        params = (correlation_time_s, bias_psd_m2ps, drift_psd_m2ps3)
+        cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+        def transition(T: float) -> tuple[np.ndarray, np.ndarray]:
+            key = round(T, 12)
+            out = cache.get(key)
+            if out is None:
+                if len(cache) > 32:
+                    cache.clear()
+                out = cache[key] = clock_transition(T, *params)
+            return out
+
+        self.private_states = (
+            PrivateStates(
+                "clock", ("clk_bias_m", "clk_drift_mps"), transition, (init_bias_std_m, init_drift_std_mps)
+            ),
+        )
+
+    def initial_clock(self, nav, msg: GnssRaw, dt_late_s: float = 0.0) -> np.ndarray | None:
+        """First-epoch clock reference [bias_m, drift_mps]: the mean residual of the satellites
+        above the mask with the receiver clock at zero; None when none is usable."""
+        sats = sat_arrays(msg)
+        if not sats.ids:
+            return None
+        rx0 = receiver_from_nav(nav, 0.0, 0.0, dt_late_s)
+        vis0 = elevation_mask(predict(rx0, sats), self.elevation_mask_deg)
+        if not np.any(vis0):
+            return None
+        return np.array(clock_from_residuals(rx0, sats.take(np.flatnonzero(vis0))))
+
+    def __call__(self, nav, msg: GnssRaw, ctx: ModelContext) -> Measurement:
+        """Rows of the usable satellites (none usable: zero rows -- an epoch without satellites
+        is still an integrity epoch)."""
+        sats = sat_arrays(msg)
+        ref = ctx.reference["clock"]
+        rx = receiver_from_nav(nav, ref[0], ref[1], ctx.dt_late_s)
+        pred = predict(rx, sats)
+        visible = elevation_mask(pred, self.elevation_mask_deg)
+        rows = raw_rows(pred, sats, self.use_range_rate, ctx.n_states, ctx.columns["clock"])
+        first = {sid: i for i, sid in reversed(list(enumerate(sats.ids)))}
+        usable = [i for i, sid in enumerate(sats.ids) if visible[i] and first[sid] == i]
+        col = np.full(len(sats.ids), -1)
+        col[usable] = np.arange(len(usable))
+        sel = col[rows.row_sat] >= 0
+        return Measurement(
+            rows.z[sel],
+            rows.H[sel],
+            np.diag(rows.r_var[sel]),
+            tuple(lab for lab, s in zip(rows.labels, sel, strict=True) if s),
+            col[rows.row_sat[sel]],
+            tuple(sats.ids[i] for i in usable),
+        )
+
+
 __all__ = [
+    "GnssRawModel",
+    "clock_transition",
     "CLK_BIAS",
     "CLK_DRIFT",
     "CLOCK",

@@ -1,0 +1,30 @@
+"""Star-tracker attitude: z = phi with C_ins = (I - [phi x]) C_star, H = [0 0 I 0 0].
+
+The tracker's roll/pitch/heading sigmas are applied per navigation axis (small-angle reading).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service import earth
+from service.estimation.measurements.base import Measurement, ModelContext
+from service.ins import error_model as em
+from service.ins.mechanisation import NavState
+from service.messages import StarAttitude
+
+LABELS = ("roll", "pitch", "yaw")
+
+
+class StarAttitudeModel:
+    kind = "star"
+    private_states = ()
+
+    def __call__(self, nav: NavState, msg: StarAttitude, ctx: ModelContext) -> Measurement:
+        c_star = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(msg.rpy_deg))
+        # I - C_ins C_star' = [phi x]  ->  phi = rotation vector of C_star C_ins'
+        z = earth.quat_to_rotvec(earth.mat_to_quat(c_star @ nav.mat_nb.T))
+        H = np.zeros((3, ctx.n_states))
+        H[:, em.ATT] = np.eye(3)
+        R = np.diag(np.square(np.radians(msg.rpy_std_deg)))
+        return Measurement(z, H, R, LABELS)
