@@ -13,6 +13,7 @@ Time handling (DESIGN.md "The service's inner loop"):
 - IMU time going backwards is rejected (``time_backwards``; equal time: ``duplicate``). A gap
   longer than ``max_imu_gap_s`` marks the INS lost: pipelines are re-initialised from the next
   GNSS fix (status ``reinitialised``).
+- These acceptance rules are :class:`service.intake_rules.AcceptanceRules` (one verdict per event).
 
 Initialisation (``[init] mode``):
 - ``message``: from an InitialNav (position, velocity, attitude and their sigmas, as a host
@@ -23,20 +24,22 @@ Initialisation (``[init] mode``):
   position; else, in motion with a GNSS fix faster than ``min_speed_mps``: position and
   velocity from the fix, heading and pitch from the velocity track, roll 0, wide sigmas.
 - ``static`` / ``gnss_motion`` force the respective fallback.
+The alignment maths and its thresholds are in :mod:`service.ins.alignment`.
 """
 
 from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
 from service import earth
 from service.config import LooselyCoupledConfig, ServiceConfig
+from service.ins import alignment
 from service.ins.mechanisation import NavState, Preintegrator
+from service.intake_rules import AcceptanceRules, Verdict
 from service.messages import GnssFix, ImuSample, InitialNav, Solution, Truth, WireModel
 from service.pipelines.base import InitStd, Pipeline, nav_errors
 
@@ -72,15 +75,6 @@ def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
     raise ValueError(f"unknown pipeline kind {cfg.kind!r}")  # unreachable: config validates kinds
 
 
-@dataclass
-class _Align:
-    t_start: float | None = None
-    n: int = 0
-    sum_w: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    sum_f2: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
 class VehicleEngine:
     """Drives all configured pipelines of one vehicle from a time-ordered event stream."""
 
@@ -96,10 +90,10 @@ class VehicleEngine:
         self.pre = Preintegrator()  # the vehicle's one minor loop, shared by every pipeline
         self.last_imu_t: float | None = None
         self.pending: list[tuple[float, str, str, WireModel]] = []
-        self._last_t_by_key: dict[tuple[str, str], float] = {}
+        self.rules = AcceptanceRules(config.intake)
         self._truth: dict[int, Truth] = {}
         self._last_fix: GnssFix | None = None
-        self._align = _Align()
+        self._align = alignment.ImuAccumulator()
         self._last_out_k = -1
         self._lost = False
         self.last_t: float | None = None
@@ -107,51 +101,40 @@ class VehicleEngine:
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
         """Process one validated event. Returns False when it was rejected (reason counted)."""
-        key = (kind, sensor_id)
-        if kind != "imu":
-            prev = self._last_t_by_key.get(key)
-            if prev is not None and msg.t == prev:
-                return self._reject("duplicate")
+        verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if kind == "imu":
-            return self._on_imu(msg)
+            return self._on_imu(msg, verdict)
+        if kind == "gnss_fix" and verdict.in_sequence:
+            self._last_fix = msg  # the newest fix, also when not applied (alignment uses it)
+        if verdict.reason == "not_initialised":
+            self._try_initialise_from_aiding()  # this message may complete an alignment
+            if self.initialised:
+                return True
+        if not verdict.accepted:
+            return self._reject(verdict.reason)
         if kind == "init":
-            self._last_t_by_key[key] = msg.t
             self._initialise_from_message(msg)
-            return True
-        if kind == "truth":
-            if prev is not None and msg.t < prev:
-                return self._reject("time_backwards")
-            self._last_t_by_key[key] = msg.t
-            self._truth[self._tkey(msg.t)] = msg
-            if len(self._truth) > 256:
-                for k in sorted(self._truth)[:128]:
-                    del self._truth[k]
-            self.sink.on_truth(self.vehicle, msg)
-            return True
-        # aiding: older than the INS by more than the tolerance is "late" (checked first: it is
-        # the more useful reason); older than the same sensor's previous message is "time_backwards"
-        if self.initialised and msg.t < self.last_imu_t - self.config.intake.late_tolerance_s:
-            return self._reject("late")
-        if prev is not None and msg.t < prev:
-            return self._reject("time_backwards")
-        if kind == "gnss_fix":
-            self._last_fix = msg
-        if not self.initialised:
-            self._last_t_by_key[key] = msg.t
-            self._try_initialise_from_aiding()
-            return self._reject("not_initialised") if not self.initialised else True
+        elif kind == "truth":
+            self._keep_truth(msg)
+        else:
+            self._schedule(kind, sensor_id, msg)
+        return True
+
+    def _keep_truth(self, msg: Truth) -> None:
+        self._truth[self._tkey(msg.t)] = msg
+        if len(self._truth) > 256:
+            for k in sorted(self._truth)[:128]:
+                del self._truth[k]
+        self.sink.on_truth(self.vehicle, msg)
+
+    def _schedule(self, kind: str, sensor_id: str, msg: WireModel) -> None:
+        """An accepted aiding message: queued until the INS reaches it, or applied now (late)."""
         t_ins = self.last_imu_t
-        if msg.t > t_ins + self.config.intake.max_lead_s:
-            return self._reject("early")
-        if msg.t < t_ins - self.config.intake.late_tolerance_s:
-            return self._reject("late")
-        self._last_t_by_key[key] = msg.t
         if msg.t > t_ins + 1e-9:
             self.pending.append((msg.t, kind, sensor_id, msg))
             self.pending.sort(key=lambda e: e[0])
         else:
             self._apply(kind, sensor_id, msg, dt_late=t_ins - msg.t)
-        return True
 
     def _reject(self, reason: str) -> bool:
         self.rejected[reason] += 1
@@ -162,19 +145,15 @@ class VehicleEngine:
         return int(round(t * 1e6))
 
     # --- IMU ------------------------------------------------------------------------------------
-    def _on_imu(self, msg: ImuSample) -> bool:
+    def _on_imu(self, msg: ImuSample, verdict: Verdict) -> bool:
         t, dt = msg.t, msg.dt_s
-        if self.last_imu_t is not None:
-            if t == self.last_imu_t:
-                return self._reject("duplicate")
-            if t < self.last_imu_t:
-                return self._reject("time_backwards")
-            span = t - self.last_imu_t
-            if span - dt > self.config.intake.max_imu_gap_s:
-                self._imu_gap(t)
-                return True
+        if verdict.reason == "imu_gap":
+            self._imu_gap(t)
+            return True
+        if not verdict.accepted:
+            return self._reject(verdict.reason)
         if not self.initialised:
-            self._align_accumulate(msg)
+            self._align.add(t, dt, msg.dtheta_rad, msg.dvel_mps)
             self.last_imu_t = t
             self._try_initialise_from_aiding()
             return True
@@ -220,9 +199,9 @@ class VehicleEngine:
         self.initialised = False
         self.pending.clear()
         self.last_imu_t = t
-        self._align = _Align()
+        self._align = alignment.ImuAccumulator()
         for p in self.pipelines:
-            p.status = "ins_only"
+            p.mark_lost()
 
     # --- aiding ---------------------------------------------------------------------------------
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:
@@ -274,9 +253,7 @@ class VehicleEngine:
     # --- initialisation ---------------------------------------------------------------------------
     def _start(self, nav: NavState, std: InitStd) -> None:
         for p in self.pipelines:
-            p.initialise(nav, std)
-            if self._lost:
-                p.status = "reinitialised"
+            p.start(nav, std, after_loss=self._lost)
         self.pre = Preintegrator()
         self.pre.reset(nav.t)
         self.initialised = True
@@ -289,99 +266,31 @@ class VehicleEngine:
     def _initialise_from_message(self, msg: InitialNav) -> None:
         if self.config.init.mode not in ("auto", "message"):
             return
-        rpy = earth.rpy_from_msg_deg(msg.rpy_deg)
-        nav = NavState(
-            t=msg.t,
-            lat_rad=math.radians(msg.lat_deg),
-            lon_rad=math.radians(msg.lon_deg),
-            h_m=msg.height_m,
-            vel_enu_mps=np.array(msg.vel_enu_mps, dtype=float),
-            q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
-        )
-        rs = np.radians(msg.rpy_std_deg)
-        std = InitStd(
-            np.array(msg.pos_std_enu_m), np.array(msg.vel_std_enu_mps), np.array([rs[1], rs[0], rs[2]])
-        )
-        if self.initialised:
-            for p in self.pipelines:
-                p.reinitialisations += 1
-        self._start(nav, std)
-
-    def _align_accumulate(self, msg: ImuSample) -> None:
-        a = self._align
-        if a.t_start is None:
-            a.t_start = msg.t - msg.dt_s
-        w = np.asarray(msg.dtheta_rad) / msg.dt_s
-        f = np.asarray(msg.dvel_mps) / msg.dt_s
-        a.n += 1
-        a.sum_w += w
-        a.sum_f += f
-        a.sum_f2 += f * f
+        self._start(*alignment.from_initial_nav(msg))
 
     def _try_initialise_from_aiding(self) -> None:
+        """Coarse alignment from the latest GNSS fix and the IMU data so far, when ``[init] mode``
+        allows it: in motion (fix speed >= ``min_speed_mps``), or static after ``align_time_s``."""
         mode = self.config.init.mode
-        if self.initialised or mode == "message" or self.last_imu_t is None:
+        t = self.last_imu_t
+        if self.initialised or mode == "message" or t is None:
             return
         fix = self._last_fix
-        if fix is None or abs(fix.t - self.last_imu_t) > 1.0:
+        if fix is None or not alignment.fix_is_current(fix, t):
             return
-        a = self._align
-        speed = float(np.linalg.norm(fix.vel_enu_mps))
+        speed = alignment.fix_speed(fix)
         if mode in ("auto", "gnss_motion") and speed >= self.config.init.min_speed_mps:
-            ve, vn, vu = fix.vel_enu_mps
-            heading = math.degrees(math.atan2(ve, vn))
-            pitch = math.atan2(vu, math.hypot(ve, vn))
-            rpy = np.array([0.0, pitch, earth.yaw_from_heading_deg(heading)])
-            std = InitStd(
-                np.array(fix.pos_std_enu_m), np.array(fix.vel_std_enu_mps), np.radians([2.0, 2.0, 5.0])
-            )
-            self._start(self._nav_at_fix(fix, rpy), std)
+            self._start(*alignment.motion_alignment(fix, t))
             return
         if (
             mode in ("auto", "static")
-            and a.n > 0
-            and a.t_start is not None
-            and self.last_imu_t - a.t_start >= self.config.init.align_time_s
-            and speed < 0.5
+            and self._align.covers(t, self.config.init.align_time_s)
+            and speed < alignment.STATIC_MAX_SPEED_MPS
         ):
-            f = a.sum_f / a.n
-            var_f = np.maximum(a.sum_f2 / a.n - f * f, 0.0)
-            if float(np.sqrt(var_f.sum())) > 0.5:  # not static: wait for motion initialisation
-                return
-            w = a.sum_w / a.n
-            g = float(np.linalg.norm(f))
-            pitch = math.asin(max(-1.0, min(1.0, f[1] / g)))
-            roll = math.atan2(-f[0], f[2])
-            c_lev = earth.rpy_to_mat_nb(np.array([roll, pitch, 0.0]))
-            w_l = c_lev @ w
-            yaw = math.atan2(w_l[0], w_l[1])
             sg, sa = self.config.imu.bias_sigmas()
-            lat = math.radians(fix.lat_deg)
-            att_std = np.array(
-                [
-                    max(sa / g, 1e-4),
-                    max(sa / g, 1e-4),
-                    max(sg / (earth.OMEGA_IE_RPS * math.cos(lat)), math.radians(0.5)),
-                ]
-            )
-            std = InitStd(np.array(fix.pos_std_enu_m), np.array([0.05, 0.05, 0.05]), att_std)
-            nav = self._nav_at_fix(fix, np.array([roll, pitch, yaw]))
-            nav.vel_enu_mps = np.zeros(3)
-            self._start(nav, std)
-
-    def _nav_at_fix(self, fix: GnssFix, rpy: np.ndarray) -> NavState:
-        """State at the INS time from a fix, carried back/forward with the fix's velocity."""
-        vel = np.array(fix.vel_enu_mps, dtype=float)
-        llh = np.array([math.radians(fix.lat_deg), math.radians(fix.lon_deg), fix.height_m])
-        dllh = earth.enu_m_to_llh_delta(vel * (self.last_imu_t - fix.t), llh[0], llh[2])
-        return NavState(
-            t=self.last_imu_t,
-            lat_rad=float(llh[0] + dllh[0]),
-            lon_rad=float(llh[1] + dllh[1]),
-            h_m=float(llh[2] + dllh[2]),
-            vel_enu_mps=vel,
-            q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
-        )
+            aligned = alignment.static_alignment(self._align, fix, t, sg, sa)
+            if aligned is not None:  # else not static: wait for motion initialisation
+                self._start(*aligned)
 
     # --- state for health ---------------------------------------------------------------------------
     def pipeline_states(self) -> dict[str, dict]:

@@ -32,17 +32,9 @@ from service import earth
 from service.config import ImuModel
 from service.estimation.ins_filter import InsFilterBank
 from service.ins import error_model as em
+from service.ins.alignment import InitStd
 from service.ins.mechanisation import NavState
 from service.messages import Solution, WireModel
-
-
-@dataclass(frozen=True)
-class InitStd:
-    """1-sigma uncertainties of an initial state: ENU m, ENU m/s, nav-frame rad."""
-
-    pos_enu_m: np.ndarray
-    vel_enu_mps: np.ndarray
-    att_rad: np.ndarray
 
 
 def initial_covariance(std: InitStd, imu: ImuModel) -> np.ndarray:
@@ -94,6 +86,21 @@ class Pipeline(ABC):
         ):
             return "ins_only"
         return self.status
+
+    def start(self, nav: NavState, std: InitStd, *, after_loss: bool = False) -> None:
+        """(Re-)initialise from an initial state (``initialise`` builds the filter). A start of a
+        pipeline that had been initialised before counts one re-initialisation. Status
+        ``reinitialised`` when the start follows a loss of the INS (:meth:`mark_lost`), else
+        ``aligned``."""
+        restart = self.bank is not None
+        self.initialise(nav, std)
+        if restart:
+            self.reinitialisations += 1
+        self.status = "reinitialised" if after_loss else "aligned"
+
+    def mark_lost(self) -> None:
+        """The INS is lost (IMU gap): no navigation until the next start; status ``ins_only``."""
+        self.status = "ins_only"
 
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:

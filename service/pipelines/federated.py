@@ -113,8 +113,6 @@ class _CorePipeline(Pipeline):
 
     # --- Pipeline interface ---------------------------------------------------------------------
     def initialise(self, nav: NavState, std: InitStd) -> None:
-        if self.bank is not None:
-            self.reinitialisations += 1
         n_locals = len(self.local_names)
         self._P0 = initial_covariance(std, self.imu)
         self.bank = InsFilterBank(
@@ -137,7 +135,6 @@ class _CorePipeline(Pipeline):
         for ch in self.channels.values():
             ch.test.reset()
         self._version += 1
-        self.status = "aligned"
 
     def push_imu(self, dtheta_rad, dvel_mps, dt_s: float, t_end: float | None = None) -> None:
         if self._epoch_t is not None:

@@ -30,11 +30,8 @@ class LooselyCoupled(Pipeline):
         self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
-        if self.bank is not None:
-            self.reinitialisations += 1
         self._P0 = initial_covariance(std, self.imu)
         self.bank = InsFilterBank(nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s)
-        self.status = "aligned"
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         model = self.models.get(kind)

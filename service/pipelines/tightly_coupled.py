@@ -83,8 +83,6 @@ class TightlyCoupled(Pipeline):
 
     # --- pipeline interface ------------------------------------------------------------------------
     def initialise(self, nav: NavState, std: InitStd) -> None:
-        if self.bank is not None:
-            self.reinitialisations += 1
         private = self.model.private_states
         n = 15 + sum(b.size for b in private)
         P0 = np.zeros((n, n))
@@ -95,7 +93,6 @@ class TightlyCoupled(Pipeline):
         self.monitor.reset()
         self.clock_initialised = False
         self.last = None
-        self.status = "aligned"
 
     def recover_covariance(self) -> None:
         """Lost positive definiteness: keep the INS, the clock reference and the exclusions; restart

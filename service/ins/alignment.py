@@ -1,0 +1,218 @@
+"""Coarse alignment: an initial navigation state and its uncertainty without a host's InitialNav.
+
+Pure functions (no engine state); the engine decides *when* to align (``[init] mode``,
+``align_time_s``, ``min_speed_mps``) and these decide *how*:
+
+- :func:`static_alignment`: levelling and gyrocompassing from the mean specific force and angular
+  rate of a static IMU (:class:`ImuAccumulator`), at a GNSS fix's position. Roll and pitch from
+  the direction of the specific force (gravity reaction), yaw from the horizontal earth rate seen
+  in the levelled frame. Attitude sigmas from the IMU bias sigmas: levelling to
+  ``accel_bias / g``, gyrocompassing to ``gyro_bias / (omega_ie cos L)`` (with floors).
+- :func:`motion_alignment`: in motion, position and velocity from a GNSS fix, heading and pitch
+  from its velocity track, roll 0, wide attitude sigmas.
+- :func:`nav_at_fix`: a fix's position carried to the INS time with the fix's own velocity.
+- :func:`from_initial_nav`: the state and sigmas of a host's InitialNav message.
+
+Frames as everywhere in the service: ENU navigation frame, right-forward-up body, yaw
+west-positive (``earth.rpy_to_mat_nb``), headings clockwise from north.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from service import earth
+from service.ins.mechanisation import NavState
+from service.messages import GnssFix, InitialNav
+
+#: a GNSS fix further than this from the INS time is not used to initialise (s)
+FIX_MAX_AGE_S = 1.0
+#: static alignment needs the GNSS speed below this (m/s)
+STATIC_MAX_SPEED_MPS = 0.5
+#: static alignment needs the specific-force scatter (RSS of the per-axis standard deviations)
+#: below this (m/s^2); above, the vehicle is moving and in-motion initialisation is awaited
+STATIC_MAX_SCATTER_MPS2 = 0.5
+#: 1-sigma attitude uncertainty of an in-motion alignment, nav frame (east, north, up), deg:
+#: roll is assumed 0 and heading/pitch follow the velocity track (sideslip, angle of attack)
+MOTION_ATT_STD_DEG = (2.0, 2.0, 5.0)
+#: floor of the levelling (east/north tilt) sigma of a static alignment (rad)
+LEVELLING_STD_FLOOR_RAD = 1e-4
+#: floor of the gyrocompassing (heading) sigma of a static alignment (rad)
+HEADING_STD_FLOOR_RAD = math.radians(0.5)
+#: 1-sigma velocity uncertainty of a static alignment (velocity set to zero), each ENU axis (m/s)
+STATIC_VEL_STD_MPS = 0.05
+
+
+@dataclass(frozen=True)
+class InitStd:
+    """1-sigma uncertainties of an initial state: ENU m, ENU m/s, nav-frame rad."""
+
+    pos_enu_m: np.ndarray
+    vel_enu_mps: np.ndarray
+    att_rad: np.ndarray
+
+
+@dataclass
+class ImuAccumulator:
+    """Running sums of IMU rate and specific force (body frame) over the alignment window."""
+
+    t_start: float | None = None  # start of the first accumulated interval
+    n: int = 0
+    sum_w: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    sum_f2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def add(self, t: float, dt_s: float, dtheta_rad, dvel_mps) -> None:
+        """One IMU interval (increments over ``dt_s`` ending at ``t``)."""
+        if self.t_start is None:
+            self.t_start = t - dt_s
+        w = np.asarray(dtheta_rad) / dt_s
+        f = np.asarray(dvel_mps) / dt_s
+        self.n += 1
+        self.sum_w += w
+        self.sum_f += f
+        self.sum_f2 += f * f
+
+    def covers(self, t: float, duration_s: float) -> bool:
+        """True when the accumulated data spans at least ``duration_s`` up to ``t``."""
+        return self.n > 0 and self.t_start is not None and t - self.t_start >= duration_s
+
+    def mean_specific_force(self) -> np.ndarray:
+        return self.sum_f / self.n
+
+    def mean_rate(self) -> np.ndarray:
+        return self.sum_w / self.n
+
+    def specific_force_scatter(self) -> float:
+        """RSS of the per-axis standard deviations of the specific force (m/s^2)."""
+        f = self.sum_f / self.n
+        var_f = np.maximum(self.sum_f2 / self.n - f * f, 0.0)
+        return float(np.sqrt(var_f.sum()))
+
+
+def fix_is_current(fix: GnssFix, t: float) -> bool:
+    """Whether a fix is close enough to the INS time ``t`` to initialise from."""
+    return abs(fix.t - t) <= FIX_MAX_AGE_S
+
+
+def fix_speed(fix: GnssFix) -> float:
+    return float(np.linalg.norm(fix.vel_enu_mps))
+
+
+def level_and_gyrocompass(f_b: np.ndarray, w_b: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (rad) of a static body from its mean specific force ``f_b`` (m/s^2) and
+    angular rate ``w_b`` (rad/s): f_b = C_bn [0, 0, g] gives roll and pitch; the rate rotated into
+    the levelled frame is the horizontal earth rate [0, w cos L] turned by -yaw."""
+    g = float(np.linalg.norm(f_b))
+    pitch = math.asin(max(-1.0, min(1.0, f_b[1] / g)))
+    roll = math.atan2(-f_b[0], f_b[2])
+    c_lev = earth.rpy_to_mat_nb(np.array([roll, pitch, 0.0]))
+    w_l = c_lev @ w_b
+    yaw = math.atan2(w_l[0], w_l[1])
+    return np.array([roll, pitch, yaw])
+
+
+def static_attitude_std(
+    g: float, lat_rad: float, gyro_bias_sigma: float, accel_bias_sigma: float
+) -> np.ndarray:
+    """Nav-frame attitude sigmas (rad) of a static alignment: tilts ``accel_bias / g``, heading
+    ``gyro_bias / (omega_ie cos L)``, each with its floor."""
+    return np.array(
+        [
+            max(accel_bias_sigma / g, LEVELLING_STD_FLOOR_RAD),
+            max(accel_bias_sigma / g, LEVELLING_STD_FLOOR_RAD),
+            max(gyro_bias_sigma / (earth.OMEGA_IE_RPS * math.cos(lat_rad)), HEADING_STD_FLOOR_RAD),
+        ]
+    )
+
+
+def static_alignment(
+    acc: ImuAccumulator, fix: GnssFix, t: float, gyro_bias_sigma: float, accel_bias_sigma: float
+) -> tuple[NavState, InitStd] | None:
+    """Static coarse alignment at the INS time ``t``: attitude from the accumulated IMU data,
+    position from the fix (carried to ``t``), velocity zero. None when the specific force
+    scattered too much for a static vehicle."""
+    if acc.specific_force_scatter() > STATIC_MAX_SCATTER_MPS2:
+        return None
+    f = acc.mean_specific_force()
+    rpy = level_and_gyrocompass(f, acc.mean_rate())
+    att_std = static_attitude_std(
+        float(np.linalg.norm(f)), math.radians(fix.lat_deg), gyro_bias_sigma, accel_bias_sigma
+    )
+    std = InitStd(np.array(fix.pos_std_enu_m), np.full(3, STATIC_VEL_STD_MPS), att_std)
+    nav = nav_at_fix(fix, rpy, t)
+    nav.vel_enu_mps = np.zeros(3)
+    return nav, std
+
+
+def attitude_from_velocity(vel_enu_mps) -> np.ndarray:
+    """Roll 0, pitch and yaw (rad) of a body moving along its velocity (heading atan2(ve, vn))."""
+    ve, vn, vu = vel_enu_mps
+    heading = math.degrees(math.atan2(ve, vn))
+    pitch = math.atan2(vu, math.hypot(ve, vn))
+    return np.array([0.0, pitch, earth.yaw_from_heading_deg(heading)])
+
+
+def motion_alignment(fix: GnssFix, t: float) -> tuple[NavState, InitStd]:
+    """In-motion initialisation at the INS time ``t`` from a fix: position (carried to ``t``) and
+    velocity from the fix, attitude from its velocity track, wide attitude sigmas."""
+    std = InitStd(
+        np.array(fix.pos_std_enu_m), np.array(fix.vel_std_enu_mps), np.radians(list(MOTION_ATT_STD_DEG))
+    )
+    return nav_at_fix(fix, attitude_from_velocity(fix.vel_enu_mps), t), std
+
+
+def nav_at_fix(fix: GnssFix, rpy_rad: np.ndarray, t: float) -> NavState:
+    """State at time ``t`` from a fix, carried back/forward with the fix's velocity."""
+    vel = np.array(fix.vel_enu_mps, dtype=float)
+    llh = np.array([math.radians(fix.lat_deg), math.radians(fix.lon_deg), fix.height_m])
+    dllh = earth.enu_m_to_llh_delta(vel * (t - fix.t), llh[0], llh[2])
+    return NavState(
+        t=t,
+        lat_rad=float(llh[0] + dllh[0]),
+        lon_rad=float(llh[1] + dllh[1]),
+        h_m=float(llh[2] + dllh[2]),
+        vel_enu_mps=vel,
+        q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy_rad)),
+    )
+
+
+def from_initial_nav(msg: InitialNav) -> tuple[NavState, InitStd]:
+    """State and sigmas of a host's InitialNav (roll/pitch sigmas -> nav-frame north/east tilts)."""
+    rpy = earth.rpy_from_msg_deg(msg.rpy_deg)
+    nav = NavState(
+        t=msg.t,
+        lat_rad=math.radians(msg.lat_deg),
+        lon_rad=math.radians(msg.lon_deg),
+        h_m=msg.height_m,
+        vel_enu_mps=np.array(msg.vel_enu_mps, dtype=float),
+        q_nb=earth.mat_to_quat(earth.rpy_to_mat_nb(rpy)),
+    )
+    rs = np.radians(msg.rpy_std_deg)
+    std = InitStd(np.array(msg.pos_std_enu_m), np.array(msg.vel_std_enu_mps), np.array([rs[1], rs[0], rs[2]]))
+    return nav, std
+
+
+__all__ = [
+    "FIX_MAX_AGE_S",
+    "HEADING_STD_FLOOR_RAD",
+    "LEVELLING_STD_FLOOR_RAD",
+    "MOTION_ATT_STD_DEG",
+    "STATIC_MAX_SCATTER_MPS2",
+    "STATIC_MAX_SPEED_MPS",
+    "STATIC_VEL_STD_MPS",
+    "ImuAccumulator",
+    "InitStd",
+    "attitude_from_velocity",
+    "fix_is_current",
+    "fix_speed",
+    "from_initial_nav",
+    "level_and_gyrocompass",
+    "motion_alignment",
+    "nav_at_fix",
+    "static_alignment",
+    "static_attitude_std",
+]

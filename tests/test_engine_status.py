@@ -1,0 +1,188 @@
+"""The engine's acceptance rules (service/intake_rules.py) and pipeline status ownership: the
+pipelines set their own status and re-initialisation count; the engine only tells them what
+happened (``start(..., after_loss=)``, ``mark_lost()``)."""
+
+import ast
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service import keys
+from service.config import IntakeConfig, LooselyCoupledConfig
+from service.engine import VehicleEngine
+from service.ins.alignment import InitStd
+from service.ins.mechanisation import NavState
+from service.intake_rules import AcceptanceRules
+from service.messages import GnssFix, ImuSample, InitialNav, StarAttitude, Truth
+from service.pipelines.base import Pipeline
+from service.pipelines.loosely_coupled import LooselyCoupled
+from simulators.evaluate import CollectingSink, service_config
+from simulators.stream import Simulation
+
+from .scenario_utils import shortened
+
+T0 = 1000.0
+INTAKE = IntakeConfig(late_tolerance_s=0.5, max_lead_s=5.0, max_imu_gap_s=0.5)
+
+
+def _imu(t, dt=0.01):
+    return ImuSample(t=t, dt_s=dt, dtheta_rad=(0.0, 0.0, 0.0), dvel_mps=(0.0, 0.0, 0.098))
+
+
+def _fix(t):
+    return GnssFix(
+        t=t,
+        lat_deg=40.0,
+        lon_deg=10.0,
+        height_m=0.0,
+        vel_enu_mps=(0.0, 0.0, 0.0),
+        pos_std_enu_m=(1.0, 1.0, 1.0),
+        vel_std_enu_mps=(0.1, 0.1, 0.1),
+    )
+
+
+# --- acceptance rules --------------------------------------------------------------------------------
+def test_imu_rules_against_the_ins_time():
+    r = AcceptanceRules(INTAKE)
+    assert r.decide("imu", "0", _imu(T0), None, False).accepted  # the first sample
+    assert r.decide("imu", "0", _imu(T0), T0, True).reason == "duplicate"
+    assert r.decide("imu", "0", _imu(T0 - 0.01), T0, True).reason == "time_backwards"
+    assert r.decide("imu", "0", _imu(T0 + 0.01), T0, True).accepted
+    assert r.decide("imu", "0", _imu(T0 + 0.4), T0, True).accepted  # short gap: stretched over it
+    gap = r.decide("imu", "0", _imu(T0 + 0.52), T0, True)  # 0.52 - 0.01 > 0.5
+    assert gap.reason == "imu_gap" and not gap.accepted
+    assert r.decide("imu", "0", _imu(T0 + 0.52), T0, False).reason == "imu_gap"  # also before init
+    assert r.last_t == {}  # IMU order is the INS time's, not a per-key record
+
+
+def test_aiding_rules_order_and_records():
+    r = AcceptanceRules(INTAKE)
+    t_ins = T0
+    assert r.decide("gnss_fix", "a", _fix(T0), t_ins, True).accepted
+    assert r.last_t[("gnss_fix", "a")] == T0
+    assert r.decide("gnss_fix", "a", _fix(T0), t_ins, True).reason == "duplicate"
+    # older than the sensor's previous AND than the INS by more than the tolerance: "late" first
+    assert r.decide("gnss_fix", "a", _fix(T0 - 1.0), t_ins, True).reason == "late"
+    assert r.decide("gnss_fix", "a", _fix(T0 - 0.2), t_ins, True).reason == "time_backwards"
+    assert r.decide("gnss_fix", "b", _fix(T0 - 0.2), t_ins, True).accepted  # another sensor: late-tolerated
+    early = r.decide("gnss_fix", "a", _fix(T0 + 5.5), t_ins, True)
+    assert early.reason == "early" and early.in_sequence
+    assert r.last_t[("gnss_fix", "a")] == T0  # refused: not recorded
+    assert r.decide("gnss_fix", "a", _fix(T0 + 4.9), t_ins, True).accepted  # queued by the engine
+    assert r.last_t[("gnss_fix", "a")] == T0 + 4.9
+    # out of sequence (stale): the engine does not even keep such a fix for alignment
+    assert not r.decide("gnss_fix", "a", _fix(T0 - 9.0), t_ins, True).in_sequence
+    assert not r.decide("gnss_fix", "a", _fix(T0 + 4.9), t_ins, True).in_sequence  # duplicate
+
+
+def test_aiding_before_initialisation():
+    r = AcceptanceRules(INTAKE)
+    v = r.decide("gnss_fix", "a", _fix(T0), None, False)  # no IMU yet
+    assert v.reason == "not_initialised" and v.in_sequence
+    assert r.last_t[("gnss_fix", "a")] == T0  # recorded: the newest fix of the sensor
+    # not initialised: no late/early checks, but the sensor's own order still holds
+    assert r.decide("gnss_fix", "a", _fix(T0 - 30.0), T0 + 60.0, False).reason == "time_backwards"
+    assert r.decide("gnss_fix", "a", _fix(T0 + 30.0), T0, False).reason == "not_initialised"
+
+
+def test_truth_and_init_rules():
+    r = AcceptanceRules(INTAKE)
+    truth = Truth.model_construct(t=T0)
+    assert r.decide("truth", "0", truth, None, False).accepted  # truth is kept before initialisation
+    assert r.decide("truth", "0", truth, None, False).reason == "duplicate"
+    assert (
+        r.decide("truth", "0", Truth.model_construct(t=T0 - 1.0), T0 + 100.0, True).reason == "time_backwards"
+    )
+    init = InitialNav.model_construct(t=T0)
+    assert r.decide("init", "0", init, T0 + 100.0, True).accepted  # no late check for InitialNav
+    assert r.decide("init", "0", init, T0 + 100.0, True).reason == "duplicate"
+    assert r.decide("init", "0", InitialNav.model_construct(t=T0 - 5.0), T0, True).accepted
+    star = StarAttitude.model_construct(t=T0)
+    assert r.decide("star", "st1", star, T0, True).accepted
+
+
+# --- pipeline status ownership ------------------------------------------------------------------------
+def _nav(t=0.0):
+    return NavState(
+        t=t, lat_rad=0.7, lon_rad=0.2, h_m=0.0, vel_enu_mps=np.zeros(3), q_nb=np.array([1.0, 0, 0, 0])
+    )
+
+
+STD = InitStd(np.full(3, 5.0), np.full(3, 0.1), np.radians([0.1, 0.1, 0.5]))
+
+
+def test_pipeline_start_counts_a_restart_once_and_sets_status():
+    p = LooselyCoupled(
+        LooselyCoupledConfig(name="lc"), service_config(shortened("demo_aircraft.toml", 5.0)).imu, 0.1
+    )
+    assert p.status == "initialising"
+    p.start(_nav(), STD, after_loss=False)
+    assert (p.status, p.reinitialisations) == ("aligned", 0)
+    p.start(_nav(1.0), STD, after_loss=False)  # a second InitialNav
+    assert (p.status, p.reinitialisations) == ("aligned", 1)
+    p.mark_lost()
+    assert p.status == "ins_only"
+    p.start(_nav(2.0), STD, after_loss=True)
+    assert (p.status, p.reinitialisations) == ("reinitialised", 2)
+
+
+@pytest.fixture
+def attribute_writers(monkeypatch):
+    """(attribute, writing module) for every write of a pipeline's status bookkeeping."""
+    writes: list[tuple[str, str]] = []
+
+    def spy(self, name, value):
+        if name in ("status", "reinitialisations", "updates"):
+            writes.append((name, sys._getframe(1).f_globals.get("__name__")))
+        object.__setattr__(self, name, value)
+
+    monkeypatch.setattr(Pipeline, "__setattr__", spy)
+    return writes
+
+
+def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
+    """A second InitialNav counts one re-initialisation; an IMU gap gives ``ins_only``, the next
+    GNSS fix ``reinitialised`` (and one more count); the engine writes none of these attributes."""
+    sc = shortened("demo_aircraft.toml", 30.0)
+    cfg = service_config(sc)
+    eng = VehicleEngine("v1", cfg, CollectingSink(keep_solutions=True))
+    p = eng.pipelines[0]
+    init = None
+    seen = []  # (t - t0, status, reinitialisations) at every change
+    for key, msg in Simulation(sc, seed=4):
+        pk = keys.parse_input(key)
+        t = msg.t - sc.t0_gps_s
+        if pk.kind == "init":
+            init = msg
+        if pk.kind == "imu" and 15.0 <= t < 16.0:
+            continue  # a 1 s IMU gap (> max_imu_gap_s)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+        if pk.kind == "imu" and init is not None and abs(t - 8.0) < 0.005:
+            assert eng.handle("init", "0", init.model_copy(update={"t": msg.t}))  # re-initialise
+        state = (p.status, p.reinitialisations)
+        if not seen or seen[-1][1:] != state:
+            seen.append((round(t, 2), *state))
+    statuses = [s[1:] for s in seen]
+    assert statuses[:3] == [("aligned", 0), ("aided", 0), ("aligned", 1)]  # second InitialNav: +1
+    i_lost = statuses.index(("ins_only", 1))
+    assert 16.0 <= seen[i_lost][0] < 16.1  # the first sample after the gap
+    assert eng.rejected["imu_gap"] == 1
+    assert statuses[i_lost + 1] == ("reinitialised", 2)  # from the next GNSS fix
+    assert statuses[-1] == ("aided", 2)
+    writers = {m for _, m in attribute_writers}
+    assert writers and "service.engine" not in writers
+    assert writers <= {"service.pipelines.base", "service.pipelines.loosely_coupled"}
+
+
+def test_engine_source_never_assigns_pipeline_bookkeeping():
+    tree = ast.parse(Path(sys.modules[VehicleEngine.__module__].__file__).read_text())
+    targets = [
+        t.attr
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Assign | ast.AugAssign)
+        for t in (node.targets if isinstance(node, ast.Assign) else [node.target])
+        if isinstance(t, ast.Attribute)
+    ]
+    assert not {"status", "reinitialisations", "updates"} & set(targets)
