@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from service import earth, keys
+from service import keys
 from service.config import ServiceConfig
-from service.engine import VehicleEngine
+from service.engine import EstimateOutput, VehicleEngine
+from service.evaluation import recording_errors
 from service.messages import (
     SENSOR_MESSAGES,
     Faults,
@@ -33,7 +34,6 @@ from service.messages import (
     Truth,
     WireModel,
 )
-from service.pipelines.base import error_dict
 
 log = logging.getLogger("fednav.service")
 
@@ -92,27 +92,14 @@ class OutputSink:
         self.rr = rerun_sink
         self.last_solution: dict[tuple[str, str], Solution] = {}
 
-    def on_solution(self, vehicle: str, sol: Solution, err9, P9) -> None:
+    def on_estimate(self, vehicle: str, out: EstimateOutput) -> None:
+        sol = out.solution()
         self.pubs.publish(keys.nav(vehicle, sol.pipeline, "solution", self.prefix), sol)
         self.last_solution[(vehicle, sol.pipeline)] = sol
         if self.rr is not None:
             self.rr.log_solution(vehicle, sol)
-            if err9 is not None:
-                e = error_dict(err9)
-                sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
-                errors = {
-                    "east_m": e["lon_m"],
-                    "north_m": e["lat_m"],
-                    "up_m": e["h_m"],
-                    "ve_mps": e["ve_mps"],
-                    "vn_mps": e["vn_mps"],
-                    "vu_mps": e["vu_mps"],
-                    "phi_e_arcsec": e["phi_e_arcsec"],
-                    "phi_n_arcsec": e["phi_n_arcsec"],
-                    "phi_u_arcsec": e["phi_u_arcsec"],
-                }
-                scale = np.r_[np.ones(6), np.full(3, 1.0 / earth.ARCSEC)]  # phi in arcsec
-                bounds = {n: float(3.0 * sd[i] * scale[i]) for i, n in enumerate(errors)}
+            if out.err9 is not None:
+                errors, bounds = recording_errors(out.err9, out.P9)
                 self.rr.log_errors(vehicle, sol.pipeline, sol.t, errors, bounds)
 
     def on_output(self, vehicle: str, msg: WireModel, err9=None) -> None:

@@ -3,7 +3,7 @@
 The same code runs inside the service (events from Zenoh) and in ``fednav-sim eval`` (events
 generated in-process), so both give the same solutions for the same input stream.
 
-Time handling (DESIGN.md "The service's inner loop"):
+Time handling (docs/DESIGN.md "The service's inner loop"):
 - The IMU stream drives time. An aiding measurement at t_m is queued until the INS reaches t_m;
   the IMU interval containing t_m is split there (constant-rate assumption), the pipelines
   update at exactly t_m, and propagation resumes.
@@ -31,48 +31,60 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
-from service import earth
-from service.config import LooselyCoupledConfig, ServiceConfig
+from service.config import ServiceConfig
+from service.evaluation import errors_against_truth
 from service.ins import alignment
 from service.ins.mechanisation import NavState, Preintegrator
 from service.intake_rules import AcceptanceRules, Verdict
 from service.messages import GnssFix, ImuSample, InitialNav, Solution, Truth, WireModel
-from service.pipelines.base import InitStd, Pipeline, nav_errors
+from service.pipelines import build_pipeline
+from service.pipelines.base import Estimate, InitStd, Pipeline
+
+
+@dataclass
+class EstimateOutput:
+    """One pipeline's estimate at an output epoch, as the engine hands it to its sink.
+
+    ``est``: navigation state and its 9x9 covariance; ``err9``: errors against truth at the same
+    epoch (:func:`service.evaluation.nav_errors`; None without truth). :meth:`solution` builds the
+    wire message on demand (evaluation that keeps no messages never builds one)."""
+
+    pipeline: Pipeline
+    est: Estimate
+    err9: np.ndarray | None
+
+    @property
+    def name(self) -> str:
+        return self.pipeline.name
+
+    @property
+    def t(self) -> float:
+        return self.est.nav.t
+
+    @property
+    def P9(self) -> np.ndarray:
+        return self.est.P9
+
+    def solution(self) -> Solution:
+        return self.pipeline.solution(self.est)
 
 
 class EngineSink(Protocol):
-    """Where the engine's outputs go (the service publishes/records; eval collects)."""
+    """Where the engine's outputs go (the service publishes and records; evaluation collects)."""
 
-    def on_solution(self, vehicle: str, sol: Solution, err9: np.ndarray | None, P9: np.ndarray) -> None: ...
+    def on_estimate(self, vehicle: str, out: EstimateOutput) -> None:
+        """Every pipeline's estimate at every output epoch."""
 
-    def on_output(self, vehicle: str, msg: WireModel, err9: np.ndarray | None = None) -> None: ...
+    def on_output(self, vehicle: str, msg: WireModel, err9: np.ndarray | None = None) -> None:
+        """Extra outputs of an aiding update (Faults, Integrity, ...), with the errors at its time."""
 
-    def on_truth(self, vehicle: str, truth: Truth) -> None: ...
-
-    # A sink may set ``wants_solutions = False`` and implement
-    # ``on_estimate(vehicle, pipeline, t, err9, P9)`` instead of receiving Solution messages.
-
-
-def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
-    """Instantiate a pipeline from its config (the registry of pipeline kinds)."""
-    if isinstance(cfg, LooselyCoupledConfig):
-        from service.pipelines.loosely_coupled import LooselyCoupled
-
-        return LooselyCoupled(cfg, config.imu, config.major_interval_s)
-    if cfg.kind in ("federated", "centralized"):
-        from service.pipelines.federated import Centralized, Federated
-
-        cls = Federated if cfg.kind == "federated" else Centralized
-        return cls(cfg, config.imu, config.major_interval_s)
-    if cfg.kind == "tightly_coupled":
-        from service.pipelines.tightly_coupled import TightlyCoupled
-
-        return TightlyCoupled(cfg, config.imu, config.major_interval_s)
-    raise ValueError(f"unknown pipeline kind {cfg.kind!r}")  # unreachable: config validates kinds
+    def on_truth(self, vehicle: str, truth: Truth) -> None:
+        """A Truth message (simulators only), accepted in sensor-time order."""
 
 
 class VehicleEngine:
@@ -229,26 +241,18 @@ class VehicleEngine:
         self.emit_solutions()
 
     def emit_solutions(self) -> None:
-        wants = getattr(self.sink, "wants_solutions", True)
         self._advance_all()
         for p in self.pipelines:
             p.sync()
             est = p.estimate()
-            err9 = self._errors(p, est.nav.t, est)
-            if wants:
-                self.sink.on_solution(self.vehicle, p.solution(est), err9, est.P9)
-            else:  # evaluation without solution messages: skip building them
-                self.sink.on_estimate(self.vehicle, p.name, est.nav.t, err9, est.P9)
+            self.sink.on_estimate(self.vehicle, EstimateOutput(p, est, self._errors(p, est.nav.t, est)))
 
-    def _errors(self, p: Pipeline, t: float, est=None) -> np.ndarray | None:
+    def _errors(self, p: Pipeline, t: float, est: Estimate | None = None) -> np.ndarray | None:
         """Errors of a pipeline's estimate against truth at t (None without truth at t)."""
         truth = self._truth.get(self._tkey(t))
         if truth is None:
             return None
-        est = est or p.estimate()
-        llh = np.array([math.radians(truth.lat_deg), math.radians(truth.lon_deg), truth.height_m])
-        c_nb = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(truth.rpy_deg))
-        return nav_errors(est.nav, llh, np.asarray(truth.vel_enu_mps), c_nb)
+        return errors_against_truth((est or p.estimate()).nav, truth)
 
     # --- initialisation ---------------------------------------------------------------------------
     def _start(self, nav: NavState, std: InitStd) -> None:

@@ -1,4 +1,4 @@
-"""Acceptance rules of one vehicle's event stream (DESIGN.md "The service's inner loop").
+"""Acceptance rules of one vehicle's event stream (docs/DESIGN.md "The service's inner loop").
 
 One decision per event, in this order of checks:
 

@@ -1,4 +1,4 @@
-"""Key expressions of the wire contract (DESIGN.md): builders and a parser.
+"""Key expressions of the wire contract (docs/DESIGN.md): builders and a parser.
 
 {prefix}/{vehicle}/sensor/imu/{id}            ImuSample
 {prefix}/{vehicle}/sensor/gnss/{id}/fix       GnssFix

@@ -18,9 +18,17 @@ import numpy as np
 
 from service import config as config_mod
 from service import keys
-from service.engine import VehicleEngine
+from service.engine import EstimateOutput, VehicleEngine
+from service.evaluation import (
+    INTEGRITY_CLASSES,
+    REPORT_KEYS,
+    FaultWindow,
+    error_stats,
+    fault_window_max_vel,
+    integrity_metrics,
+    nees,
+)
 from service.messages import Integrity, Solution, Truth, WireModel
-from service.pipelines.base import ERROR_KEYS, error_dict, nees
 from simulators.papers import reference
 from simulators.scenario import Scenario
 from simulators.stream import Simulation
@@ -47,21 +55,15 @@ class CollectingSink:
     def _rec(self, name: str) -> RunRecord:
         return self.records.setdefault(name, RunRecord())
 
-    @property
-    def wants_solutions(self) -> bool:
-        return self.keep
-
-    def on_solution(self, vehicle, sol: Solution, err9, P9) -> None:
-        self._rec(sol.pipeline).solutions.append(sol)
-        self.on_estimate(vehicle, sol.pipeline, sol.t, err9, P9)
-
-    def on_estimate(self, vehicle, pipeline: str, t: float, err9, P9) -> None:
-        r = self._rec(pipeline)
-        if err9 is not None:
-            r.t.append(t)
-            r.err.append(err9)
+    def on_estimate(self, vehicle, out: EstimateOutput) -> None:
+        r = self._rec(out.name)
+        if self.keep:
+            r.solutions.append(out.solution())
+        if out.err9 is not None:
+            r.t.append(out.t)
+            r.err.append(out.err9)
             try:
-                r.nees.append(nees(err9, P9))
+                r.nees.append(nees(out.err9, out.P9))
             except np.linalg.LinAlgError:
                 r.nees.append(float("nan"))
 
@@ -97,13 +99,6 @@ def run_once(
     return sink, sim
 
 
-def _stats(err: np.ndarray) -> tuple[dict, dict]:
-    named = [error_dict(e) for e in err]
-    rms = {k: float(math.sqrt(np.mean([d[k] ** 2 for d in named]))) for k in ERROR_KEYS}
-    mx = {k: float(np.max([abs(d[k]) for d in named])) for k in ERROR_KEYS}
-    return rms, mx
-
-
 def evaluate(
     scenario: Scenario, runs: int = 1, seed: int | None = None, window: tuple[float, float] | None = None
 ) -> dict:
@@ -135,7 +130,7 @@ def evaluate(
         if not p["err"]:
             continue
         err = np.array(p["err"])
-        rms, mx = _stats(err)
+        rms, mx = error_stats(err)
         nees_arr = np.array(p["nees"])
         entry = {
             "rms": rms,
@@ -144,43 +139,22 @@ def evaluate(
             "h_rms_m": float(math.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
-        fw = _fault_window_max_vel(scenario, np.array(p["t"]), err)
+        fw = fault_window_max_vel(fault_windows(scenario), np.array(p["t"]), err)
         if fw is not None:
             entry["fault_windows_max_vel_err_mps"] = fw
         if window is not None:
             t = np.array(p["t"])
             sel = (t >= window[0]) & (t <= window[1])
             if sel.any():
-                wr, wm = _stats(err[sel])
+                wr, wm = error_stats(err[sel])
                 entry["window"] = {"t0": window[0], "t1": window[1], "rms": wr, "max": wm}
         out["pipelines"][name] = entry
     add_integrity(out, scenario, integ_runs)
     return out
 
 
-def _fault_window_max_vel(scenario: Scenario, t_rel: np.ndarray, err: np.ndarray) -> float | None:
-    """Largest velocity-error norm inside the fault windows, after the first filter cycle of each.
-
-    The filter cycle is the aiding period of the faulted sensor (1 s for the seed-000 BDS fixes).
-    """
-    if not scenario.faults:
-        return None
-    rate = {
-        "gnss": scenario.gnss.rate_hz if scenario.gnss else 1.0,
-        "star": scenario.star.rate_hz if scenario.star else 1.0,
-    }
-    vnorm = np.linalg.norm(err[:, 3:6], axis=1)
-    worst = 0.0
-    for f in scenario.faults:
-        cycle = 1.0 / rate.get(f.sensor, 1.0)
-        sel = (t_rel >= f.start_s + cycle - 1e-6) & (t_rel < f.start_s + f.duration_s)
-        if sel.any():
-            worst = max(worst, float(vnorm[sel].max()))
-    return worst
-
-
 def format_table(result: dict) -> str:
-    cols = ERROR_KEYS
+    cols = REPORT_KEYS
     head = f"{'pipeline':<22}{'':6}" + "".join(f"{c:>13}" for c in cols) + f"{'NEES/9':>9}"
     lines = [
         f"scenario {result['scenario']}: {result['runs']} run(s), seed {result['seed']}, "
@@ -219,9 +193,6 @@ def format_table(result: dict) -> str:
 
 
 # --- integrity (seed 001): per-epoch classes of the paper's Table 1 --------------------------------
-INTEGRITY_CLASSES = ("normal", "detected", "missed", "false_alarm", "undetected")
-
-
 def collect_integrity(acc: dict[str, list], sink: CollectingSink) -> None:
     """Keep each pipeline's Integrity outputs (and their errors) of one run: acc[name] += [(msgs, errs)]."""
     for name, rec in sink.records.items():
@@ -236,146 +207,30 @@ def add_integrity(result: dict, scenario: Scenario, acc: dict[str, list]) -> Non
     """Add ``result["pipelines"][name]["integrity"]`` for every pipeline that produced Integrity."""
     for name, runs in acc.items():
         entry = result["pipelines"].setdefault(name, {})
-        entry["integrity"] = integrity_metrics(scenario, runs)
-
-
-def _raw_faults(scenario: Scenario) -> list[tuple[float, float, set[str]]]:
-    """(start_s, end_s, satellites) of the raw-GNSS faults, in onset order."""
-    out = []
-    for f in scenario.faults:
-        if f.sensor == "gnss_raw":
-            out.append((f.start_s, f.start_s + f.duration_s, {c.split(".")[0] for c in f.channels}))
-    return sorted(out, key=lambda x: x[0])
-
-
-def integrity_metrics(scenario: Scenario, runs: list[list[tuple[Integrity, np.ndarray | None]]]) -> dict:
-    """Integrity figures of one pipeline over runs of ``scenario`` (JSON-ready).
-
-    Epochs are the pipeline's Integrity messages (one per GNSS epoch); ``t_rel`` is the message
-    time from the scenario start on the IMU grid. A raw-GNSS fault of ``scenario.faults`` is
-    *active* at ``start_s <= t_rel < start_s + duration_s``. Per fault, the epoch is *flagged*
-    when the message has ``detected`` or ``alarm``, or lists one of the fault's satellites in
-    ``excluded``; the fault is *detected in time* when its first flagged epoch inside its window
-    comes at most TTA (the phase's time to alert) after its onset. herr = true horizontal error
-    of the solution at the epoch (|dp_east, dp_north|); hazardous = herr > HPL or herr > HAL.
-
-    Classes (each epoch exactly one; the paper's Table 1 plus "undetected"):
-      normal       no fault active, neither detected nor alarm
-      false_alarm  no fault active, detected or alarm (exclusions kept from earlier faults do not
-                   count; a detection caused by the filter's recovery right after a fault ends does)
-      detected     fault active, flagged, and that fault was detected in time
-      missed       fault active and either flagged only after TTA, or not flagged while hazardous
-                   and that fault was not detected in time (never, or late)
-      undetected   fault active, not flagged, not hazardous -- or hazardous while a detection in
-                   time is still to come (then also counted in hmi_epochs if herr > HPL)
-    Overlay (not a class): hmi_epochs = herr > HPL with no alarm, at any epoch; also reported as
-    ``counts["hmi"]``. The classes (all counts but "hmi") sum to ``epochs``.
-    p_fa = false_alarm / (normal + false_alarm) (per fault-free epoch; the paper's 1.25e-4 is
-    1 / 8000 over all epochs), p_md = missed / (detected + missed +
-    undetected) (per fault epoch). detection_latency_s: first epoch flagged (detected, alarm or an
-    exclusion listed) at or after the first fault's onset, minus that onset; with several runs the
-    worst run (per-run values in ``detection_latency_runs_s``). ``excluded_satellites``: every
-    satellite excluded at some epoch. Epochs without truth are counted in ``epochs_without_truth``
-    and classified without the error criteria (never hazardous, never HMI).
-    """
-    from service.estimation.integrity.monitor import limits
-
-    faults = _raw_faults(scenario)
-    rate = scenario.imu.rate_hz
-    t0 = scenario.t0_gps_s
-    counts = dict.fromkeys(INTEGRITY_CLASSES, 0)
-    hpl, vpl, latencies = [], [], []
-    hmi = alarms = no_truth = n_ep = 0
-    excluded: set[str] = set()
-    fault_latency: list[float | None] = []
-    for pairs in runs:
-        t_rel = [round((m.t - t0) * rate) / rate for m, _ in pairs]
-        # first flagged epoch of each fault inside its window
-        first_flag: list[float | None] = []
-        for s0, s1, sats in faults:
-            first_flag.append(
-                next(
-                    (
-                        t
-                        for t, (m, _) in zip(t_rel, pairs, strict=True)
-                        if s0 <= t < s1 and (m.detected or m.alarm or sats & set(m.excluded))
-                    ),
-                    None,
-                )
-            )
-        fault_latency += [
-            None if f is None else f - s0 for f, (s0, _, _) in zip(first_flag, faults, strict=True)
-        ]
-        if faults:
-            on = faults[0][0]
-            det = next(
-                (t for t, (m, _) in zip(t_rel, pairs, strict=True) if t >= on and (m.detected or m.alarm)),
-                None,
-            )
-            latencies.append(None if det is None else det - on)
-        for t, (m, e) in zip(t_rel, pairs, strict=True):
-            n_ep += 1
-            tta = limits(m.phase).tta_s
-            hpl.append(m.hpl_m)
-            vpl.append(m.vpl_m)
-            alarms += bool(m.alarm)
-            excluded |= set(m.excluded)
-            herr = None if e is None else math.hypot(float(e[0]), float(e[1]))
-            no_truth += herr is None
-            hazardous = herr is not None and (herr > m.hpl_m or herr > m.hal_m)
-            if herr is not None and herr > m.hpl_m and not m.alarm:
-                hmi += 1
-            active = [i for i, (s0, s1, _) in enumerate(faults) if s0 <= t < s1]
-            if not active:
-                counts["false_alarm" if (m.detected or m.alarm) else "normal"] += 1
-                continue
-            i = active[0]
-            sats = set().union(*(faults[j][2] for j in active))
-            in_time = first_flag[i] is not None and first_flag[i] - faults[i][0] <= tta + 1e-9
-            if m.detected or m.alarm or sats & set(m.excluded):
-                counts["detected" if in_time else "missed"] += 1
-            elif hazardous and not in_time:
-                counts["missed"] += 1
-            else:
-                counts["undetected"] += 1
-    fault_free = counts["normal"] + counts["false_alarm"]
-    faulty = counts["detected"] + counts["missed"] + counts["undetected"]
-    counts["hmi"] = hmi  # the paper's HMI column: an overlay on the classes, not summed with them
-    lat_known = [x for x in latencies if x is not None]
-
-    def stats(v: list[float]) -> dict:
-        return (
-            {"median": float(np.median(v)), "max": float(np.max(v))} if v else {"median": None, "max": None}
+        entry["integrity"] = integrity_metrics(
+            fault_windows(scenario, "gnss_raw"), scenario.t0_gps_s, scenario.imu.rate_hz, runs
         )
 
-    return {
-        "epochs": n_ep,
-        "detection_latency_s": (max(lat_known) if len(lat_known) == len(latencies) else None)
-        if latencies
-        else None,
-        "detection_latency_runs_s": latencies,
-        "hpl_m": stats(hpl),
-        "vpl_m": stats(vpl),
-        "hmi_epochs": hmi,
-        "alarms": alarms,
-        "counts": counts,
-        "p_fa": counts["false_alarm"] / fault_free if fault_free else None,
-        "p_md": counts["missed"] / faulty if faulty else None,
-        "faults": len(faults) * len(runs),
-        "faults_detected_in_time": sum(1 for x in fault_latency if x is not None and x <= _tta(runs) + 1e-9),
-        "fault_latency_s": stats([x for x in fault_latency if x is not None]),
-        "excluded_satellites": sorted(excluded),
-        "epochs_without_truth": no_truth,
+
+def fault_windows(scenario: Scenario, sensor: str | None = None) -> list[FaultWindow]:
+    """The scenario's injected faults as plain windows (seconds from the start), in onset order;
+    ``sensor`` keeps one sensor's (``gnss_raw`` faults carry their satellites)."""
+    rate = {
+        "gnss": scenario.gnss.rate_hz if scenario.gnss else 1.0,
+        "star": scenario.star.rate_hz if scenario.star else 1.0,
     }
-
-
-def _tta(runs: list) -> float:
-    from service.estimation.integrity.monitor import limits
-
-    for pairs in runs:
-        for m, _ in pairs:
-            return limits(m.phase).tta_s
-    return math.inf
+    out = [
+        FaultWindow(
+            f.start_s,
+            f.start_s + f.duration_s,
+            f.sensor,
+            1.0 / rate.get(f.sensor, 1.0),
+            frozenset(c.split(".")[0] for c in f.channels) if f.sensor == "gnss_raw" else frozenset(),
+        )
+        for f in scenario.faults
+        if sensor is None or f.sensor == sensor
+    ]
+    return sorted(out, key=lambda w: w.start_s)
 
 
 def format_integrity(result: dict) -> list[str]:

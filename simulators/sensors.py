@@ -24,13 +24,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from service import earth
+from service.estimation.measurements.gnss_fix import LABELS as GNSS_FIX_LABELS
 from service.messages import GnssFix, StarAttitude
 from simulators.faults import FaultSet
 from simulators.trajectory import Trajectory, mat_nb_vec, radii_vec
 
 GNSS_SENSOR = "gnss"
 STAR_SENSOR = "star"
-GNSS_CHANNELS = ("pos_e", "pos_n", "pos_u", "vel_e", "vel_n", "vel_u")
+#: fault channels of a GNSS fix = the rows of the service's fix model (Faults labels)
+GNSS_CHANNELS = GNSS_FIX_LABELS
 STAR_CHANNELS = ("roll", "pitch", "yaw")
 
 Vec3 = tuple[float, float, float]

@@ -90,3 +90,24 @@ def test_discretisation_against_matrix_exponential():
         rtol = 1e-6 if T <= 0.1 else 2e-3
         np.testing.assert_allclose(Qd, Qd_ref, rtol=rtol, atol=1e-9 * np.abs(Qd_ref).max())
     del rng
+
+
+def test_one_table_of_navigation_error_names():
+    """The 9 navigation errors have one table of public names; evaluation, the recording and the
+    error-state labels all read it (no second vocabulary)."""
+    from service import evaluation
+    from service.transport import rerun_paths
+
+    assert tuple(n.state for n in em.NAV_ERRORS) == em.STATE_LABELS[em.NAV]
+    assert rerun_paths.ERROR_NAMES == tuple(n.recording for n in em.NAV_ERRORS)
+    assert rerun_paths.STD_SCALARS == tuple(n.std for n in em.NAV_ERRORS)
+    e9 = np.array([1.0, 2.0, 3.0, 0.1, 0.2, 0.3, earth.ARCSEC, 2 * earth.ARCSEC, 3 * earth.ARCSEC])
+    rep = evaluation.report_errors(e9)
+    assert list(rep) == list(evaluation.REPORT_KEYS)
+    assert (rep["lon_m"], rep["lat_m"], rep["h_m"]) == (1.0, 2.0, 3.0)  # lat_m is north, lon_m east
+    assert np.allclose([rep["phi_e_arcsec"], rep["phi_n_arcsec"], rep["phi_u_arcsec"]], [1, 2, 3])
+    errors, bounds = evaluation.recording_errors(e9, np.diag(np.r_[np.ones(6), np.full(3, earth.ARCSEC**2)]))
+    assert (errors["east_m"], errors["north_m"], errors["up_m"]) == (1.0, 2.0, 3.0)
+    assert np.allclose([bounds["east_m"], bounds["phi_u_arcsec"]], [3.0, 3.0])
+    rms, mx = evaluation.error_stats(np.vstack([e9, -2 * e9]))
+    assert np.isclose(rms["lat_m"], np.sqrt((4 + 16) / 2)) and np.isclose(mx["lon_m"], 2.0)

@@ -1,6 +1,6 @@
 """Federated core and pipelines: fault tests, fusion, Carlson equivalence, isolation, overconfidence.
 
-Kinds (STYLE.md 9): closed-form references (chi2 thresholds, fusion against explicit inverses);
+Kinds (docs/STYLE.md 9): closed-form references (chi2 thresholds, fusion against explicit inverses);
 two routes that must agree (federated with scalar sharing and fusion-reset vs the centralised
 filter, on a linear model and end to end on the INS pipelines); a deterministic covariance
 analysis cross-checked by a seeded Monte Carlo (vector sharing's overconfidence); scenario
@@ -28,9 +28,10 @@ from service.estimation.federated import fault_tests
 from service.estimation.federated.core import FederatedCore, LinearBank, information_fusion
 from service.estimation.federated.fault_tests import make_fault_test
 from service.estimation.federated.sharing import get_strategy
+from service.evaluation import nav_errors, nees
 from service.ins.mechanisation import NavState
 from service.messages import Faults, GnssFix, StarAttitude
-from service.pipelines.base import InitStd, nav_errors, nees
+from service.pipelines.base import InitStd
 from service.pipelines.federated import Centralized, Federated
 
 from .scenario_utils import initial_nav_message
@@ -174,7 +175,7 @@ def run_linear(strategy, n_locals, steps, seed, master_share=0.0, fuse_each=Fals
 def test_scalar_sharing_with_fusion_reset_reproduces_the_centralised_filter(
     strategy, master_share, fuse_each
 ):
-    """Carlson 1990 (SEEDS.md seed 000 warning): any scalar share, fusion-reset every cycle and
+    """Carlson 1990 (docs/PAPERS.md seed 000 warning): any scalar share, fusion-reset every cycle and
     Q_i = Q / beta_i give the centralised filter. Tolerance: 1e-9 of each state's sigma and of
     sqrt(P_jj P_kk), over 200 cycles of the strongly correlated one-axis INS model."""
     xc, Pc, _ = run_linear("fixed", 1, 200, seed=5)
@@ -696,9 +697,9 @@ def test_engine_runs_federated_and_centralised_pipelines():
         def __init__(self):
             self.solutions, self.outputs = [], []
 
-        def on_solution(self, vehicle, sol, err9, P9):
-            assert np.all(np.isfinite(P9))
-            self.solutions.append(sol)
+        def on_estimate(self, vehicle, out):
+            assert np.all(np.isfinite(out.P9))
+            self.solutions.append(out.solution())
 
         def on_output(self, vehicle, msg, err9=None):
             self.outputs.append(msg)

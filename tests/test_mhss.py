@@ -1,4 +1,4 @@
-"""MHSS on a Kalman filter bank (seed 001, DESIGN.md): recursion, bank, tests, exclusion.
+"""MHSS on a Kalman filter bank (seed 001, docs/DESIGN.md): recursion, bank, tests, exclusion.
 
 Linear model used throughout: states [east, north, up, clock] (random walk), satellites as
 line-of-sight rows h = [-cos(el) sin(az), -cos(el) cos(az), -sin(el), 1] (the tightly coupled

@@ -143,7 +143,7 @@ def test_vector_is_eq13_normalised_over_locals():
     rng = np.random.default_rng(8)
     P = np.stack([_random_spd(rng, 15, _ins_like_scales(rng)) for _ in range(3)])
     inv = 1.0 / np.diagonal(P, axis1=1, axis2=2)
-    expect = inv / inv.sum(axis=0)  # seed 000 eq (13) as read in SEEDS.md (over subsystems k)
+    expect = inv / inv.sum(axis=0)  # seed 000 eq (13) as read in docs/PAPERS.md (over subsystems k)
     np.testing.assert_allclose(get_strategy("vector").shares(P), expect, rtol=1e-12)
     # vector_conservative: the mean over states of those shares, as one scalar per local
     np.testing.assert_allclose(

@@ -15,9 +15,10 @@ import pytest
 from service import earth
 from service.config import ClockModel, ImuModel, TightlyCoupledConfig
 from service.estimation.measurements import gnss_raw as gm
+from service.evaluation import nav_errors
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, ImuSample
-from service.pipelines.base import InitStd, nav_errors
+from service.pipelines.base import InitStd
 from service.pipelines.tightly_coupled import TightlyCoupled
 from simulators.gnss.orbits import NominalConstellation
 from simulators.gnss.orbits import range_geometry as sim_range_geometry
@@ -324,7 +325,7 @@ def test_runs_through_the_engine(scenario):
     outs = []
 
     class Sink:  # tolerant of extra arguments (the sink protocol may grow)
-        def on_solution(self, *args, **kwargs):
+        def on_estimate(self, *args, **kwargs):
             pass
 
         def on_output(self, vehicle, msg, *args, **kwargs):

@@ -36,6 +36,9 @@ from service import earth
 
 N_STATES = 15
 POS, VEL, ATT, GYRO, ACC = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+#: the navigation errors (position, velocity, attitude): what solutions, evaluation and the
+#: recording report; ``P[NAV, NAV]`` is their covariance
+NAV = slice(0, 9)
 STATE_LABELS = (
     "dp_e",
     "dp_n",
@@ -52,6 +55,39 @@ STATE_LABELS = (
     "nab_x",
     "nab_y",
     "nab_z",
+)
+
+
+@dataclass(frozen=True)
+class NavErrorName:
+    """The public names of one navigation error (one row of :data:`NAV_ERRORS`).
+
+    ``state``: the error-state label above; ``report``: ``fednav-sim eval`` JSON and the paper
+    tables (the papers' dLat/dLon/dh read as north/east/up metres); ``recording``: the Rerun
+    entities ``error/<name>`` and ``bound/<name>``; ``std``: the Solution sigma entity
+    ``solution/std/<name>`` (attitude sigmas are roll/pitch/heading there); ``per_si``: reported
+    units per SI unit (metres, m/s; attitude in arcsec).
+    """
+
+    state: str
+    report: str
+    recording: str
+    std: str
+    per_si: float
+
+
+_ARCSEC_PER_RAD = 180.0 * 3600.0 / math.pi
+#: The one table of names of the 9 navigation errors, in error-state order.
+NAV_ERRORS = (
+    NavErrorName("dp_e", "lon_m", "east_m", "pos_e_m", 1.0),
+    NavErrorName("dp_n", "lat_m", "north_m", "pos_n_m", 1.0),
+    NavErrorName("dp_u", "h_m", "up_m", "pos_u_m", 1.0),
+    NavErrorName("dv_e", "ve_mps", "ve_mps", "ve_mps", 1.0),
+    NavErrorName("dv_n", "vn_mps", "vn_mps", "vn_mps", 1.0),
+    NavErrorName("dv_u", "vu_mps", "vu_mps", "vu_mps", 1.0),
+    NavErrorName("phi_e", "phi_e_arcsec", "phi_e_arcsec", "roll_deg", _ARCSEC_PER_RAD),
+    NavErrorName("phi_n", "phi_n_arcsec", "phi_n_arcsec", "pitch_deg", _ARCSEC_PER_RAD),
+    NavErrorName("phi_u", "phi_u_arcsec", "phi_u_arcsec", "heading_deg", _ARCSEC_PER_RAD),
 )
 
 

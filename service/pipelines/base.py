@@ -31,7 +31,6 @@ import numpy as np
 from service import earth
 from service.config import ImuModel
 from service.estimation.ins_filter import InsFilterBank
-from service.ins import error_model as em
 from service.ins.alignment import InitStd
 from service.ins.mechanisation import NavState
 from service.messages import Solution, WireModel
@@ -168,73 +167,4 @@ class Pipeline(ABC):
         )
 
 
-ERROR_KEYS = (
-    "lat_m",
-    "lon_m",
-    "h_m",
-    "ve_mps",
-    "vn_mps",
-    "vu_mps",
-    "phi_e_arcsec",
-    "phi_n_arcsec",
-    "phi_u_arcsec",
-)
-
-
-def nav_errors(
-    nav: NavState, truth_llh: np.ndarray, truth_vel: np.ndarray, truth_mat_nb: np.ndarray
-) -> np.ndarray:
-    """Errors (computed minus true) in the error-state convention: [dp_enu_m, dv_enu, phi_rad].
-
-    phi from C_computed = (I - [phi x]) C_true, i.e. phi = rotation vector of C_true C_computed'.
-    """
-    r_m, r_n = earth.radii(truth_llh[0])
-    dp = np.array(
-        [
-            earth.wrap_pi(nav.lon_rad - truth_llh[1]) * (r_n + truth_llh[2]) * math.cos(truth_llh[0]),
-            (nav.lat_rad - truth_llh[0]) * (r_m + truth_llh[2]),
-            nav.h_m - truth_llh[2],
-        ]
-    )
-    dv = nav.vel_enu_mps - truth_vel
-    phi = earth.quat_to_rotvec(earth.mat_to_quat(truth_mat_nb @ nav.mat_nb.T))
-    return np.concatenate([dp, dv, phi])
-
-
-def error_dict(e9: np.ndarray) -> dict[str, float]:
-    """Named errors for reports: lat_m (north), lon_m (east), h_m, velocities, phi in arcsec."""
-    return {
-        "lat_m": float(e9[1]),
-        "lon_m": float(e9[0]),
-        "h_m": float(e9[2]),
-        "ve_mps": float(e9[3]),
-        "vn_mps": float(e9[4]),
-        "vu_mps": float(e9[5]),
-        "phi_e_arcsec": float(e9[6] / earth.ARCSEC),
-        "phi_n_arcsec": float(e9[7] / earth.ARCSEC),
-        "phi_u_arcsec": float(e9[8] / earth.ARCSEC),
-    }
-
-
-def nees(e9: np.ndarray, P9: np.ndarray) -> float:
-    """Normalised estimation error squared e' P^-1 e (Cholesky solve)."""
-    L = np.linalg.cholesky(P9)
-    w = np.linalg.solve(L, e9)
-    return float(w @ w)
-
-
-def p15_to_p9(P: np.ndarray) -> np.ndarray:
-    return P[:9, :9]
-
-
-__all__ = [
-    "Pipeline",
-    "InitStd",
-    "Estimate",
-    "initial_covariance",
-    "nav_errors",
-    "error_dict",
-    "nees",
-    "ERROR_KEYS",
-    "em",
-]
+__all__ = ["Estimate", "InitStd", "Pipeline", "initial_covariance"]

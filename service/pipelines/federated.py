@@ -21,7 +21,7 @@ point, closed loop) driven by ``service.estimation.federated.core.FederatedCore`
   rows with optional fault handling (one test per sensor kind); it returns ``Faults`` only when
   fault handling is on.
 
-Solutions come from the fused estimate: ``Estimate(nav = INS state, P9 = P_g[:9, :9])`` (after
+Solutions come from the fused estimate: ``Estimate(nav = INS state, P9 = P_g[NAV, NAV])`` (after
 the feedback the fused error state is zero with fusion-reset, ~zero with no_reset).
 """
 
@@ -150,7 +150,7 @@ class _CorePipeline(Pipeline):
         """Seed 000 algorithm 2 once per aiding epoch: master fusion, reset, feedback.
 
         Runs outside the engine's ``apply`` guard (from push_imu / estimate), so a covariance
-        that lost positive definiteness is recovered here (DESIGN.md reliability rules).
+        that lost positive definiteness is recovered here (docs/DESIGN.md reliability rules).
         """
         self._epoch_t = None
         fused = self._fused_view if self._view_key == self._version else None  # reuse the view's
@@ -213,7 +213,7 @@ class _CorePipeline(Pipeline):
     def estimate(self) -> Estimate:
         if self._epoch_t is not None:
             return self._epoch_view()
-        return Estimate(self.bank.nav(), self.fused_covariance()[:9, :9])
+        return Estimate(self.bank.nav(), self.fused_covariance()[em.NAV, em.NAV])
 
     def _epoch_view(self) -> Estimate:
         """The fused estimate while an epoch's fusion is pending (more aiding at this time may
@@ -228,7 +228,7 @@ class _CorePipeline(Pipeline):
                 return self.estimate()
             ins = Ins(self.bank.nav(), self.major_interval_s)
             ins.correct(x_g[em.POS], x_g[em.VEL], x_g[em.ATT], x_g[em.GYRO], x_g[em.ACC])
-            self._view = Estimate(ins.state, P_g[:9, :9])
+            self._view = Estimate(ins.state, P_g[em.NAV, em.NAV])
             self._view_key = self._version
         return self._view
 

@@ -11,6 +11,7 @@ from service.config import ImuModel, LooselyCoupledConfig
 from service.estimation import kalman, measurements
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.measurements import MeasurementModel
+from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
@@ -67,4 +68,4 @@ class LooselyCoupled(Pipeline):
         self.status = "reinitialised"
 
     def estimate(self) -> Estimate:
-        return Estimate(self.bank.nav(), self.bank.P[0, :9, :9])
+        return Estimate(self.bank.nav(), self.bank.P[0, em.NAV, em.NAV])

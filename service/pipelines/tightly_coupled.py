@@ -37,6 +37,7 @@ from service.estimation.integrity.mhss import MhssBank
 from service.estimation.integrity.monitor import EpochResult, MhssMonitor, MonitorSettings
 from service.estimation.kalman import NotPositiveDefinite
 from service.estimation.measurements.gnss_raw import GnssRawModel
+from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, Integrity, SatelliteTest, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
@@ -104,7 +105,7 @@ class TightlyCoupled(Pipeline):
         self.status = "reinitialised"
 
     def estimate(self) -> Estimate:
-        return Estimate(self.bank.nav(), self.bank.P[0, :9, :9])
+        return Estimate(self.bank.nav(), self.bank.P[0, em.NAV, em.NAV])
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         if kind != "gnss_raw" or not isinstance(msg, GnssRaw):

@@ -41,6 +41,8 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 
+from service.ins.error_model import NAV_ERRORS
+
 TIMELINE = "sensor_time"
 
 TRUTH = "truth"
@@ -59,30 +61,11 @@ SOLUTION_SCALARS = (
     "pitch_deg",
     "heading_deg",
 )
-STD_SCALARS = (
-    "pos_e_m",
-    "pos_n_m",
-    "pos_u_m",
-    "ve_mps",
-    "vn_mps",
-    "vu_mps",
-    "roll_deg",
-    "pitch_deg",
-    "heading_deg",
-)
+#: 1-sigma of a Solution (names from the one table of navigation-error names)
+STD_SCALARS = tuple(n.std for n in NAV_ERRORS)
 #: Errors of a solution against truth: position ENU (m), velocity ENU (m/s), attitude error angles
 #: about E/N/U (arcsec).
-ERROR_NAMES = (
-    "east_m",
-    "north_m",
-    "up_m",
-    "ve_mps",
-    "vn_mps",
-    "vu_mps",
-    "phi_e_arcsec",
-    "phi_n_arcsec",
-    "phi_u_arcsec",
-)
+ERROR_NAMES = tuple(n.recording for n in NAV_ERRORS)
 POSITION_ERRORS = ERROR_NAMES[0:3]
 VELOCITY_ERRORS = ERROR_NAMES[3:6]
 ATTITUDE_ERRORS = ERROR_NAMES[6:9]

@@ -1,6 +1,6 @@
 """Fault tests of a local filter's innovation: which observation rows to drop this epoch.
 
-Interface (STYLE.md 2): ``FaultTest.flags(standardised, S, nis) -> FaultDecision``
+Interface (docs/STYLE.md 2): ``FaultTest.flags(standardised, S, nis) -> FaultDecision``
 
     standardised : (m,)   r_j / sqrt(S_jj), the standardised predicted innovations
     S            : (m, m) innovation covariance H P H' + R of the local filter being tested

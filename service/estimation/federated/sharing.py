@@ -1,6 +1,6 @@
 """Information-sharing strategies of the federated filter: local covariances -> per-state shares.
 
-Interface (STYLE.md 2): ``SharingStrategy.shares(P_locals, context) -> G``
+Interface (docs/STYLE.md 2): ``SharingStrategy.shares(P_locals, context) -> G``
 
     P_locals : (N, c, c)  the N local filters' covariances over the c common states, taken after
                           their measurement updates and before the master fusion;
@@ -8,12 +8,12 @@ Interface (STYLE.md 2): ``SharingStrategy.shares(P_locals, context) -> G``
                           i.e. G_i = diag(G[i]).
 
 Invariants (tested): every share is > 0 (the reset divides by it) and, for every state j,
-``sum_i G[i, j] + master_share = 1`` (information conservation, seed 000 eq (12); DESIGN.md).
+``sum_i G[i, j] + master_share = 1`` (information conservation, seed 000 eq (12); docs/DESIGN.md).
 The federated core (``federated.py``) then resets local i to
 
     P_i = G_i^-1/2 P_g G_i^-1/2,   Q_i = G_i^-1/2 Q G_i^-1/2        seed 000 eq (14)-(15), (25)-(26)
 
-Theory every user of this module should know (SEEDS.md, seed 000 "warning from theory"):
+Theory every user of this module should know (docs/PAPERS.md, seed 000 "warning from theory"):
 
 * Scalar shares (G_i = beta_i I): with fusion and reset every cycle and Q_i = Q / beta_i, the
   fused information is sum_i beta_i P_g^-1 = P_g^-1 exactly, so *any* scalar beta reproduces the
@@ -46,7 +46,7 @@ Units: trace- and norm-based strategies add variances of different units (m^2, (
 define them; the per-state strategies (vector, diagonal, vector_conservative) are unit-free.
 
 Strategies (registry names = ``service.config.SharingName``):
-  fixed, trace (seed 000 eq 36), vector (seed 000 eq 13 per state, read per SEEDS.md + eq 22
+  fixed, trace (seed 000 eq 36), vector (seed 000 eq 13 per state, read per docs/PAPERS.md + eq 22
   floor), vector_eigen (seed 000 eq 11-15, 22 along the eigen-directions of P_g; recommended),
   vector_conservative (ours: scalar mean of the per-state shares), eigen_trace (seed 004 5.1 as
   printed), eigen_trace_inverse, diagonal (seed 004 5.2 as printed), edop (seed 004 5.3),
@@ -214,11 +214,11 @@ class Trace(SharingStrategy):
 class EigenTrace(SharingStrategy):
     """Seed 004 section 5.1 AS PRINTED: beta_i = tr(Lambda_i) / sum_k tr(Lambda_k).
 
-    Lambda_i = eigenvalues of P_i, so tr(Lambda_i) = tr(P_i). WARNING (flagged per SEEDS.md): as
+    Lambda_i = eigenvalues of P_i, so tr(Lambda_i) = tr(P_i). WARNING (flagged per docs/PAPERS.md): as
     printed this gives MORE share (smaller reset covariance P_g / beta_i) to the LESS accurate
     local filter, the opposite of the usual intent. Kept as printed for reproduction; see
     ``eigen_trace_inverse``. Being scalar, with fusion-reset every cycle it still reproduces the
-    centralised filter (SEEDS.md warning), so the inversion shows only in fault-test sensitivity.
+    centralised filter (docs/PAPERS.md warning), so the inversion shows only in fault-test sensitivity.
     """
 
     name = "eigen_trace"
@@ -276,7 +276,7 @@ class NormWeighted(SharingStrategy):
 
 # --- per-state (vector) strategies ---------------------------------------------------------------
 def vector_shares(P: np.ndarray, ctx: SharingContext) -> np.ndarray:
-    """Seed 000 eq (13) read per SEEDS.md, plus the eq (22) floor; (N, c), columns sum to 1.
+    """Seed 000 eq (13) read per docs/PAPERS.md, plus the eq (22) floor; (N, c), columns sum to 1.
 
     beta_{j,i} = (1/P_i,jj) / sum_k (1/P_k,jj)   (normalised over locals k, not states)
     Eq (22) reading: where ``ctx.flagged_only[i, j]``, local i gets exactly ``floor_share`` of
@@ -287,9 +287,9 @@ def vector_shares(P: np.ndarray, ctx: SharingContext) -> np.ndarray:
 
 def _eq13_with_floor(lam: np.ndarray, flagged: np.ndarray | None, floor_share: float) -> np.ndarray:
     """beta_{j,i} = (1/lam_{j,i}) / sum_k (1/lam_{j,k}) for variances lam (N, c) (seed 000 eq 13 read
-    per SEEDS.md), then the eq (22) floor where ``flagged[i, j]``; columns sum to 1."""
+    per docs/PAPERS.md), then the eq (22) floor where ``flagged[i, j]``; columns sum to 1."""
     inv = 1.0 / lam  # 1/lambda_{j,i}
-    w = inv / inv.sum(axis=0, keepdims=True)  # seed 000 eq (13), read per SEEDS.md
+    w = inv / inv.sum(axis=0, keepdims=True)  # seed 000 eq (13), read per docs/PAPERS.md
     fl = flagged
     if fl is None or not np.any(fl):
         return w
@@ -303,17 +303,17 @@ def _eq13_with_floor(lam: np.ndarray, flagged: np.ndarray | None, floor_share: f
     rest = np.where(fl, 0.0, w)
     rest_sum = rest.sum(axis=0)
     healthy = rest * ((1.0 - n_fl * floor) / np.where(rest_sum > 0.0, rest_sum, 1.0))
-    floored = np.where(fl, floor, healthy)  # seed 000 eq (22), read per SEEDS.md
+    floored = np.where(fl, floor, healthy)  # seed 000 eq (22), read per docs/PAPERS.md
     return np.where(cols, floored, w)
 
 
 class Vector(SharingStrategy):
-    """Vector information sharing, seed 000 eq (11)-(15), (22), as read in SEEDS.md.
+    """Vector information sharing, seed 000 eq (11)-(15), (22), as read in docs/PAPERS.md.
 
     Per state j: beta_{j,i} = (1/P_i,jj) / sum_k (1/P_k,jj); a state of local i observed this
     epoch only through flagged observations gets the floor share (``SharingContext``).
 
-    Known defect (SEEDS.md; measured in tests/test_federated.py): with the reset
+    Known defect (docs/PAPERS.md; measured in tests/test_federated.py): with the reset
     P_i = G_i^-1/2 P_g G_i^-1/2 the fused information loses off-diagonal terms (factor
     sum_i sqrt(g_ij g_ik) <= 1) while keeping the diagonal, which makes the federated filter
     overconfident. Found: one-axis INS linear model, expected NEES ~40 against 5 and a true
@@ -422,7 +422,7 @@ class Diagonal(SharingStrategy):
     """Seed 004 section 5.2 AS PRINTED: a_j = P1_jj / (P1_jj + P2_jj), beta_1 = diag(a), beta_2 =
     diag(b), b_j = P2_jj / (P1_jj + P2_jj); generalised to N as beta_{j,i} = P_i,jj / sum_k P_k,jj.
 
-    WARNING (flagged per SEEDS.md): as printed, the local with the LARGER variance of state j gets
+    WARNING (flagged per docs/PAPERS.md): as printed, the local with the LARGER variance of state j gets
     the LARGER share of it (the opposite of ``vector``). Per-state, so it has the same
     information-loss defect as ``vector`` (see module docstring).
     """

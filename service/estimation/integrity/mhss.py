@@ -1,4 +1,4 @@
-"""MHSS: multiple-hypothesis solution separation on ONE Kalman filter bank (seed 001, DESIGN.md).
+"""MHSS: multiple-hypothesis solution separation on ONE Kalman filter bank (seed 001, docs/DESIGN.md).
 
 Members (one bank, B = 1 + N + N(N-1)/2 at depth 2)
 ---------------------------------------------------
@@ -15,7 +15,7 @@ compares sub r with its sub-subs (r, m): needs P_{r,(r,m)} for every ordered (r,
 (N(N-1) blocks; each sub-sub appears under both of its satellites). The bank stores member
 covariances and these cross blocks together as ``blocks`` (B + C, n, n) with pair indices
 (pa, pb): block k = Cov(e_pa[k], e_pb[k]), members being the pairs (a, a). One recursion serves
-all of them (DESIGN.md "MHSS on a Kalman filter bank"):
+all of them (docs/DESIGN.md "MHSS on a Kalman filter bank"):
 
     predict:  P_ab <- Phi P_ab Phi' + Q                 full Q: the same process noise drives both
     update:   P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b'
@@ -29,7 +29,7 @@ orthogonality); tests show the recursion matches Monte Carlo where the shortcut 
 Closed loop: only the main filter's correction dx_0 is fed back; every member shifts by it,
 x_i <- x_i - dx_0 (covariances unchanged), so after feedback x_0 = 0 and dx_0n = -x_n.
 
-Tests and protection levels (seed 001 eq 27-32, read per SEEDS.md)
+Tests and protection levels (seed 001 eq 27-32, read per docs/PAPERS.md)
 -------------------------------------------------------------------
     dx_0n = x_0 - x_n;   dP_0n = P_00 - P_0n - P_0n' + P_nn                       (eq 27)
     horizontal: d_n = |dx_0n[h]|,  T_n = K_fa sqrt(lambda_max(dP_0n[h, h]))         (eq 28-29)

@@ -7,7 +7,7 @@ verdict; the pipeline only builds the rows (measurement hook) and turns the resu
 Also here: alert limits per flight phase, alarm and availability, exclusion memory and
 re-admission.
 
-Alert limits (SEEDS.md seed 001, ICAO Annex 10 as commonly tabulated)
+Alert limits (docs/PAPERS.md seed 001, ICAO Annex 10 as commonly tabulated)
 --------------------------------------------------------------------
     phase       HAL        VAL      TTA
     en_route    3704 m     -        300 s   (2 NM; 5 min; PANS-OPS receivers use 30 s)
