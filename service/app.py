@@ -38,6 +38,12 @@ from service.messages import (
 log = logging.getLogger("fednav.service")
 
 MAX_PAYLOAD_BYTES = 1 << 20
+#: at shutdown the vehicles' queues drain for at most this long together (then the rest is
+#: counted in the log and the recording is closed: SIGTERM returns within seconds)
+_SHUTDOWN_DRAIN_S = 5.0
+_MAX_LOGGED_NAMES = 100
+#: wall seconds without a message from a stream after which Health calls it stale
+STALE_WALL_S = 2.0
 _RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
 
 
@@ -136,6 +142,7 @@ class VehicleWorker:
         self.engine = VehicleEngine(vehicle, config, sink, self.counters)
         self.q: queue.Queue = queue.Queue(maxsize=config.intake.queue_size)
         self.latency_s: deque = deque(maxlen=2000)
+        self.arrivals: dict[str, float] = {}  # stream -> monotonic arrival time of its last message
         self.started = time.monotonic()
         self._rlog = _RateLimitedLog()
         self._stop = threading.Event()
@@ -176,6 +183,7 @@ class VehicleWorker:
             return
         if ok:
             self.accepted += 1
+            self.arrivals[f"{kind}/{sensor_id}" if sensor_id else kind] = wall
         self.latency_s.append(time.monotonic() - wall)
 
     def _run(self) -> None:
@@ -186,18 +194,33 @@ class VehicleWorker:
                 item = self.q.get(timeout=0.05)
             except queue.Empty:
                 item = None
-            if item is not None:
-                self._process(item)
-            now = time.monotonic()
-            if now >= next_health:
-                self.publish_health()
-                next_health = now + period
+            try:  # nothing a message or a sink does may end this vehicle's thread
+                if item is not None:
+                    self._process(item)
+                now = time.monotonic()
+                if now >= next_health:
+                    next_health = now + period
+                    self.publish_health()
+            except Exception:
+                log.exception("vehicle %s: worker error", self.vehicle)
+                self.counters["internal_error"] += 1
             if item is None and self._stop.is_set():
                 break
 
     def health(self) -> Health:
         lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(1)
         states = self.engine.pipeline_states()
+        # the sensor-time view cannot see a stream that stopped arriving: streams silent for
+        # STALE_WALL_S of wall time are stale, and no pipeline is aided while its input is silent
+        now = time.monotonic()
+        silent = {
+            k for k, w in self.arrivals.items() if now - w > STALE_WALL_S and k not in ("truth", "init")
+        }
+        stale = sorted(set(self.engine.stale_streams()) | silent)
+        if self.arrivals and now - max(self.arrivals.values()) > STALE_WALL_S:
+            for st in states.values():
+                if st["status"] in ("aided", "degraded", "unaided"):
+                    st["status"] = "coasting"
         return Health(
             t=self.engine.last_t,
             uptime_s=time.monotonic() - self.started,
@@ -212,6 +235,8 @@ class VehicleWorker:
                 "max": float(lat.max()),
             },
             pipelines={k: PipelineHealth(**v) for k, v in states.items()},
+            sensors={k: t for k, (t, _) in self.engine.streams.items()},
+            stale=stale,
         )
 
     def publish_health(self) -> None:
@@ -220,13 +245,24 @@ class VehicleWorker:
         if self.rr is not None:
             self.rr.log_health(self.vehicle, h)
 
-    def stop(self) -> None:
-        """Drain the queue, emit the last solutions and health."""
+    def request_stop(self) -> None:
+        """Ask the thread to finish: it drains its queue, then ends."""
         self._stop.set()
-        self._thread.join(timeout=60.0)
-        if self.engine.initialised:
-            self.engine.emit_solutions()
-        self.publish_health()
+
+    def stop(self, deadline: float | None = None) -> None:
+        """Drain the queue (until ``deadline``, monotonic seconds), emit the last solutions and
+        health."""
+        self._stop.set()
+        self._thread.join(timeout=None if deadline is None else max(0.0, deadline - time.monotonic()))
+        if self._thread.is_alive():
+            log.warning("vehicle %s: %d events not processed at shutdown", self.vehicle, self.q.qsize())
+            return
+        try:
+            if self.engine.initialised:
+                self.engine.emit_solutions()
+            self.publish_health()
+        except Exception:
+            log.exception("vehicle %s: final outputs failed", self.vehicle)
 
 
 class Service:
@@ -246,7 +282,8 @@ class Service:
         self.listen, self.connect, self.zenoh_config_file = listen, connect, zenoh_config_file
         self.record = record
         self.workers: dict[str, VehicleWorker] = {}
-        self.unrouted = Counter()
+        self.unrouted = Counter()  # data refused before any vehicle: by reason
+        self._logged: set[tuple[str, str]] = set()
         self._lock = threading.Lock()
         self.session = None
 
@@ -294,21 +331,32 @@ class Service:
                     self.workers[vehicle] = w
         return w
 
+    def _refuse(self, reason: str, vehicle: str) -> None:
+        """Data the service does not take for any vehicle: counted (status queryable) and logged
+        once per vehicle name and reason (at most ``_MAX_LOGGED_NAMES`` names)."""
+        self.unrouted[reason] += 1
+        if len(self._logged) < _MAX_LOGGED_NAMES and (reason, vehicle) not in self._logged:
+            self._logged.add((reason, vehicle))
+            served = self.config.vehicles
+            log.warning("%s: data for vehicle %r refused (served: %s)", reason, vehicle[:80], served)
+
     def _deliver(self, wall: float, key: str, payload: bytes) -> None:
         pk = keys.parse_input(key, self.config.prefix)
         if pk is None and keys.is_output(key, self.config.prefix):
             return  # another fednav service's outputs share the prefix: not input, not an error
         parts = key.split("/")
         vehicle = parts[1] if len(parts) > 1 else ""
-        if "*" not in self.config.vehicles and vehicle not in self.config.vehicles:
-            return
-        w = self._worker(vehicle) if vehicle else None
+        if not keys.valid_name(vehicle):
+            return self._refuse("bad_vehicle_name", vehicle)
+        serve_all = "*" in self.config.vehicles
+        if not serve_all and vehicle not in self.config.vehicles:
+            return self._refuse("unserved_vehicle", vehicle)
+        if serve_all and vehicle not in self.workers and len(self.workers) >= self.config.intake.max_vehicles:
+            return self._refuse("vehicle_limit", vehicle)
+        w = self._worker(vehicle)
         if pk is None:
-            if w is not None:
-                w.received += 1
-                w.reject("unknown_key", key)
-            else:
-                self.unrouted["unknown_key"] += 1
+            w.received += 1
+            w.reject("unknown_key", key)
             return
         w.submit(wall, pk.kind, pk.sensor_id, payload)
 
@@ -323,6 +371,7 @@ class Service:
             "running": True,
             "pipelines": [p.name for p in self.config.pipelines],
             "health": json.loads(w.health().model_dump_json()) if w else None,
+            "refused_before_routing": dict(self.unrouted),
         }
         return json.dumps(state).encode()
 
@@ -330,8 +379,12 @@ class Service:
         if self.session is None:
             return
         self.intake.stop()
-        for w in list(self.workers.values()):
-            w.stop()
+        workers = list(self.workers.values())
+        for w in workers:
+            w.request_stop()
+        deadline = time.monotonic() + _SHUTDOWN_DRAIN_S
+        for w in workers:
+            w.stop(deadline)
         self.queries.stop()
         if self.rr is not None:
             self.rr.close()

@@ -47,7 +47,17 @@ class LooselyCoupledConfig(Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     use_star: bool = Field(True, description="Use star-tracker attitude when present")
     innovation_gate_sigma: float | None = Field(
-        None, gt=0, description="Reject a fix whose standardised innovation exceeds this (None: no gate)"
+        5.0,
+        gt=0,
+        description="Innovation gate: an observation (row) whose standardised innovation |r_j|/sqrt(S_jj) "
+        "exceeds this is refused and the other rows are used (5: a false refusal per row about 6e-7 "
+        "under the model; None: no gate, not recommended)",
+    )
+    gate_recovery_s: float = Field(
+        10.0,
+        gt=0,
+        description="After every row of a sensor kind has been refused for this long, the filter's "
+        "covariance is restarted (INS kept) and the sensor trusted again (recovery from divergence)",
     )
 
 
@@ -168,6 +178,31 @@ class IntakeConfig(Model):
     late_tolerance_s: float = Field(0.5, ge=0, description="Aiding older than INS time by more is rejected")
     max_lead_s: float = Field(5.0, gt=0, description="Aiding ahead of the INS by more is rejected")
     max_imu_gap_s: float = Field(0.5, gt=0, description="IMU gap that marks the INS as lost")
+    future_window_s: float = Field(
+        2.0,
+        gt=0,
+        description="An IMU sample or InitialNav further ahead of the running (IMU) time than this is "
+        "rejected as 'future', not adopted (a gap up to it marks the INS lost and re-initialises)",
+    )
+    time_jump_samples: int = Field(
+        20,
+        ge=2,
+        description="Consecutive IMU samples outside the running time (ahead of the window or behind it) "
+        "that agree with each other and confirm a time jump (sensor restart, clock step): the INS is "
+        "re-initialised on the new time base",
+    )
+    max_vehicles: int = Field(
+        64,
+        ge=1,
+        description="With vehicles = ['*']: at most this many vehicles get a worker; data for more is "
+        "refused and counted ('vehicle_limit')",
+    )
+    sensor_ids: dict[str, list[str]] = Field(
+        default_factory=dict,
+        description="Sensor ids accepted per kind (e.g. {star = ['st1', 'st2']}); a kind not listed takes "
+        "the first id it sees and refuses others as 'unexpected_sensor' (a second sensor of a kind is "
+        "fused only when configured)",
+    )
 
 
 class InitConfig(Model):

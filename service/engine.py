@@ -10,9 +10,17 @@ Time handling (docs/DESIGN.md "The service's inner loop"):
 - Aiding older than the INS time by at most ``late_tolerance_s`` is applied at the INS time (a
   GNSS fix is carried forward with its own velocity); older is rejected as ``late``. Aiding
   ahead by more than ``max_lead_s`` is rejected as ``early``. Same key and same t: ``duplicate``.
-- IMU time going backwards is rejected (``time_backwards``; equal time: ``duplicate``). A gap
-  longer than ``max_imu_gap_s`` marks the INS lost: pipelines are re-initialised from the next
-  GNSS fix (status ``reinitialised``).
+- IMU time going backwards is rejected (``time_backwards``; equal time: ``duplicate``), so is a
+  sample further ahead than ``future_window_s`` (``future``): one message never moves the running
+  time. A run of ``time_jump_samples`` such samples that agree with each other is a new time base
+  (a restarted sensor or clock step, ``time_jump``). A gap longer than ``max_imu_gap_s`` (inside
+  the window) or a time jump marks the INS lost: pipelines restart from a current InitialNav (also
+  one refused earlier for its time) or the next alignment (status ``initialising``, then
+  ``unaided`` until aided).
+- An InitialNav re-initialising a running vehicle must agree with the latest GNSS fix (or the
+  estimate): otherwise ``implausible_init``; a first start is checked against the first fix.
+- An estimate a Solution cannot carry (non-finite, outside the wire limits) fails its pipeline
+  (``pipeline_failed``, status ``failed``); it restarts from a running sibling or the next fix.
 - These acceptance rules are :class:`service.intake_rules.AcceptanceRules` (one verdict per event).
 
 Initialisation (``[init] mode``):
@@ -41,7 +49,17 @@ from service.evaluation import errors_against_truth
 from service.ins import alignment
 from service.ins.mechanisation import NavState, Preintegrator
 from service.intake_rules import AcceptanceRules, Verdict
-from service.messages import GnssFix, ImuSample, InitialNav, Solution, Truth, WireModel
+from service.messages import (
+    MAX_HEIGHT_M,
+    MAX_SPEED_MPS,
+    MIN_HEIGHT_M,
+    GnssFix,
+    ImuSample,
+    InitialNav,
+    Solution,
+    Truth,
+    WireModel,
+)
 from service.pipelines import build_pipeline
 from service.pipelines.base import Estimate, InitStd, Pipeline
 
@@ -109,11 +127,17 @@ class VehicleEngine:
         self._last_out_k = -1
         self._lost = False
         self.last_t: float | None = None
+        self._pending_init: InitialNav | None = None  # refused for its time: kept for a time jump
+        self._check_first_fix = False  # an InitialNav start not yet confirmed by a GNSS fix
+        self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
 
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
         """Process one validated event. Returns False when it was rejected (reason counted)."""
+        previous_t = self.rules.last_t.get((kind, sensor_id))
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
+        if verdict.accepted or verdict.reason in ("not_initialised", "imu_gap", "time_jump"):
+            self._note_stream(kind, sensor_id, msg.t)
         if kind == "imu":
             return self._on_imu(msg, verdict)
         if kind == "gnss_fix" and verdict.in_sequence:
@@ -122,10 +146,14 @@ class VehicleEngine:
             self._try_initialise_from_aiding()  # this message may complete an alignment
             if self.initialised:
                 return True
+        if kind == "init" and verdict.reason in ("future", "late"):
+            self._pending_init = msg  # usable if the IMU time base moves to it (restart)
         if not verdict.accepted:
             return self._reject(verdict.reason)
         if kind == "init":
-            self._initialise_from_message(msg)
+            if not self._initialise_from_message(msg):
+                self.rules.withdraw(kind, sensor_id, previous_t)
+                return False
         elif kind == "truth":
             self._keep_truth(msg)
         else:
@@ -152,6 +180,23 @@ class VehicleEngine:
         self.rejected[reason] += 1
         return False
 
+    def _note_stream(self, kind: str, sensor_id: str, t: float) -> None:
+        key = f"{kind}/{sensor_id}" if sensor_id else kind
+        prev = self.streams.get(key)
+        self.streams[key] = (t, (t - prev[0]) if prev and t > prev[0] else (prev[1] if prev else None))
+
+    def stale_streams(self, t: float | None = None) -> list[str]:
+        """Sensor streams silent for longer than three of their own intervals (at least 1 s) at the
+        running time (Truth and InitialNav are not streams)."""
+        t = self.last_t if t is None else t
+        if t is None:
+            return []
+        return sorted(
+            k
+            for k, (last, period) in self.streams.items()
+            if k not in ("truth", "init") and t - last > max(3.0 * (period or 1.0), 1.0)
+        )
+
     @staticmethod
     def _tkey(t: float) -> int:
         return int(round(t * 1e6))
@@ -159,8 +204,8 @@ class VehicleEngine:
     # --- IMU ------------------------------------------------------------------------------------
     def _on_imu(self, msg: ImuSample, verdict: Verdict) -> bool:
         t, dt = msg.t, msg.dt_s
-        if verdict.reason == "imu_gap":
-            self._imu_gap(t)
+        if verdict.reason in ("imu_gap", "time_jump"):
+            self._imu_lost(t, verdict.reason)
             return True
         if not verdict.accepted:
             return self._reject(verdict.reason)
@@ -205,19 +250,33 @@ class VehicleEngine:
                 p.advance(pre)
             pre.reset(pre.t_end)
 
-    def _imu_gap(self, t: float) -> None:
-        self.rejected["imu_gap"] += 1
+    def _imu_lost(self, t: float, reason: str) -> None:
+        """An IMU gap or a confirmed time jump: the INS is lost; re-initialised from a current
+        InitialNav (one refused for its time is kept for this) or the next alignment."""
+        self.rejected[reason] += 1
         self._lost = True
         self.initialised = False
         self.pending.clear()
-        self.last_imu_t = t
+        self.last_imu_t = self.last_t = t
         self._align = alignment.ImuAccumulator()
         for p in self.pipelines:
             p.mark_lost()
+        if reason == "time_jump":  # a new time base: nothing of the old one applies
+            self.rules.forget_times()
+            self.rules.imu_t = t
+            self._last_fix = None
+            self.streams.clear()
+        init, self._pending_init = self._pending_init, None
+        if init is not None and abs(init.t - t) <= self.config.intake.future_window_s:
+            self._initialise_from_message(init)
 
     # --- aiding ---------------------------------------------------------------------------------
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:
         self._advance_all()
+        if kind == "gnss_fix":
+            if self._check_first_fix:
+                self._confirm_start(msg)
+            self._restart_failed(msg)
         for p in self.pipelines:
             p.sync()
             try:
@@ -229,6 +288,36 @@ class VehicleEngine:
             err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:
                 self.sink.on_output(self.vehicle, out, err9)
+
+    def _restart_failed(self, fix: GnssFix) -> None:
+        """Failed pipelines restart from a running sibling's estimate, else (in motion) from the fix."""
+        failed = [p for p in self.pipelines if p.failed]
+        if not failed:
+            return
+        ref = self._running_pipeline(fix.t)
+        if ref is not None:
+            ref.sync()
+            est = ref.estimate()
+            sd = np.sqrt(np.clip(np.diagonal(est.P9), 0.0, None))
+            nav, std = est.nav.copy(), InitStd(sd[0:3], sd[3:6], sd[6:9])
+        elif alignment.fix_speed(fix) >= self.config.init.min_speed_mps:
+            nav, std = alignment.motion_alignment(fix, self.last_imu_t)
+        else:
+            return
+        for p in failed:
+            p.start(nav.copy(), std, after_loss=True)
+
+    @staticmethod
+    def _usable(est: Estimate) -> bool:
+        """An estimate a Solution can carry: finite, inside the wire model's limits."""
+        nav = est.nav
+        values = np.r_[nav.lat_rad, nav.lon_rad, nav.h_m, nav.vel_enu_mps, nav.q_nb, est.P9.ravel()]
+        return bool(
+            np.all(np.isfinite(values))
+            and abs(nav.lat_rad) <= math.pi / 2
+            and MIN_HEIGHT_M <= nav.h_m <= MAX_HEIGHT_M
+            and float(np.linalg.norm(nav.vel_enu_mps)) <= MAX_SPEED_MPS
+        )
 
     # --- outputs --------------------------------------------------------------------------------
     def _maybe_output(self, t: float) -> None:
@@ -243,8 +332,14 @@ class VehicleEngine:
     def emit_solutions(self) -> None:
         self._advance_all()
         for p in self.pipelines:
+            if p.failed:
+                continue
             p.sync()
             est = p.estimate()
+            if not self._usable(est):  # never an exception, never a wrong message: the pipeline failed
+                p.mark_failed()
+                self.rejected["pipeline_failed"] += 1
+                continue
             self.sink.on_estimate(self.vehicle, EstimateOutput(p, est, self._errors(p, est.nav.t, est)))
 
     def _errors(self, p: Pipeline, t: float, est: Estimate | None = None) -> np.ndarray | None:
@@ -267,10 +362,63 @@ class VehicleEngine:
         self._last_out_k = -1
         self.pending.clear()
 
-    def _initialise_from_message(self, msg: InitialNav) -> None:
+    def _initialise_from_message(self, msg: InitialNav) -> bool:
+        """Start (or re-start) from an InitialNav. A re-initialisation of a running vehicle must
+        agree with the sensors: with the latest GNSS fix when current, else with the running
+        estimate (``alignment.plausible``); otherwise it is refused ``implausible_init``. A first
+        start is checked against the first GNSS fix instead (:meth:`_confirm_start`)."""
         if self.config.init.mode not in ("auto", "message"):
+            return True
+        nav, std = alignment.from_initial_nav(msg)
+        if self.initialised:
+            ref = self._reference_state(nav.t)
+            if ref is not None and not alignment.plausible(nav, ref[0], alignment.std_cov6(std) + ref[1])[0]:
+                return self._reject("implausible_init")
+        self._start(nav, std)
+        self._check_first_fix = True
+        return True
+
+    def _reference_state(self, t: float) -> tuple[NavState, np.ndarray] | None:
+        """An independent position/velocity at ``t`` and its 6x6 covariance: the latest GNSS fix if
+        current, else the first running pipeline's estimate."""
+        fix = self._last_fix
+        if fix is not None and alignment.fix_is_current(fix, t):
+            nav, std = alignment.motion_alignment(fix, t)
+            return nav, alignment.std_cov6(std)
+        p = self._running_pipeline(t)
+        if p is None:
+            return None
+        p.sync()
+        est = p.estimate()
+        return est.nav, est.P9[:6, :6]
+
+    def _running_pipeline(self, t: float) -> Pipeline | None:
+        """The first pipeline with a usable estimate (not initialising, not failed)."""
+        usable = (p for p in self.pipelines if p.current_status(t) not in ("initialising", "failed"))
+        return next(usable, None)
+
+    def _confirm_start(self, fix: GnssFix) -> None:
+        """The first GNSS fix after an InitialNav start: an InitialNav that disagrees with it
+        (``alignment.plausible`` against the estimate) is counted ``implausible_init`` and the
+        pipelines restart from the fix (in motion: its velocity track; else the attitude kept)."""
+        self._check_first_fix = False
+        p = self._running_pipeline(fix.t)
+        if p is None:
             return
-        self._start(*alignment.from_initial_nav(msg))
+        p.sync()
+        est = p.estimate()
+        nav_fix, std_fix = alignment.motion_alignment(fix, est.nav.t)
+        ok, _ = alignment.plausible(est.nav, nav_fix, est.P9[:6, :6] + alignment.std_cov6(std_fix))
+        if ok:
+            return
+        self.rejected["implausible_init"] += 1
+        if alignment.fix_speed(fix) < self.config.init.min_speed_mps:  # keep the attitude
+            nav_fix = alignment.nav_at_fix(fix, est.nav.rpy_rad, est.nav.t)
+            att_std = np.sqrt(np.clip(np.diagonal(est.P9)[6:9], 0.0, None))
+            std_fix = alignment.InitStd(std_fix.pos_enu_m, std_fix.vel_enu_mps, att_std)
+        self._lost = False
+        self._start(nav_fix, std_fix)
+        self._check_first_fix = False
 
     def _try_initialise_from_aiding(self) -> None:
         """Coarse alignment from the latest GNSS fix and the IMU data so far, when ``[init] mode``
@@ -300,7 +448,8 @@ class VehicleEngine:
     def pipeline_states(self) -> dict[str, dict]:
         return {
             p.name: {
-                "status": p.status,
+                "status": p.current_status(self.last_t) if self.initialised or p.failed else "initialising",
+                "screened": dict(p.screened),
                 "last_t": self.last_t,
                 "updates": p.updates,
                 "reinitialisations": p.reinitialisations,

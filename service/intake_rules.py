@@ -1,11 +1,25 @@
 """Acceptance rules of one vehicle's event stream (docs/DESIGN.md "The service's inner loop").
 
-One decision per event, in this order of checks:
+One decision per event. The running time of a vehicle is the time of its INS (the last accepted
+IMU sample). A single message, however valid it looks, must not move that time: samples far from
+it are refused, and only a run of samples that agree with each other re-bases it.
 
-- IMU (against the INS time): equal time ``duplicate``; earlier ``time_backwards``; a gap (span
-  minus the sample's own interval) longer than ``max_imu_gap_s``: ``imu_gap`` (the sample is
-  taken, the INS is lost and re-initialised).
-- InitialNav: same time as the previous one ``duplicate``.
+- Sensor ids: a kind listed in ``[intake] sensor_ids`` accepts those ids; any other kind takes
+  the first id it sees and refuses others as ``unexpected_sensor`` (a second star tracker or
+  receiver is fused only when configured). InitialNav and Truth have no id.
+- IMU (against the running time): equal time ``duplicate``; earlier ``time_backwards``; further
+  ahead than ``future_window_s`` beyond its own interval ``future``; a sample whose interval
+  starts more than a quarter interval before the previous sample's end ``overlap`` (samples
+  slipped between genuine ones); a gap (span minus the sample's interval) longer than ``max_imu_gap_s``
+  but inside the window: ``imu_gap`` (taken; the INS is lost and re-initialised). Refused samples
+  behind or ahead of the window are candidates of a time jump: ``time_jump_samples`` consecutive
+  candidates, each following the previous one by at most its interval plus ``max_imu_gap_s``,
+  with no accepted sample between them, give ``time_jump`` (the last one is taken: the INS is
+  re-initialised on the new time base and every per-key record is forgotten).
+- InitialNav: further than ``future_window_s`` from the running time ``future`` (ahead) or
+  ``late`` (behind: a re-initialisation must be current); else same time as the previous one
+  ``duplicate``.
+  Whether a re-initialisation is consistent with the navigation is the engine's check.
 - Truth: ``duplicate``; older than the previous one ``time_backwards``.
 - Aiding (everything else): ``duplicate``; once initialised, older than the INS time by more than
   ``late_tolerance_s`` ``late`` (checked before ``time_backwards``: the more useful reason); older
@@ -25,13 +39,19 @@ from service.messages import WireModel
 
 #: reasons for which a message is out of sequence for its key or the INS (it is not used at all);
 #: other refusals (``not_initialised``, ``early``) still leave it the newest of its sensor
-OUT_OF_SEQUENCE = frozenset({"duplicate", "time_backwards", "late"})
+OUT_OF_SEQUENCE = frozenset({"duplicate", "time_backwards", "late", "future", "overlap", "unexpected_sensor"})
+#: an IMU sample whose interval starts this fraction of itself before the previous sample's end
+#: overlaps it (timestamp jitter of genuine samples is far smaller)
+OVERLAP_FRACTION = 0.25
+#: kinds without a sensor id
+_NO_ID = frozenset({"init", "truth"})
 
 
 @dataclass(frozen=True)
 class Verdict:
     """The decision on one event: ``reason`` None to accept, else why it was refused -- except
-    ``imu_gap``, an IMU sample that is taken but marks the INS lost (counted under that name)."""
+    ``imu_gap`` and ``time_jump``, IMU samples that are taken but mark the INS lost (counted
+    under those names)."""
 
     reason: str | None = None
 
@@ -48,43 +68,102 @@ class Verdict:
 ACCEPT = Verdict()
 
 
+@dataclass
+class _JumpCandidate:
+    last_t: float
+    count: int
+
+
 class AcceptanceRules:
-    """Accept/refuse decisions of one vehicle's events; keeps each (kind, sensor) key's last time."""
+    """Accept/refuse decisions of one vehicle's events; keeps each (kind, sensor) key's last time,
+    the sensor id adopted per kind and the run of time-jump candidates."""
 
     def __init__(self, intake: IntakeConfig):
         self.intake = intake
         self.last_t: dict[tuple[str, str], float] = {}
+        self.sensor_of: dict[str, str] = {}  # kind -> the id adopted (kinds not in sensor_ids)
+        self.imu_t: float | None = None  # end of the last accepted IMU sample
+        self._jump: _JumpCandidate | None = None
+
+    def forget_times(self) -> None:
+        """A new time base (confirmed time jump): per-key records and the IMU time are forgotten;
+        adopted sensor ids are kept."""
+        self.last_t.clear()
+        self.imu_t = None
+        self._jump = None
+
+    def withdraw(self, kind: str, sensor_id: str, previous: float | None) -> None:
+        """A message the rules took was refused later (an implausible InitialNav): its key's time
+        goes back to ``previous``, so a corrected message with the same time is not a duplicate."""
+        if previous is None:
+            self.last_t.pop((kind, sensor_id), None)
+        else:
+            self.last_t[(kind, sensor_id)] = previous
 
     def decide(
         self, kind: str, sensor_id: str, msg: WireModel, t_ins: float | None, initialised: bool
     ) -> Verdict:
         """The verdict on one event given the INS time (the last IMU time; None before any IMU)
         and whether the INS is initialised. Records the key's time when the message is taken."""
+        if kind not in _NO_ID and not self._known_sensor(kind, sensor_id):
+            return Verdict("unexpected_sensor")
         if kind == "imu":
-            return self._imu(msg.t, msg.dt_s, t_ins)
+            verdict = self._imu(msg.t, msg.dt_s, t_ins)
+            if verdict.reason in (None, "imu_gap", "time_jump"):
+                self.imu_t = msg.t
+            return verdict
         key = (kind, sensor_id)
         verdict = self._other(kind, msg.t, self.last_t.get(key), t_ins, initialised)
         if verdict.accepted or verdict.reason == "not_initialised":
             self.last_t[key] = msg.t
         return verdict
 
+    def _known_sensor(self, kind: str, sensor_id: str) -> bool:
+        allowed = self.intake.sensor_ids.get(kind)
+        if allowed is not None:
+            return sensor_id in allowed
+        return self.sensor_of.setdefault(kind, sensor_id) == sensor_id
+
     def _imu(self, t: float, dt_s: float, t_ins: float | None) -> Verdict:
-        if t_ins is not None:
-            if t == t_ins:
-                return Verdict("duplicate")
-            if t < t_ins:
-                return Verdict("time_backwards")
-            if (t - t_ins) - dt_s > self.intake.max_imu_gap_s:
-                return Verdict("imu_gap")
+        if t_ins is None:
+            return ACCEPT
+        if t == t_ins:
+            return Verdict("duplicate")
+        if t < t_ins:
+            return self._jump_candidate(t, dt_s, "time_backwards")
+        gap = (t - t_ins) - dt_s
+        if gap > self.intake.future_window_s:
+            return self._jump_candidate(t, dt_s, "future")
+        self._jump = None  # a sample in sequence: whatever came out of it was not a new time base
+        if self.imu_t == t_ins and t - dt_s < t_ins - OVERLAP_FRACTION * dt_s:
+            return Verdict("overlap")  # starts inside the previous sample (not after a start's time)
+        if gap > self.intake.max_imu_gap_s:
+            return Verdict("imu_gap")
         return ACCEPT
+
+    def _jump_candidate(self, t: float, dt_s: float, reason: str) -> Verdict:
+        c = self._jump
+        if c is not None and c.last_t < t <= c.last_t + dt_s + self.intake.max_imu_gap_s:
+            c.count += 1
+            c.last_t = t
+        else:
+            c = self._jump = _JumpCandidate(t, 1)
+        if c.count >= self.intake.time_jump_samples:
+            self._jump = None
+            return Verdict("time_jump")
+        return Verdict(reason)
 
     def _other(
         self, kind: str, t: float, prev: float | None, t_ins: float | None, initialised: bool
     ) -> Verdict:
+        if kind == "init":  # the window first: a restarted host's InitialNav is kept as pending
+            if t_ins is not None and t > t_ins + self.intake.future_window_s:
+                return Verdict("future")
+            if t_ins is not None and t < t_ins - self.intake.future_window_s:
+                return Verdict("late")
+            return Verdict("duplicate") if prev is not None and t == prev else ACCEPT
         if prev is not None and t == prev:
             return Verdict("duplicate")
-        if kind == "init":
-            return ACCEPT
         if kind == "truth":
             return Verdict("time_backwards") if prev is not None and t < prev else ACCEPT
         # aiding

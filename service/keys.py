@@ -24,6 +24,14 @@ DEFAULT_PREFIX = "fednav"
 _CHUNK = re.compile(r"^[A-Za-z0-9_\-.]+$")
 
 
+MAX_NAME_LEN = 64
+
+
+def valid_name(name: str) -> bool:
+    """A vehicle, sensor or pipeline name usable as one key chunk and one recording path part."""
+    return 0 < len(name) <= MAX_NAME_LEN and bool(_CHUNK.match(name))
+
+
 def _chunk(name: str, what: str) -> str:
     if not _CHUNK.match(name):
         raise ValueError(f"invalid {what} {name!r}: use letters, digits, '_', '-', '.'")

@@ -227,7 +227,12 @@ class Truth(WireModel):
 
 
 # --- service outputs ------------------------------------------------------------------------------
-NavStatus = Literal["initialising", "aligned", "aided", "ins_only", "reinitialised", "fault"]
+#: initialising: no navigation yet (or the INS was lost and waits to be re-initialised);
+#: unaided: initialised, no aiding applied since the start; aided: aiding applied within the
+#: coasting window (three aiding intervals, at least 1 s); coasting: aided before, no aiding for
+#: longer than that; degraded: screening (innovation gate, fault test, satellite exclusion)
+#: refused aiding within that window; failed: no usable estimate until the pipeline restarts
+NavStatus = Literal["initialising", "unaided", "aided", "coasting", "degraded", "failed"]
 
 
 class Solution(WireModel):
@@ -306,10 +311,15 @@ class Integrity(WireModel):
 
 
 class PipelineHealth(WireModel):
-    status: str
+    status: NavStatus
     last_t: float | None
     updates: int
     reinitialisations: int = 0
+    screened: dict[str, int] = Field(
+        default_factory=dict,
+        description="Observations refused (or sigmas raised) by screening, by reason: innovation_gate, "
+        "fault_test, excluded_satellite, gate_recovery, sigma_floor",
+    )
 
 
 class Health(WireModel):
@@ -322,8 +332,18 @@ class Health(WireModel):
     rejected: dict[str, int] = Field(description="Rejections by reason")
     dropped_overload: int
     queue_depth: int
-    latency_ms: dict[str, float] = Field(description="Intake-to-publish latency percentiles (p50, p99, max)")
+    latency_ms: dict[str, float] = Field(
+        description="Latency percentiles (p50, p99, max) from a message's arrival in the service process "
+        "(Zenoh callback), queue time included, to the end of its processing (outputs published)"
+    )
     pipelines: dict[str, PipelineHealth]
+    sensors: dict[str, float] = Field(
+        default_factory=dict, description="Last accepted sensor time per stream ('kind/id' -> t)"
+    )
+    stale: list[str] = Field(
+        default_factory=list,
+        description="Streams silent for more than three of their own intervals (at least 1 s)",
+    )
 
 
 SENSOR_MESSAGES: dict[str, type[WireModel]] = {

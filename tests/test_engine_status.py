@@ -24,7 +24,9 @@ from simulators.stream import Simulation
 from .scenario_utils import shortened
 
 T0 = 1000.0
-INTAKE = IntakeConfig(late_tolerance_s=0.5, max_lead_s=5.0, max_imu_gap_s=0.5)
+INTAKE = IntakeConfig(
+    late_tolerance_s=0.5, max_lead_s=5.0, max_imu_gap_s=0.5, sensor_ids={"gnss_fix": ["a", "b"]}
+)
 
 
 def _imu(t, dt=0.01):
@@ -96,9 +98,12 @@ def test_truth_and_init_rules():
         r.decide("truth", "0", Truth.model_construct(t=T0 - 1.0), T0 + 100.0, True).reason == "time_backwards"
     )
     init = InitialNav.model_construct(t=T0)
-    assert r.decide("init", "0", init, T0 + 100.0, True).accepted  # no late check for InitialNav
-    assert r.decide("init", "0", init, T0 + 100.0, True).reason == "duplicate"
-    assert r.decide("init", "0", InitialNav.model_construct(t=T0 - 5.0), T0, True).accepted
+    assert r.decide("init", "0", init, None, False).accepted  # before any IMU: taken
+    assert r.decide("init", "0", init, T0, True).reason == "duplicate"
+    # a (re-)initialisation must be current: within future_window_s of the running time
+    assert r.decide("init", "0", InitialNav.model_construct(t=T0 + 1.5), T0, True).accepted
+    assert r.decide("init", "0", InitialNav.model_construct(t=T0 - 5.0), T0 + 100.0, True).reason == "late"
+    assert r.decide("init", "0", InitialNav.model_construct(t=T0 + 1000.0), T0, True).reason == "future"
     star = StarAttitude.model_construct(t=T0)
     assert r.decide("star", "st1", star, T0, True).accepted
 
@@ -119,13 +124,33 @@ def test_pipeline_start_counts_a_restart_once_and_sets_status():
     )
     assert p.status == "initialising"
     p.start(_nav(), STD, after_loss=False)
-    assert (p.status, p.reinitialisations) == ("aligned", 0)
+    assert (p.status, p.reinitialisations) == ("unaided", 0)
+    p.mark_aided(0.0)
+    assert p.status == "aided"
     p.start(_nav(1.0), STD, after_loss=False)  # a second InitialNav
-    assert (p.status, p.reinitialisations) == ("aligned", 1)
+    assert (p.status, p.reinitialisations) == ("unaided", 1)
     p.mark_lost()
-    assert p.status == "ins_only"
+    assert p.status == "initialising"
     p.start(_nav(2.0), STD, after_loss=True)
-    assert (p.status, p.reinitialisations) == ("reinitialised", 2)
+    assert (p.status, p.reinitialisations) == ("unaided", 2)
+    p.mark_failed()
+    assert p.status == "failed"
+
+
+def test_status_follows_aiding_coasting_and_screening():
+    """aided within three aiding intervals (at least 1 s), then coasting; degraded while
+    screening refused aiding within that window."""
+    p = LooselyCoupled(
+        LooselyCoupledConfig(name="lc"), service_config(shortened("demo_aircraft.toml", 5.0)).imu, 0.1
+    )
+    p.start(_nav(), STD)
+    for t in (1.0, 2.0, 3.0):
+        p.mark_aided(t)
+    assert p.coast_after_s() == 3.0
+    assert p.current_status(5.9) == "aided" and p.current_status(6.1) == "coasting"
+    p.mark_screened(6.5, "innovation_gate", 3)
+    assert p.current_status(7.0) == "degraded" and p.current_status(9.6) == "coasting"
+    assert p.screened == {"innovation_gate": 3}
 
 
 @pytest.fixture
@@ -143,33 +168,42 @@ def attribute_writers(monkeypatch):
 
 
 def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
-    """A second InitialNav counts one re-initialisation; an IMU gap gives ``ins_only``, the next
-    GNSS fix ``reinitialised`` (and one more count); the engine writes none of these attributes."""
+    """A second InitialNav consistent with the GNSS fix counts one re-initialisation (a stale one,
+    the start position 8 s later, is refused ``implausible_init``); an IMU gap gives
+    ``initialising``, the next GNSS fix a start (and one more count); the engine writes none of
+    the pipelines' bookkeeping."""
     sc = shortened("demo_aircraft.toml", 30.0)
     cfg = service_config(sc)
     eng = VehicleEngine("v1", cfg, CollectingSink(keep_solutions=True))
     p = eng.pipelines[0]
-    init = None
+    init = truth = None
     seen = []  # (t - t0, status, reinitialisations) at every change
     for key, msg in Simulation(sc, seed=4):
         pk = keys.parse_input(key)
         t = msg.t - sc.t0_gps_s
         if pk.kind == "init":
             init = msg
+        if pk.kind == "truth":
+            truth = msg
         if pk.kind == "imu" and 15.0 <= t < 16.0:
             continue  # a 1 s IMU gap (> max_imu_gap_s)
         eng.handle(pk.kind, pk.sensor_id, msg)
         if pk.kind == "imu" and init is not None and abs(t - 8.0) < 0.005:
-            assert eng.handle("init", "0", init.model_copy(update={"t": msg.t}))  # re-initialise
+            assert not eng.handle("init", "0", init.model_copy(update={"t": msg.t}))  # stale position
+            assert eng.rejected["implausible_init"] == 1
+            here = {
+                k: getattr(truth, k) for k in ("lat_deg", "lon_deg", "height_m", "vel_enu_mps", "rpy_deg")
+            }
+            assert eng.handle("init", "0", init.model_copy(update={"t": msg.t, **here}))  # re-initialise
         state = (p.status, p.reinitialisations)
         if not seen or seen[-1][1:] != state:
             seen.append((round(t, 2), *state))
     statuses = [s[1:] for s in seen]
-    assert statuses[:3] == [("aligned", 0), ("aided", 0), ("aligned", 1)]  # second InitialNav: +1
-    i_lost = statuses.index(("ins_only", 1))
+    assert statuses[:3] == [("unaided", 0), ("aided", 0), ("unaided", 1)]  # second InitialNav: +1
+    i_lost = statuses.index(("initialising", 1))
     assert 16.0 <= seen[i_lost][0] < 16.1  # the first sample after the gap
     assert eng.rejected["imu_gap"] == 1
-    assert statuses[i_lost + 1] == ("reinitialised", 2)  # from the next GNSS fix
+    assert statuses[i_lost + 1] == ("unaided", 2)  # started from the next GNSS fix
     assert statuses[-1] == ("aided", 2)
     writers = {m for _, m in attribute_writers}
     assert writers and "service.engine" not in writers

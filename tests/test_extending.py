@@ -180,7 +180,6 @@ class PositionOnly(Pipeline):
 
     def initialise(self, nav, std):
         self.bank = InsFilterBank(nav, initial_covariance(std, self.imu), self.imu.noise())
-        self.status = "aligned"
 
     def apply(self, kind, sensor_id, msg, dt_late_s=0.0):
         if kind != "gnss_fix":

@@ -103,7 +103,7 @@ def _write_recording(path: Path, seed: int = 7) -> dict:
             ),
         )
         for p in PIPELINES:
-            status = "aligned" if k < 10 else ("ins_only" if p == "fed" and k >= 150 else "aided")
+            status = "unaided" if k < 10 else ("coasting" if p == "fed" and k >= 150 else "aided")
             sink.log_solution(VEHICLE, _solution(p, t, k, status))
             sink.log_errors(
                 VEHICLE,
@@ -243,7 +243,7 @@ def test_summary_matches_synthetic_numbers(recording):
         h = np.hypot(truth["errors"][p]["east_m"], truth["errors"][p]["north_m"])
         assert ps["h_rms_m"] == pytest.approx(float(np.sqrt(np.mean(h**2))), abs=1e-9, rel=0)
         assert ps["rms"]["horizontal_m"] == ps["h_rms_m"]
-    assert s["pipelines"]["fed"]["final_status"] == "ins_only"
+    assert s["pipelines"]["fed"]["final_status"] == "coasting"
     assert s["pipelines"]["fed"]["status_changes"] == 3
     assert s["pipelines"]["mhss"]["final_status"] == "aided"
 

@@ -180,6 +180,41 @@ def nav_at_fix(fix: GnssFix, rpy_rad: np.ndarray, t: float) -> NavState:
     )
 
 
+#: an initial state (InitialNav) is implausible when its position and velocity differ from an
+#: independent one (the latest GNSS fix, or the running estimate) by more than this chi-square(6)
+#: quantile of their combined covariance: a false refusal once in a million consistent starts
+PLAUSIBILITY_CHI2_6DOF = 38.26
+
+
+def pos_vel_difference(a: NavState, b: NavState) -> np.ndarray:
+    """a minus b: ENU position (m) and velocity (m/s) differences, (6,)."""
+    r_m, r_n = earth.radii(b.lat_rad)
+    dp = [
+        earth.wrap_pi(a.lon_rad - b.lon_rad) * (r_n + b.h_m) * math.cos(b.lat_rad),
+        (a.lat_rad - b.lat_rad) * (r_m + b.h_m),
+        a.h_m - b.h_m,
+    ]
+    return np.concatenate([dp, np.asarray(a.vel_enu_mps) - np.asarray(b.vel_enu_mps)])
+
+
+def plausible(a: NavState, b: NavState, cov6: np.ndarray) -> tuple[bool, float]:
+    """Whether two independent position/velocity states agree within ``cov6`` (the sum of their
+    6x6 covariances): (verdict, chi-square statistic)."""
+    d = pos_vel_difference(a, b)
+    try:
+        L = np.linalg.cholesky(cov6)
+    except np.linalg.LinAlgError:
+        return False, math.inf
+    w = np.linalg.solve(L, d)
+    d2 = float(w @ w)
+    return d2 <= PLAUSIBILITY_CHI2_6DOF, d2
+
+
+def std_cov6(std: InitStd) -> np.ndarray:
+    """The 6x6 position/velocity covariance of initial sigmas."""
+    return np.diag(np.square(np.concatenate([std.pos_enu_m, std.vel_enu_mps])))
+
+
 def from_initial_nav(msg: InitialNav) -> tuple[NavState, InitStd]:
     """State and sigmas of a host's InitialNav (roll/pitch sigmas -> nav-frame north/east tilts)."""
     rpy = earth.rpy_from_msg_deg(msg.rpy_deg)
@@ -197,6 +232,10 @@ def from_initial_nav(msg: InitialNav) -> tuple[NavState, InitStd]:
 
 
 __all__ = [
+    "PLAUSIBILITY_CHI2_6DOF",
+    "plausible",
+    "pos_vel_difference",
+    "std_cov6",
     "FIX_MAX_AGE_S",
     "HEADING_STD_FLOOR_RAD",
     "LEVELLING_STD_FLOOR_RAD",

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,42 +65,90 @@ class Pipeline(ABC):
         self.name = name
         self.imu = imu
         self.major_interval_s = major_interval_s
-        self.status = "initialising"
         self.updates = 0
         self.reinitialisations = 0
+        self.screened: Counter = Counter()  # observations refused by screening, by reason
         self.last_aiding_t: float | None = None
+        self.last_screened_t: float | None = None
+        self.aiding_period_s: float | None = None  # the interval between the last two aidings
+        self.aided_since_start = False
+        self.failed = False
+        self.lost = False
 
-    #: without aiding for longer than this, an aided pipeline reports ``ins_only``
-    ins_only_after_s: float = 3.0
+    #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
+    #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
+    coast_after_periods: float = 3.0
+    min_coast_after_s: float = 1.0
+    default_coast_after_s: float = 3.0
 
+    # --- status: the pipeline's own, derived from what happened to it ------------------------------
     def mark_aided(self, t: float) -> None:
+        """An aiding update was applied at t."""
+        if self.last_aiding_t is not None and t > self.last_aiding_t:
+            self.aiding_period_s = t - self.last_aiding_t
         self.last_aiding_t = t
         self.updates += 1
-        self.status = "aided"
+        self.aided_since_start = True
 
-    def current_status(self, t: float) -> str:
-        if (
-            self.status == "aided"
-            and self.last_aiding_t is not None
-            and t - self.last_aiding_t > self.ins_only_after_s
-        ):
-            return "ins_only"
-        return self.status
+    def mark_screened(self, t: float, reason: str, rows: int = 1) -> None:
+        """Screening refused ``rows`` observations at t (an innovation gate, a fault test)."""
+        self.screened[reason] += rows
+        self.last_screened_t = t
+
+    def mark_failed(self) -> None:
+        """No usable estimate (numerical failure, or an estimate outside the wire model's limits):
+        ``failed`` until the next start."""
+        self.failed = True
+
+    def mark_lost(self) -> None:
+        """The INS is lost (IMU gap, time jump): no navigation until the next start."""
+        self.lost = True
+
+    def restarted(self) -> None:
+        """The filter was restarted in place (covariance recovery): counts a re-initialisation;
+        ``unaided`` until the next aiding."""
+        self.reinitialisations += 1
+        self.aided_since_start = False
+        self.failed = False
+
+    def coast_after_s(self) -> float:
+        if self.aiding_period_s is None:
+            return self.default_coast_after_s
+        return max(self.coast_after_periods * self.aiding_period_s, self.min_coast_after_s)
+
+    def current_status(self, t: float | None) -> str:
+        """``initialising`` (no filter, or the INS lost), ``failed``, ``degraded`` (screening refused
+        aiding recently), ``unaided`` (never aided since the start), ``coasting`` (aided before,
+        nothing for longer than :meth:`coast_after_s`), ``aided``."""
+        if self.bank is None or self.lost:
+            return "initialising"
+        if self.failed:
+            return "failed"
+        t = self.bank.t if t is None else t
+        window = self.coast_after_s()
+        if self.last_screened_t is not None and t - self.last_screened_t <= window:
+            return "degraded"
+        if not self.aided_since_start:
+            return "unaided"
+        if self.last_aiding_t is None or t - self.last_aiding_t > window:
+            return "coasting"
+        return "aided"
+
+    @property
+    def status(self) -> str:
+        return self.current_status(None)
 
     def start(self, nav: NavState, std: InitStd, *, after_loss: bool = False) -> None:
         """(Re-)initialise from an initial state (``initialise`` builds the filter). A start of a
-        pipeline that had been initialised before counts one re-initialisation. Status
-        ``reinitialised`` when the start follows a loss of the INS (:meth:`mark_lost`), else
-        ``aligned``."""
+        pipeline that had been initialised before counts one re-initialisation; ``after_loss``
+        says the start follows a loss of the INS (:meth:`mark_lost`). ``unaided`` until aided."""
         restart = self.bank is not None
         self.initialise(nav, std)
         if restart:
             self.reinitialisations += 1
-        self.status = "reinitialised" if after_loss else "aligned"
-
-    def mark_lost(self) -> None:
-        """The INS is lost (IMU gap): no navigation until the next start; status ``ins_only``."""
-        self.status = "ins_only"
+        self.aided_since_start = False
+        self.failed = self.lost = False
+        self.last_aiding_t = self.last_screened_t = None
 
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
@@ -138,10 +187,10 @@ class Pipeline(ABC):
     def recover_covariance(self) -> None:
         """Numerical-health recovery after a covariance lost positive definiteness.
 
-        Pipelines reset their covariances to the initial ones (keeping the INS) and set the
-        status ``reinitialised``; this default only flags the fault.
+        Pipelines reset their covariances to the initial ones (keeping the INS) and call
+        :meth:`restarted`; this default marks the pipeline failed.
         """
-        self.status = "fault"
+        self.mark_failed()
 
     def solution(self, est: Estimate | None = None) -> Solution:
         est = est or self.estimate()

@@ -170,8 +170,7 @@ class _CorePipeline(Pipeline):
         self.core.start()
         self._epoch_t = None
         self._version += 1
-        self.reinitialisations += 1
-        self.status = "reinitialised"
+        self.restarted()
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         ch = self.channels.get(kind)
@@ -183,11 +182,16 @@ class _CorePipeline(Pipeline):
         meas = ch.model(bank.nav(), msg, bank.context(dt_late_s))
         if meas is None:
             return []
+        if meas.floored:
+            self.screened["sigma_floor"] += meas.floored
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
             self.mark_aided(bank.t)
+        isolated = int(np.count_nonzero(upd.decision.isolated))
+        if isolated:
+            self.mark_screened(bank.t, "fault_test", isolated)
         if not self.report_faults:
             return []
         d = upd.decision

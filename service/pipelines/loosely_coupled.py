@@ -29,6 +29,7 @@ class LooselyCoupled(Pipeline):
         self.models: dict[str, MeasurementModel] = {k: measurements.make(k) for k in kinds}
         self.last_nis: float | None = None
         self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
+        self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
         self._P0 = initial_covariance(std, self.imu)
@@ -43,12 +44,24 @@ class LooselyCoupled(Pipeline):
         meas = model(nav, msg, bank.context(dt_late_s))
         if meas is None:
             return []
+        if meas.floored:
+            self.screened["sigma_floor"] += meas.floored
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
-        if (
-            self.cfg.innovation_gate_sigma is not None
-            and np.max(np.abs(res.standardised)) > self.cfg.innovation_gate_sigma
-        ):
-            return []
+        gate = self.cfg.innovation_gate_sigma
+        refused = np.abs(res.standardised[0]) > gate if gate is not None else np.zeros(len(meas.z), bool)
+        if refused.any():
+            self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
+            if refused.all():
+                since = self._refused_since.setdefault(kind, nav.t)
+                if nav.t - since < self.cfg.gate_recovery_s:
+                    return []
+                # every row refused for gate_recovery_s: the filter, not the sensor, is wrong
+                self.screened["gate_recovery"] += 1
+                self.recover_covariance()
+                x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
+            else:
+                x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R, mask=~refused[None, :])
+        self._refused_since.pop(kind, None)
         if not kalman.is_positive_definite(P)[0]:
             # numerical health: never continue on a broken P; keep the INS, re-initialise the
             # covariance to the initial one and flag it
@@ -64,8 +77,7 @@ class LooselyCoupled(Pipeline):
     def recover_covariance(self) -> None:
         self.bank.x[:] = 0.0
         self.bank.P[:] = self._P0
-        self.reinitialisations += 1
-        self.status = "reinitialised"
+        self.restarted()
 
     def estimate(self) -> Estimate:
         return Estimate(self.bank.nav(), self.bank.P[0, em.NAV, em.NAV])

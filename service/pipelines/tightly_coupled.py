@@ -101,8 +101,7 @@ class TightlyCoupled(Pipeline):
         mh = self.bank.mhss
         self.bank.mhss = MhssBank.initial(np.zeros(mh.n), self._P0, mh.sats, mh.depth)
         self.monitor.restart_windows()
-        self.reinitialisations += 1
-        self.status = "reinitialised"
+        self.restarted()
 
     def estimate(self) -> Estimate:
         return Estimate(self.bank.nav(), self.bank.P[0, em.NAV, em.NAV])
@@ -127,6 +126,8 @@ class TightlyCoupled(Pipeline):
             return []
         if res.update is not None:
             self.mark_aided(nav.t)
+        if res.excluded:
+            self.mark_screened(nav.t, "excluded_satellite", len(res.excluded))
         if res.tests is None:
             return []
         return [self.integrity_message(res)]

@@ -73,7 +73,7 @@ _REGION_COLOR = {
     "unavailable": 0x7F7F7FFF,
     "unavailable_mi": 0x9467BDFF,
 }
-_STATUS_LEVEL = {"fault": "ERROR", "ins_only": "WARN", "reinitialised": "WARN"}
+_STATUS_LEVEL = {"failed": "ERROR", "coasting": "WARN", "degraded": "WARN", "unaided": "WARN"}
 
 
 def seconds_to_ns(t_s: float) -> int:

@@ -9,6 +9,8 @@ of dropping) read by our own thread; queryables are served from a thread too.
 from __future__ import annotations
 
 import json
+import logging
+import queue
 import threading
 import time
 from collections.abc import Callable
@@ -17,6 +19,8 @@ import zenoh
 
 from service.config import ZenohConfig
 from service.messages import WireModel
+
+log = logging.getLogger("fednav.service")
 
 
 def make_config(
@@ -74,7 +78,13 @@ class Publishers:
 
 
 class Intake:
-    """Subscribes to input keys and hands (wall_time, key, payload) to ``deliver`` from a thread."""
+    """Subscribes to input keys and hands (arrival time, key, payload) to ``deliver`` from a thread.
+
+    The Zenoh callback only stamps the arrival (monotonic seconds: the start of the latency the
+    service reports) and enqueues; a full queue back-pressures the Zenoh thread, as a FIFO
+    channel would (reliable, blocking publishers then slow down instead of losing data), except
+    after ``stop`` when arrivals are counted in ``dropped_at_stop``.
+    """
 
     def __init__(
         self,
@@ -83,44 +93,50 @@ class Intake:
         deliver: Callable[[float, str, bytes], None],
         capacity: int = 4096,
     ):
-        self._subs = [
-            session.declare_subscriber(
-                k, zenoh.handlers.FifoChannel(capacity), allowed_origin=zenoh.Locality.REMOTE
-            )
-            for k in key_exprs
-        ]
+        self._q: queue.Queue = queue.Queue(maxsize=capacity)
         self._deliver = deliver
         self._stop = threading.Event()
+        self.dropped_at_stop = 0
+        self._subs = [
+            session.declare_subscriber(k, self._on_sample, allowed_origin=zenoh.Locality.REMOTE)
+            for k in key_exprs
+        ]
         self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
         self._thread.start()
 
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        item = (time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
+        while True:
+            try:
+                self._q.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                if self._stop.is_set():
+                    self.dropped_at_stop += 1
+                    return
+
     def _run(self) -> None:
-        subs = self._subs
-        while not self._stop.is_set():
-            got = False
-            for s in subs:
-                sample = s.try_recv()
-                while sample is not None:
-                    got = True
-                    self._deliver(time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
-                    sample = s.try_recv()
-            if not got:
-                self._stop.wait(0.0005)
-        # drain what already arrived
-        for s in subs:
-            sample = s.try_recv()
-            while sample is not None:
-                self._deliver(time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
-                sample = s.try_recv()
+        while True:
+            try:
+                item = self._q.get(timeout=0.05)
+            except queue.Empty:
+                if self._stop.is_set():
+                    return
+                continue
+            try:
+                self._deliver(*item)
+            except Exception:  # routing must survive any one message
+                log.exception("intake: delivery of %s failed", item[1][:200])
 
     def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
+        """Undeclare the subscribers, then deliver what already arrived."""
         for s in self._subs:
             try:
                 s.undeclare()
             except zenoh.ZError:
                 pass
+        self._stop.set()
+        self._thread.join(timeout=5.0)
 
 
 class QueryServer:

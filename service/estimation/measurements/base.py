@@ -36,7 +36,9 @@ from service.messages import WireModel
 class Measurement:
     """Rows of one update: z (m,), H (m, n_states), R (m, m), one label per row.
 
-    ``groups`` (m,) int, optional: source index of each row into ``group_ids``.
+    ``groups`` (m,) int, optional: source index of each row into ``group_ids``. ``floored``: how
+    many rows had their sigma raised to the model's minimum (a message claiming more precision
+    than any such sensor has; counted by the pipeline as screening ``sigma_floor``).
     """
 
     z: np.ndarray
@@ -45,6 +47,7 @@ class Measurement:
     labels: tuple[str, ...]
     groups: np.ndarray | None = None
     group_ids: tuple[str, ...] = ()
+    floored: int = 0
 
     @property
     def r_var(self) -> np.ndarray:
@@ -129,3 +132,12 @@ __all__ = [
     "private_layout",
     "private_transition",
 ]
+
+
+def floored_variances(std: np.ndarray, minimum: np.ndarray | float) -> tuple[np.ndarray, int]:
+    """Variances of the given sigmas, each sigma raised to at least ``minimum``; and how many were
+    raised. A sensor message cannot claim more precision than the model admits (one fix with a
+    1e-9 m sigma must not pin the filter)."""
+    std = np.asarray(std, dtype=float)
+    lo = np.broadcast_to(np.asarray(minimum, dtype=float), std.shape)
+    return np.square(np.maximum(std, lo)), int(np.count_nonzero(std < lo))

@@ -1,6 +1,7 @@
 """Star-tracker attitude: z = phi with C_ins = (I - [phi x]) C_star, H = [0 0 I 0 0].
 
-The tracker's roll/pitch/heading sigmas are applied per navigation axis (small-angle reading).
+The tracker's roll/pitch/heading sigmas are applied per navigation axis (small-angle reading),
+each at least ``MIN_ATT_STD_RAD`` (0.1 arcsec, below any star tracker's real precision).
 """
 
 from __future__ import annotations
@@ -8,12 +9,13 @@ from __future__ import annotations
 import numpy as np
 
 from service import earth
-from service.estimation.measurements.base import Measurement, ModelContext
+from service.estimation.measurements.base import Measurement, ModelContext, floored_variances
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import StarAttitude
 
 LABELS = ("roll", "pitch", "yaw")
+MIN_ATT_STD_RAD = 0.1 * earth.ARCSEC
 
 
 class StarAttitudeModel:
@@ -26,5 +28,5 @@ class StarAttitudeModel:
         z = earth.quat_to_rotvec(earth.mat_to_quat(c_star @ nav.mat_nb.T))
         H = np.zeros((3, ctx.n_states))
         H[:, em.ATT] = np.eye(3)
-        R = np.diag(np.square(np.radians(msg.rpy_std_deg)))
-        return Measurement(z, H, R, LABELS)
+        var, floored = floored_variances(np.radians(msg.rpy_std_deg), MIN_ATT_STD_RAD)
+        return Measurement(z, H, np.diag(var), LABELS, floored=floored)
