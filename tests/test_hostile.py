@@ -258,3 +258,90 @@ def test_vehicle_names_are_checked_and_limited(tmp_path):
         rc = svc.wait(timeout=30)
         session.close()
     assert rc == 0 and time.monotonic() - t0 < 10.0
+
+
+def _storm(rng, imu: ImuSample, fix: GnssFix, init: InitialNav, v: str) -> list[tuple[str, bytes]]:
+    """Two hostile messages of random kinds at the genuine sample ``imu``: malformed, non-finite,
+    absurd, unknown keys, and schema-valid ones that lie about time, place, precision or identity."""
+    t = imu.t
+    k_imu, k_fix = keys.sensor(v, "imu", "main"), keys.sensor(v, "gnss_fix", "main")
+    far = {"lat_deg": float(rng.uniform(-80, 80)), "lon_deg": float(rng.uniform(-179, 179))}
+    vel = tuple(float(x) for x in rng.uniform(-200, 200, 3))
+    choices = [
+        (k_imu, b'{"t": 1, "dt_s":'),
+        (k_imu, imu.to_json().replace(b'"dt_s":', b'"dt_s":NaN,"y":')),
+        (k_imu, imu.model_copy(update={"t": t + float(rng.uniform(3, 1e7))}).to_json()),
+        (k_imu, imu.model_copy(update={"t": t - float(rng.uniform(0.02, 1e5))}).to_json()),
+        (k_imu, imu.model_copy(update={"t": t + 0.005, "dvel_mps": (1.0, -1.0, 2.0)}).to_json()),
+        (k_fix, fix.model_copy(update={"t": t + 0.003, **far, "vel_enu_mps": vel}).to_json()),
+        (k_fix, fix.model_copy(update={"t": t - float(rng.uniform(1, 1e4))}).to_json()),
+        (
+            keys.sensor(v, "gnss_fix", f"rx{rng.integers(100)}"),
+            fix.model_copy(update={"t": t + 0.004}).to_json(),
+        ),
+        (
+            keys.sensor(v, "star", f"st{rng.integers(100)}"),
+            StarAttitude(t=t, rpy_deg=(9.0, 9.0, 9.0), rpy_std_deg=(0.01,) * 3).to_json(),
+        ),
+        (keys.init(v), init.model_copy(update={"t": t + float(rng.uniform(3, 1e6))}).to_json()),
+        (keys.init(v), init.model_copy(update={"t": t, **far}).to_json()),
+        (f"fednav/{v}/sensor/bogus/{rng.integers(10)}", b"{}"),
+        (f"fednav/{v}/nav/lc/solution", b'{"spoofed": true}'),  # another service's output: ignored
+    ]
+    return [choices[i] for i in rng.integers(len(choices), size=2)]
+
+
+def test_ten_thousand_hostile_messages_in_a_live_stream(tmp_path):
+    """>= 10,000 mixed hostile messages (malformed and schema-valid) interleaved with a genuine
+    stream: the service stays up, every message is counted, solutions go on to the end and stay
+    within 1 m of the clean stream's."""
+    import numpy as np
+
+    sc = shortened("demo_aircraft.toml", DURATION_S)
+    port = free_port()
+    svc = start_service(port, config=_service_config(tmp_path), table="service")
+    session = zenoh_client(port)
+    sols: dict[str, dict[float, dict]] = {"clean": {}, "storm": {}}
+
+    def on_solution(sample: zenoh.Sample) -> None:
+        d = json.loads(sample.payload.to_bytes())
+        if "t" in d:  # the storm's own spoofed "solutions" reach this subscriber too
+            sols[str(sample.key_expr).split("/")[1]][round(d["t"], 3)] = d
+
+    session.declare_subscriber("fednav/*/nav/lc/solution", on_solution)
+    pub = Publisher(session)
+    rng = np.random.default_rng(11)
+    sent = spoofed_outputs = 0
+    try:
+        for v in ("clean", "storm"):
+            init = fix = None
+            for key, msg in Simulation(sc, seed=SEED, vehicle=v):
+                pub.put(key, msg.to_json())
+                init = msg if isinstance(msg, InitialNav) else init
+                fix = msg if isinstance(msg, GnssFix) else fix
+                if v == "storm" and isinstance(msg, ImuSample) and fix is not None and init is not None:
+                    for k, payload in _storm(rng, msg, fix, init, v):
+                        pub.put(k, payload)
+                        sent += 1
+                        spoofed_outputs += "/nav/" in k
+        status = {v: wait_idle(port, vehicle=v) for v in ("clean", "storm")}
+        assert svc.p.poll() is None, "service died"
+    finally:
+        svc.signal(signal.SIGTERM)
+        rc = svc.wait(timeout=30)
+        session.close()
+    assert rc == 0 and sent >= 10_000
+    h_clean, h = status["clean"]["health"], status["storm"]["health"]
+    assert h["rejected"].get("internal_error", 0) == 0 and h["dropped_overload"] == 0
+    hostile_refused = sum(h["rejected"].values()) - sum(h_clean["rejected"].values())
+    screened = sum(h["pipelines"]["lc"]["screened"].values())
+    assert h["received"] - h_clean["received"] == sent - spoofed_outputs  # outputs are not input
+    assert hostile_refused + screened >= 0.9 * sent, (h["rejected"], h["pipelines"]["lc"]["screened"])
+    clean, got = sols["clean"], sols["storm"]
+    common = [t for t in clean if t in got]
+    assert len(common) >= len(clean) - 2 and max(got) > sc.t0_gps_s + DURATION_S - 0.2
+    worst = max(_horizontal_m(clean[t], got[t]) for t in common)
+    assert worst < 1.0, worst
+    print(
+        f"{sent} hostile messages: refused {hostile_refused}, screened rows {screened}, worst {worst:.3f} m"
+    )

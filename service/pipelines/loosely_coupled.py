@@ -30,8 +30,10 @@ class LooselyCoupled(Pipeline):
         self.last_nis: float | None = None
         self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
+        self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
+        self._refused_since.clear()
         self._P0 = initial_covariance(std, self.imu)
         self.bank = InsFilterBank(nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s)
 
@@ -53,15 +55,17 @@ class LooselyCoupled(Pipeline):
             self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
             if refused.all():
                 since = self._refused_since.setdefault(kind, nav.t)
-                if nav.t - since < self.cfg.gate_recovery_s:
-                    return []
-                # every row refused for gate_recovery_s: the filter, not the sensor, is wrong
+                if kind not in self._trusted or nav.t - since < self.cfg.gate_recovery_s:
+                    return []  # a sensor never accepted is never trusted by recovery
+                # a sensor accepted before, every row refused for gate_recovery_s: the filter,
+                # not the sensor, is wrong
                 self.screened["gate_recovery"] += 1
                 self.recover_covariance()
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
             else:
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R, mask=~refused[None, :])
         self._refused_since.pop(kind, None)
+        self._trusted.add(kind)
         if not kalman.is_positive_definite(P)[0]:
             # numerical health: never continue on a broken P; keep the INS, re-initialise the
             # covariance to the initial one and flag it
