@@ -220,3 +220,27 @@ def test_engine_source_never_assigns_pipeline_bookkeeping():
         if isinstance(t, ast.Attribute)
     ]
     assert not {"status", "reinitialisations", "updates"} & set(targets)
+
+
+def test_an_unusable_estimate_fails_the_pipeline_and_it_restarts():
+    """An estimate a Solution cannot carry (here a height below the wire limit) is never an
+    exception nor a message: the pipeline is ``failed`` (counted ``pipeline_failed``) and restarts
+    from the next GNSS fix."""
+    sc = shortened("demo_aircraft.toml", 20.0)
+    sink = CollectingSink(keep_solutions=True)
+    eng = VehicleEngine("v1", service_config(sc), sink)
+    p = eng.pipelines[0]
+    broken_at = None
+    for key, msg in Simulation(sc, seed=4):
+        pk = keys.parse_input(key)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+        if pk.kind == "imu" and broken_at is None and msg.t - sc.t0_gps_s >= 8.05:
+            p.bank.ins.state.h_m = -1e6  # what a diverged filter could produce
+            broken_at = msg.t
+            eng.emit_solutions()
+            assert p.status == "failed" and eng.rejected["pipeline_failed"] == 1
+    sols = sink.records["lc"].solutions
+    assert all(s.height_m > -1e4 for s in sols)
+    gap = [s.t for s in sols if s.t > broken_at]
+    assert gap and gap[0] - broken_at <= 1.0 + 1e-6  # a solution again after the next fix (1 Hz)
+    assert p.reinitialisations == 1 and sols[-1].status == "aided"
