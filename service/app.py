@@ -42,6 +42,9 @@ MAX_PAYLOAD_BYTES = 1 << 20
 #: counted in the log and the recording is closed: SIGTERM returns within seconds)
 _SHUTDOWN_DRAIN_S = 5.0
 _MAX_LOGGED_NAMES = 100
+#: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
+STATUS_ENCODING = "application/json;fednav.Status/1"
+CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
 #: wall seconds without a message from a stream after which Health calls it stale
 STALE_WALL_S = 2.0
 _RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
@@ -311,9 +314,13 @@ class Service:
         for v in [sel] if sel else cfg.vehicles:
             exprs += keys.inputs_selector(v, cfg.prefix)
         self.intake = zenoh_io.Intake(self.session, exprs, self._deliver)
-        qexprs = [f"{cfg.prefix}/{v}/service/status" for v in ([sel] if sel else cfg.vehicles)]
-        qexprs += [f"{cfg.prefix}/{v}/service/config" for v in ([sel] if sel else cfg.vehicles)]
+        # one queryable per vehicle selector: status, config and each pipeline's latest solution
+        qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
+        self.liveliness = zenoh_io.Liveliness(self.session)
+        self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
+        for v in [] if sel else cfg.vehicles:
+            self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
         log.info(
             "fednav-service up: vehicles=%s pipelines=%s rrd=%s",
             cfg.vehicles,
@@ -329,6 +336,7 @@ class Service:
                 if w is None:
                     w = VehicleWorker(vehicle, self.config, self.sink, self.pubs, self.rr)
                     self.workers[vehicle] = w
+                    self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w
 
     def _refuse(self, reason: str, vehicle: str) -> None:
@@ -360,20 +368,42 @@ class Service:
             return
         w.submit(wall, pk.kind, pk.sensor_id, payload)
 
-    def _answer(self, key: str) -> bytes:
-        parts = key.split("/")
-        vehicle = parts[1] if len(parts) > 1 else ""
-        if key.endswith("/config"):
-            return self.config.model_dump_json().encode()
+    def _answer(self, query_ke) -> list[tuple[str, bytes, str]]:
+        """Replies to a query: for each vehicle (served, or seen with ``*``) its status, its
+        configuration and each pipeline's latest Solution whose key intersects the query."""
+        from service.transport.zenoh_io import intersects
+
+        prefix = self.config.prefix
+        vehicles = sorted(self.workers) if "*" in self.config.vehicles else self.config.vehicles
+        latest = list(self.sink.last_solution.items())
+        out = []
+        for v in vehicles:
+            resources = {
+                keys.service(v, "status", prefix): (lambda v=v: self._status(v), STATUS_ENCODING),
+                keys.service(v, "config", prefix): (self.config.model_dump_json, CONFIG_ENCODING),
+            }
+            for (vehicle, pipeline), sol in latest:
+                if vehicle == v:
+                    resources[keys.nav(v, pipeline, "solution", prefix)] = (
+                        sol.model_dump_json,
+                        sol.encoding(),
+                    )
+            for key, (payload, encoding) in resources.items():
+                if intersects(key, query_ke):
+                    out.append((key, payload().encode(), encoding))
+        return out
+
+    def _status(self, vehicle: str) -> str:
         w = self.workers.get(vehicle)
-        state = {
-            "vehicle": vehicle,
-            "running": True,
-            "pipelines": [p.name for p in self.config.pipelines],
-            "health": json.loads(w.health().model_dump_json()) if w else None,
-            "refused_before_routing": dict(self.unrouted),
-        }
-        return json.dumps(state).encode()
+        return json.dumps(
+            {
+                "vehicle": vehicle,
+                "running": True,
+                "pipelines": [p.name for p in self.config.pipelines],
+                "health": json.loads(w.health().model_dump_json()) if w else None,
+                "refused_before_routing": dict(self.unrouted),
+            }
+        )
 
     def stop(self) -> None:
         if self.session is None:
@@ -386,6 +416,7 @@ class Service:
         for w in workers:
             w.stop(deadline)
         self.queries.stop()
+        self.liveliness.undeclare_all()
         if self.rr is not None:
             self.rr.close()
         self.pubs.undeclare_all()

@@ -13,6 +13,9 @@
 {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
 {prefix}/{vehicle}/service/health             Health
 {prefix}/{vehicle}/service/status             queryable (and .../service/config)
+{prefix}/{vehicle}/nav/{pipeline}/solution    also a queryable: the latest Solution
+{prefix}/{vehicle}/service/alive              liveliness token of each served vehicle
+{prefix}/_services/{zenoh id}                 liveliness token of each running service
 """
 
 from __future__ import annotations
@@ -65,9 +68,14 @@ def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) ->
 
 
 def service(vehicle: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
-    if what not in ("health", "status", "config"):
+    if what not in ("health", "status", "config", "alive"):
         raise ValueError(f"unknown service key {what!r}")
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/service/{what}"
+
+
+def service_token(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Liveliness token of one running service instance (its Zenoh id)."""
+    return f"{prefix}/_services/{_chunk(instance, 'service instance')}"
 
 
 def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[str]:

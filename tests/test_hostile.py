@@ -251,7 +251,7 @@ def test_vehicle_names_are_checked_and_limited(tmp_path):
         st = wait_idle(port, vehicle="a1")
         refused = st["refused_before_routing"]
         assert refused["vehicle_limit"] > 0 and refused["bad_vehicle_name"] > 0, refused
-        assert query_status(port, "a3")["health"] is None  # no worker for the third vehicle
+        assert query_status(port, "a3") is None  # no worker for the third vehicle: no reply
         t0 = time.monotonic()
     finally:
         svc.signal(signal.SIGTERM)

@@ -139,10 +139,18 @@ class Intake:
         self._thread.join(timeout=5.0)
 
 
-class QueryServer:
-    """Answers queryables from a thread with ``answer(key) -> bytes`` (JSON)."""
+#: one reply: (concrete key, payload, encoding)
+Reply = tuple[str, bytes, str]
 
-    def __init__(self, session: zenoh.Session, key_exprs: list[str], answer: Callable[[str], bytes]):
+
+class QueryServer:
+    """Answers queries from a thread with ``answer(query key expression) -> [Reply, ...]``: every
+    resource whose concrete key intersects the query's key expression, each under its own key and
+    typed encoding (a wildcard query gets one reply per vehicle and resource)."""
+
+    def __init__(
+        self, session: zenoh.Session, key_exprs: list[str], answer: Callable[[zenoh.KeyExpr], list[Reply]]
+    ):
         self._qs = [session.declare_queryable(k, zenoh.handlers.FifoChannel(64)) for k in key_exprs]
         self._answer = answer
         self._stop = threading.Event()
@@ -157,10 +165,8 @@ class QueryServer:
                 while query is not None:
                     got = True
                     try:
-                        key = str(query.key_expr)
-                        query.reply(
-                            query.key_expr, self._answer(key), encoding=zenoh.Encoding("application/json")
-                        )
+                        for key, payload, encoding in self._answer(query.key_expr):
+                            query.reply(key, payload, encoding=zenoh.Encoding(encoding))
                     except Exception as exc:  # a bad query must not kill the server
                         try:
                             query.reply_err(str(exc))
@@ -180,3 +186,31 @@ class QueryServer:
                 q.undeclare()
             except zenoh.ZError:
                 pass
+
+
+def intersects(key: str, key_expr: zenoh.KeyExpr) -> bool:
+    """Whether a concrete key matches a (wildcard) key expression of a query."""
+    return zenoh.KeyExpr(key).intersects(key_expr)
+
+
+class Liveliness:
+    """Liveliness tokens (``liveliness get`` / subscribers see them appear and vanish)."""
+
+    def __init__(self, session: zenoh.Session):
+        self.session = session
+        self._tokens: dict[str, object] = {}
+        self._lock = threading.Lock()
+
+    def declare(self, key: str) -> None:
+        with self._lock:
+            if key not in self._tokens:
+                self._tokens[key] = self.session.liveliness().declare_token(key)
+
+    def undeclare_all(self) -> None:
+        with self._lock:
+            for t in self._tokens.values():
+                try:
+                    t.undeclare()
+                except zenoh.ZError:
+                    pass
+            self._tokens.clear()
