@@ -11,31 +11,95 @@ from pathlib import Path
 
 from service import config as config_mod
 
+EXAMPLES = """examples:
+  fednav-service --config service/configs/example.toml --rrd recordings/run.rrd
+  fednav-service --config simulators/scenarios/seed000_faults.toml --config-table service
+  fednav-service --vehicle '*' --listen tcp/0.0.0.0:7447          # every vehicle, all interfaces
+  fednav-service --connect tcp/router.local:7447 --no-record      # behind a Zenoh router
+SIGINT/SIGTERM stop it cleanly (queues drained, .rrd complete). Configuration reference:
+service/config.py; docs: README.md, docs/ARCHITECTURE.md, docs/SECURITY.md."""
+
+
+def version() -> str:
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("fednav")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="fednav-service", description="fednav navigation fusion service")
-    ap.add_argument("--config", type=Path, help="service TOML config")
+    ap = argparse.ArgumentParser(
+        prog="fednav-service",
+        description="fednav navigation fusion service: sensors in over Zenoh; solutions, faults, "
+        "integrity and health out over Zenoh and to a Rerun recording",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    ap.add_argument("--version", action="version", version=f"fednav-service {version()}")
+    ap.add_argument(
+        "--config", type=Path, help="service TOML config (default: built-in defaults, vehicle v1)"
+    )
     ap.add_argument("--config-table", help="use this table of the TOML file (e.g. a scenario's 'service')")
-    ap.add_argument("--rrd", type=Path, help="recording path (.rrd)")
+    ap.add_argument("--rrd", type=Path, help="recording path (default: recordings/fednav-<time>.rrd)")
     ap.add_argument("--no-record", action="store_true", help="do not write a recording")
-    ap.add_argument("--viewer", help="also stream live to a Rerun viewer (gRPC URL)")
-    ap.add_argument("--listen", action="append", help="Zenoh endpoint to listen on (repeatable)")
-    ap.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
-    ap.add_argument("--zenoh-config", help="a full Zenoh json5 config file")
-    ap.add_argument("--vehicle", action="append", help="vehicle(s) to serve (overrides config)")
-    ap.add_argument("--log-level", default="INFO")
+    ap.add_argument(
+        "--viewer", help="also stream live to a Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy"
+    )
+    ap.add_argument(
+        "--listen",
+        action="append",
+        help="Zenoh endpoint to listen on, repeatable (default tcp/127.0.0.1:7447)",
+    )
+    ap.add_argument(
+        "--connect", action="append", help="Zenoh endpoint to connect to, repeatable (e.g. a router)"
+    )
+    ap.add_argument("--zenoh-config", help="a Zenoh json5 config file (TLS, access control, routers)")
+    ap.add_argument(
+        "--vehicle", action="append", help="vehicle(s) to serve, '*' for all (default: the config's)"
+    )
+    ap.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR (default INFO)")
     return ap.parse_args(argv)
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """A Zenoh error's first line without the Rust source locations it carries."""
+    import re
+
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return re.sub(r"\s*at /\S+\.rs:\d+\.?", "", text).strip(" .")
+
+
+def _usage_error(args: argparse.Namespace) -> str | None:
+    """A mistake in the command line, as one line (None if there is none)."""
+    from service.transport.zenoh_io import endpoint_error
+
+    for ep in (args.listen or []) + (args.connect or []):
+        err = endpoint_error(ep)
+        if err:
+            return err
+    if args.zenoh_config and not Path(args.zenoh_config).is_file():
+        return f"--zenoh-config {args.zenoh_config}: no such file"
+    if args.config and not Path(args.config).is_file():
+        return f"--config {args.config}: no such file"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    problem = _usage_error(args)
+    if problem:
+        print(f"fednav-service: {problem}", file=sys.stderr)
+        return 2
     try:
         cfg = config_mod.load(args.config, args.config_table) if args.config else config_mod.ServiceConfig()
         if args.vehicle:
             cfg = cfg.model_copy(update={"vehicles": args.vehicle})
     except config_mod.ConfigError as exc:
-        print(exc, file=sys.stderr)
+        print(f"fednav-service: {exc}", file=sys.stderr)
         return 2
     from service.app import Service
 
@@ -54,7 +118,21 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    svc.start()
+    try:
+        svc.start()
+    except Exception as exc:  # the Zenoh session could not open: say why in one line
+        import zenoh
+
+        if not isinstance(exc, zenoh.ZError):
+            raise
+        first = zenoh_error_text(exc)
+        print(
+            f"fednav-service: cannot open the Zenoh session ({first}); is the port in use by another "
+            "service? try another --listen port, or --connect to that service's router",
+            file=sys.stderr,
+        )
+        svc.stop()
+        return 2
     print(f"fednav-service ready (recording: {svc.rrd_path if not args.no_record else 'off'})", flush=True)
     while not stop.wait(0.2):
         pass

@@ -239,11 +239,9 @@ class ConfigError(ValueError):
 
 
 def _format(err: ValidationError, source: str) -> str:
-    lines = [f"invalid configuration in {source}:"]
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"])
-        lines.append(f"  {loc}: {e['msg']}")
-    return "\n".join(lines)
+    from service.validation_errors import format_errors
+
+    return format_errors(err, ServiceConfig, f"invalid configuration in {source}:")
 
 
 def from_dict(data: dict, source: str = "<dict>") -> ServiceConfig:

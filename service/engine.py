@@ -37,6 +37,7 @@ The alignment maths and its thresholds are in :mod:`service.ins.alignment`.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass
@@ -105,6 +106,15 @@ class EngineSink(Protocol):
         """A Truth message (simulators only), accepted in sensor-time order."""
 
 
+log = logging.getLogger("fednav.service")
+#: a stream refused this many times in a row is reported once in the log, with the likely cause
+WHOLESALE_REFUSALS = 100
+#: a stream further than this from the running time is reported as a time base mismatch
+TIME_BASE_MISMATCH_S = 60.0
+#: a pipeline never aided this long after its start is reported once in the log
+UNAIDED_WARNING_S = 30.0
+
+
 class VehicleEngine:
     """Drives all configured pipelines of one vehicle from a time-ordered event stream."""
 
@@ -130,6 +140,9 @@ class VehicleEngine:
         self._pending_init: InitialNav | None = None  # refused for its time: kept for a time jump
         self._check_first_fix = False  # an InitialNav start not yet confirmed by a GNSS fix
         self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
+        self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
+        self._warned: set[tuple[str, str]] = set()
+        self._start_t: float | None = None
 
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
@@ -138,6 +151,7 @@ class VehicleEngine:
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if verdict.accepted or verdict.reason in ("not_initialised", "imu_gap", "time_jump"):
             self._note_stream(kind, sensor_id, msg.t)
+        self._watch_refusals(kind, sensor_id, msg.t, verdict.reason)
         if kind == "imu":
             return self._on_imu(msg, verdict)
         if kind == "gnss_fix" and verdict.in_sequence:
@@ -184,6 +198,54 @@ class VehicleEngine:
         key = f"{kind}/{sensor_id}" if sensor_id else kind
         prev = self.streams.get(key)
         self.streams[key] = (t, (t - prev[0]) if prev and t > prev[0] else (prev[1] if prev else None))
+
+    def _watch_refusals(self, kind: str, sensor_id: str, t: float, reason: str | None) -> None:
+        """Log once, with the likely cause, when a stream is refused wholesale."""
+        key = f"{kind}/{sensor_id}" if sensor_id else kind
+        if reason is None or reason in ("imu_gap", "time_jump"):
+            self._refusals.pop(key, None)
+            return
+        n = self._refusals[key] = self._refusals.get(key, 0) + 1
+        if n != WHOLESALE_REFUSALS or ("refused", key) in self._warned:
+            return
+        self._warned.add(("refused", key))
+        dt = t - self.last_imu_t if self.last_imu_t is not None else 0.0
+        if reason in ("late", "time_backwards", "future", "early") and abs(dt) > TIME_BASE_MISMATCH_S:
+            cause = (
+                f"its time is {dt:+.0f} s from the vehicle's running (IMU) time: a time base mismatch "
+                "(e.g. the IMU stamped in boot time, GNSS in GPS time)? every stream must carry GPS seconds"
+            )
+        elif reason in ("late", "time_backwards", "future", "early", "duplicate"):
+            cause = "a sender restarted, or two senders publish under this key?"
+        elif reason == "not_initialised":
+            cause = (
+                "the vehicle is not initialised: publish an InitialNav, or let it align (static for "
+                "[init] align_time_s with a GNSS fix, or moving faster than [init] min_speed_mps)"
+            )
+        elif reason == "unexpected_sensor":
+            cause = "another sensor of this kind was adopted first: list both ids in [intake] sensor_ids"
+        else:
+            cause = "see the Health counts"
+        log.warning(
+            "vehicle %s: %d consecutive %s messages refused (%s): %s", self.vehicle, n, key, reason, cause
+        )
+
+    def _watch_inputs(self, p: Pipeline, t: float) -> None:
+        """Log once when a pipeline has had no aiding for ``UNAIDED_WARNING_S`` since its start."""
+        if p.aided_since_start or self._start_t is None or t - self._start_t < UNAIDED_WARNING_S:
+            return
+        if ("unaided", p.name) in self._warned:
+            return
+        self._warned.add(("unaided", p.name))
+        log.warning(
+            "vehicle %s: pipeline %s has had no aiding for %.0f s since its start (status unaided): it "
+            "consumes %s; this vehicle's streams: %s",
+            self.vehicle,
+            p.name,
+            t - self._start_t,
+            sorted(p.sensor_kinds()),
+            sorted(self.streams),
+        )
 
     def stale_streams(self, t: float | None = None) -> list[str]:
         """Sensor streams silent for longer than three of their own intervals (at least 1 s) at the
@@ -336,6 +398,7 @@ class VehicleEngine:
                 continue
             p.sync()
             est = p.estimate()
+            self._watch_inputs(p, est.nav.t)
             if not self._usable(est):  # never an exception, never a wrong message: the pipeline failed
                 p.mark_failed()
                 self.rejected["pipeline_failed"] += 1
@@ -356,6 +419,7 @@ class VehicleEngine:
         self.pre = Preintegrator()
         self.pre.reset(nav.t)
         self.initialised = True
+        self._start_t = nav.t
         self._lost = False
         self.last_imu_t = nav.t
         self.last_t = nav.t

@@ -5,24 +5,56 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
+
+SCENARIO_HELP = (
+    "a scenario file, or the name of a shipped one (simulators/scenarios/<name>.toml), e.g. "
+    "demo_aircraft, seed000_faults, seed001_montecarlo"
+)
+RUN_EXAMPLES = """examples:
+  fednav-sim run demo_aircraft --speed 10 --connect tcp/127.0.0.1:7447
+  fednav-sim run my_scenario.toml --speed 0 --vehicle alpha --seed 3     # as fast as the service takes it"""
+EVAL_EXAMPLES = """examples:
+  fednav-sim eval demo_aircraft
+  fednav-sim eval seed000_faults --runs 5 --seed 7 --window 400 550 --json
+  fednav-sim eval seed001_montecarlo --seed 11"""
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="fednav-sim", description="fednav sensor simulators")
+    from service.__main__ import version
+
+    raw = argparse.RawDescriptionHelpFormatter
+    ap = argparse.ArgumentParser(
+        prog="fednav-sim",
+        description="fednav sensor simulators: publish a scenario over Zenoh (run), or evaluate the "
+        "service's pipelines on it in-process, faster than real time (eval)",
+    )
+    ap.add_argument("--version", action="version", version=f"fednav-sim {version()}")
     sub = ap.add_subparsers(dest="cmd", required=True)
-    r = sub.add_parser("run", help="publish a scenario over Zenoh")
-    r.add_argument("scenario")
-    r.add_argument("--speed", type=float, default=1.0, help="pacing (x real time); 0 = as fast as possible")
-    r.add_argument("--connect", action="append", help="Zenoh endpoint (default tcp/127.0.0.1:7447)")
-    r.add_argument("--zenoh-config", help="a full Zenoh json5 config file")
-    r.add_argument("--vehicle", default="v1")
+    r = sub.add_parser("run", help="publish a scenario over Zenoh", epilog=RUN_EXAMPLES, formatter_class=raw)
+    r.add_argument("scenario", help=SCENARIO_HELP)
+    r.add_argument(
+        "--speed", type=float, default=1.0, help="pacing, x real time (default 1); 0 = as fast as possible"
+    )
+    r.add_argument(
+        "--connect", action="append", help="Zenoh endpoint, repeatable (default tcp/127.0.0.1:7447)"
+    )
+    r.add_argument("--zenoh-config", help="a Zenoh json5 config file (TLS, access control)")
+    r.add_argument("--vehicle", default="v1", help="vehicle name in the keys (default v1)")
     r.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
-    r.add_argument("--prefix", default="fednav")
-    e = sub.add_parser("eval", help="run a scenario through the service pipelines in-process")
-    e.add_argument("scenario")
-    e.add_argument("--runs", type=int, default=1)
-    e.add_argument("--seed", type=int)
-    e.add_argument("--json", action="store_true")
+    r.add_argument("--prefix", default="fednav", help="key prefix (default fednav)")
+    e = sub.add_parser(
+        "eval",
+        help="run a scenario through the service pipelines in-process",
+        epilog=EVAL_EXAMPLES,
+        formatter_class=raw,
+    )
+    e.add_argument("scenario", help=SCENARIO_HELP)
+    e.add_argument(
+        "--runs", type=int, default=1, help="seeded Monte Carlo runs: seeds S, S+1, ... (default 1)"
+    )
+    e.add_argument("--seed", type=int, help="first seed S (default: the scenario's)")
+    e.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
     e.add_argument(
         "--window",
         type=float,
@@ -40,9 +72,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as exc:
-        print(exc, file=sys.stderr)
+        print(f"fednav-sim: {exc}", file=sys.stderr)
         return 2
     if args.cmd == "run":
+        from service.transport.zenoh_io import endpoint_error
+
+        for ep in args.connect or []:
+            if endpoint_error(ep):
+                print(f"fednav-sim: {endpoint_error(ep)}", file=sys.stderr)
+                return 2
+        if args.zenoh_config and not Path(args.zenoh_config).is_file():
+            print(f"fednav-sim: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
+            return 2
         from simulators.publisher import MatchTimeout, publish_stream
         from simulators.stream import Simulation
 
@@ -64,7 +105,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         result = evaluate(
-            scenario, runs=args.runs, seed=args.seed, window=tuple(args.window) if args.window else None
+            scenario,
+            runs=args.runs,
+            seed=args.seed,
+            window=tuple(args.window) if args.window else None,
+            progress=lambda i, n, wall: print(
+                f"fednav-sim eval {scenario.name}: run {i}/{n} done, {wall:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            ),
         )
     except ConfigError as exc:
         print(exc, file=sys.stderr)

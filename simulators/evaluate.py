@@ -100,9 +100,14 @@ def run_once(
 
 
 def evaluate(
-    scenario: Scenario, runs: int = 1, seed: int | None = None, window: tuple[float, float] | None = None
+    scenario: Scenario,
+    runs: int = 1,
+    seed: int | None = None,
+    window: tuple[float, float] | None = None,
+    progress=None,
 ) -> dict:
-    """Monte Carlo evaluation; returns the JSON-ready result dict."""
+    """Monte Carlo evaluation; returns the JSON-ready result dict. ``progress(i, runs, wall_s)``
+    is called after each run (the command line prints it on stderr)."""
     seed = scenario.seed if seed is None else seed
     cfg = service_config(scenario)
     traj = scenario.build_trajectory()
@@ -112,6 +117,8 @@ def evaluate(
     integ_runs: dict[str, list] = {}
     for i in range(runs):
         sink, _ = run_once(scenario, seed + i, cfg, trajectory=traj)
+        if progress is not None:
+            progress(i + 1, runs, time.perf_counter() - wall0)
         collect_integrity(integ_runs, sink)
         for name, rec in sink.records.items():
             p = pooled.setdefault(name, {"t": [], "err": [], "nees": []})

@@ -134,14 +134,17 @@ def query_status(
 
 
 def wait_idle(port: int, vehicle: str = "v1", timeout_s: float = 120.0) -> dict | None:
-    """Wait until the service's queue for ``vehicle`` is empty and its sensor time stops moving."""
+    """Wait until nothing is waiting for ``vehicle`` (the service's intake and the vehicle's queue
+    are empty) and its sensor time and received count stop moving."""
     deadline = time.monotonic() + timeout_s
-    last_t = None
+    last = None
     while time.monotonic() < deadline:
         st = query_status(port, vehicle)
         h = (st or {}).get("health")
-        if h and h["queue_depth"] == 0 and h["t"] is not None and h["t"] == last_t:
+        now = (h["t"], h["received"]) if h else None
+        idle = h and h["queue_depth"] == 0 and st.get("intake_backlog", 0) == 0 and h["t"] is not None
+        if idle and now == last:
             return st
-        last_t = h["t"] if h else None
+        last = now
         time.sleep(0.3)
     return None

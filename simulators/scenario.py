@@ -40,6 +40,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from service.validation_errors import format_errors, suggest
 from simulators.faults import FaultSpec
 from simulators.gnss.orbits import resolve_sat_id
 from simulators.gnss.raw_sensor import GnssRawSpec
@@ -369,7 +370,11 @@ def scenario_path(name_or_path: str | Path) -> Path:
     q = SCENARIO_DIR / (p.name if p.suffix == ".toml" else f"{p.name}.toml")
     if q.exists():
         return q
-    raise FileNotFoundError(f"no scenario {name_or_path!r} (looked at {p} and {q})")
+    shipped = sorted(f.stem for f in SCENARIO_DIR.glob("*.toml"))
+    raise ScenarioError(
+        f"no scenario {str(name_or_path)!r}{suggest(p.stem, shipped)}: not a file, and not one of the "
+        f"shipped scenarios ({', '.join(shipped)})"
+    )
 
 
 def parse_scenario(data: dict, source: str = "<dict>") -> Scenario:
@@ -377,7 +382,7 @@ def parse_scenario(data: dict, source: str = "<dict>") -> Scenario:
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
-        raise ScenarioError(f"invalid scenario {source}:\n{e}", e.errors()) from e
+        raise ScenarioError(format_errors(e, Scenario, f"invalid scenario {source}:"), e.errors()) from None
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -244,3 +244,30 @@ def test_an_unusable_estimate_fails_the_pipeline_and_it_restarts():
     gap = [s.t for s in sols if s.t > broken_at]
     assert gap and gap[0] - broken_at <= 1.0 + 1e-6  # a solution again after the next fix (1 Hz)
     assert p.reinitialisations == 1 and sols[-1].status == "aided"
+
+
+def test_warnings_name_a_time_base_mismatch_and_a_pipeline_without_input(caplog):
+    """A GNSS stream stamped 1000 s away from the IMU is refused wholesale: one log line names the
+    time base mismatch. A tightly coupled pipeline on a stream without raw GNSS: one log line says
+    it has no input and what it consumes. Each once."""
+    import logging
+
+    from service.config import ServiceConfig, TightlyCoupledConfig
+
+    sc = shortened("demo_aircraft.toml", 40.0)
+    cfg = ServiceConfig(pipelines=[LooselyCoupledConfig(name="lc"), TightlyCoupledConfig(name="tc")])
+    eng = VehicleEngine("v1", cfg, CollectingSink())
+    with caplog.at_level(logging.WARNING, logger="fednav.service"):
+        for key, msg in Simulation(sc, seed=4):
+            pk = keys.parse_input(key)
+            if pk.kind == "gnss_fix" and msg.t - sc.t0_gps_s > 5.0:
+                msg = msg.model_copy(update={"t": msg.t + 1000.0})  # boot time vs GPS time, say
+            eng.handle(pk.kind, pk.sensor_id, msg)
+        for t in range(200):  # and 200 more of them
+            eng.handle("gnss_fix", "main", _fix(sc.t0_gps_s + 2000.0 + t))
+    lines = [r.getMessage() for r in caplog.records]
+    mismatch = [m for m in lines if "time base mismatch" in m]
+    assert len(mismatch) == 1 and "gnss_fix/main" in mismatch[0] and "+" in mismatch[0], lines
+    unaided = [m for m in lines if "pipeline tc has had no aiding" in m]
+    assert len(unaided) == 1 and "gnss_raw" in unaided[0], lines
+    assert eng.pipelines[1].status == "unaided"

@@ -114,16 +114,16 @@ def test_segments_are_padded_to_the_duration(demo):
         ({"gnss": {"pos_std_enu_m": [5.0, 5.0], "vel_std_enu_mps": [0.1] * 3}}, r"gnss\.pos_std_enu_m"),
         (
             {"gnss": {"pos_std_enu_m": [5.0] * 3, "vel_std_enu_mps": [0.1] * 3, "rate": 1}},
-            r"gnss\.rate\n.*Extra",
+            r"gnss\.rate: unknown field",
         ),
-        ({"duration_s": -1.0}, r"duration_s\n  Input should be greater than 0"),
+        ({"duration_s": -1.0}, r"duration_s: Input should be greater than 0"),
         (
             {"segments": [{"kind": "turn", "duration_s": 10.001, "turn_rate_dps": 1.0}]},
             r"segments\[0\] \(turn\)\.duration_s = 10.001 s is not a multiple",
         ),
         (
             {"segments": [{"kind": "loop", "duration_s": 10.0}]},
-            r"segments\.0\n.*does not match any of the expected",
+            r"segments\.0: unknown kind 'loop'",
         ),
         (
             {"segments": [{"kind": "climb", "duration_s": 10.0, "climb_rate_mps": "fast"}]},
@@ -178,13 +178,16 @@ def test_segments_are_padded_to_the_duration(demo):
                     }
                 ]
             },
-            r"faults\.0\.step\n.*magnitude has 2 values",
+            r"faults\.0\.step: .*magnitude has 2 values",
         ),
         (
             {"initial_errors": {"mode": "random", "pos_enu_m": [1.0, -1.0, 1.0]}},
             r"initial_errors\.pos_enu_m: sigmas must be >= 0",
         ),
-        ({"imu": {"rate_hz": 100.0, "vrw_ug": 3.0}}, r"imu\.vrw_ug\n.*Extra inputs"),
+        (
+            {"imu": {"rate_hz": 100.0, "vrw_ug": 3.0}},
+            r"imu\.vrw_ug: unknown field \(did you mean 'vrw_ugpsHz'\?\)",
+        ),
     ],
 )
 def test_validation_errors_name_the_field(change, message):
@@ -195,7 +198,7 @@ def test_validation_errors_name_the_field(change, message):
 def test_toml_file_errors_name_the_file(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text('name = "x"\nduration_s = 10\n')
-    with pytest.raises(ScenarioError, match=r"(?s)bad\.toml:\n.*\nstart\n  Field required"):
+    with pytest.raises(ScenarioError, match=r"bad\.toml:\n  start: Field required"):
         load_scenario(p)
     p.write_text("name = \n")
     with pytest.raises(ScenarioError, match="invalid TOML"):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -103,6 +104,10 @@ class Intake:
         ]
         self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
         self._thread.start()
+
+    def backlog(self) -> int:
+        """Messages arrived but not yet routed to a vehicle."""
+        return self._q.qsize()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         item = (time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
@@ -214,3 +219,24 @@ class Liveliness:
                 except zenoh.ZError:
                     pass
             self._tokens.clear()
+
+
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/(.+)$")
+_HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):([0-9]{1,5})$")
+
+
+def endpoint_error(endpoint: str) -> str | None:
+    """Why a Zenoh endpoint string is not one (None if it looks right): ``PROTOCOL/HOST:PORT``."""
+    m = _ENDPOINT.match(endpoint)
+    if m is None:
+        guess = endpoint.split("://")[-1].replace("tcp:", "")
+        return (
+            f"invalid Zenoh endpoint {endpoint!r}: expected PROTOCOL/HOST:PORT, "
+            f"e.g. tcp/{guess if _HOST_PORT.match(guess) else '127.0.0.1:7447'}"
+        )
+    proto, rest = m.groups()
+    if proto in ("tcp", "udp", "tls", "quic", "ws"):
+        hp = _HOST_PORT.match(rest.split("#")[0])
+        if hp is None or not 0 < int(hp.group(2)) < 65536:
+            return f"invalid Zenoh endpoint {endpoint!r}: expected {proto}/HOST:PORT with a port 1-65535"
+    return None
