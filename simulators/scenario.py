@@ -53,6 +53,7 @@ from simulators.sensors import (
     StarSpec,
     epoch_step,
 )
+from simulators.wing import WingSpec
 from simulators.trajectory import Segment, StartSpec, Trajectory, build_trajectory, check_segments
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
@@ -252,6 +253,9 @@ class Scenario(BaseModel):
         default=10.0, gt=0.0, description="Truth message rate, Hz (divides the IMU rate)"
     )
     faults: list[FaultSpec] = Field(default_factory=list, description="Injected sensor faults")
+    wing: WingSpec | None = Field(
+        default=None, description="Wing IMU nodes for transfer alignment (seed 002, optional)"
+    )
     service: dict[str, Any] = Field(
         default_factory=dict, description="Passed untouched to the service config"
     )

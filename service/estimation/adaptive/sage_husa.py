@@ -16,6 +16,12 @@ d_0 = 1, then d_k decreases to (1 - a): a fading-memory mean of r r' - H P H' (E
 - Restart rule (the paper, section 1.2): once d_k has converged to (1 - a) -- here within a
   relative ``restart_tol`` -- the count k restarts at 0, so recent innovations again dominate.
   ``restart=False`` keeps the plain fading-memory estimator.
+- ``diagonal=True``: the per-row form (R diagonal, each R_ii adapted from r_i^2 - (H P H')_ii,
+  each row falling back on its own). With a 9-row measurement whose H P H' is far above R in some
+  direction while P is large, the full-matrix form stays indefinite (and frozen by the fallback)
+  for hundreds of epochs; the per-row form adapts each row as soon as its own variance allows.
+  ``floor`` (m,) optionally bounds each R_ii from below (a row whose true noise is near zero
+  would otherwise drive R_ii, and the filter's conditioning, to zero).
 - Rows excluded by a mask (a member without that measurement) are left unchanged.
 """
 
@@ -52,6 +58,8 @@ class SageHusaR:
         restart: bool = True,
         restart_tol: float = 1e-3,
         min_eig: float = 0.0,
+        diagonal: bool = False,
+        floor: np.ndarray | None = None,
     ):
         if not 0.0 < a < 1.0:
             raise ValueError("forgetting factor a must be in (0, 1)")
@@ -64,6 +72,8 @@ class SageHusaR:
         self.restart = restart
         self.restart_tol = float(restart_tol)
         self.min_eig = float(min_eig)
+        self.diagonal = bool(diagonal)
+        self.floor = None if floor is None else np.asarray(floor, dtype=float)
         self.fallbacks = np.zeros(B, dtype=int)
         self.restarts = np.zeros(B, dtype=int)
 
@@ -78,6 +88,8 @@ class SageHusaR:
         ``mask`` (B, m) bool: rows a member did not measure keep their R entries.
         """
         d = self.d[:, None, None]
+        if self.diagonal:
+            return self._update_diagonal(r, HPHt, mask)
         sample = r[:, :, None] * r[:, None, :] - HPHt
         R_new = (1.0 - d) * self.R + d * sample
         if mask is not None:
@@ -90,13 +102,34 @@ class SageHusaR:
         ok = finite & (np.linalg.eigvalsh(safe).min(axis=-1) > self.min_eig)
         self.fallbacks += ~ok
         self.R = np.where(ok[:, None, None], safe, self.R)
+        self._advance()
+        return self.R
+
+    def _update_diagonal(self, r: np.ndarray, HPHt: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+        """Per-row variant: R_ii = (1 - d) R_ii + d (r_i^2 - (H P H')_ii), R diagonal; a row whose
+        new value is not above ``min_eig`` keeps its previous value (counted once per member)."""
+        d = self.d[:, None]
+        Rd = np.diagonal(self.R, axis1=1, axis2=2)
+        new = (1.0 - d) * Rd + d * (r * r - np.diagonal(HPHt, axis1=1, axis2=2))
+        ok = np.isfinite(new) & (new > self.min_eig)
+        if mask is not None:
+            ok &= np.asarray(mask, dtype=bool)
+        self.fallbacks += np.any(~ok, axis=1) if mask is None else np.any(~ok & np.asarray(mask, bool), axis=1)
+        Rd = np.where(ok, new, Rd)
+        if self.floor is not None:
+            Rd = np.maximum(Rd, self.floor)
+        m = Rd.shape[1]
+        self.R = Rd[:, :, None] * np.eye(m)
+        self._advance()
+        return self.R
+
+    def _advance(self) -> None:
         d_now = self.d
         self.k += 1
         if self.restart:
             converged = d_now - (1.0 - self.a) < self.restart_tol * (1.0 - self.a)
             self.k[converged] = 0
             self.restarts += converged
-        return self.R
 
 
 __all__ = ["SageHusaR", "sage_husa_weight"]
