@@ -167,7 +167,9 @@ def _paper_nodes() -> list[AlignmentNodeConfig]:
     arms = ((0.85, 0.15, 0.25), (2.0, 0.15, 0.28), (2.65, 0.15, 0.31))
     flex = ((1.0, 2.0, 0.5), (2.0, 4.0, 1.0), (3.0, 6.0, 1.5))
     return [
-        AlignmentNodeConfig(id=f"wing{i + 1}", lever_arm_m=a, flexure_arcmin=f, flexure_beta_rps=(1.0, 0.8, 1.2))
+        AlignmentNodeConfig(
+            id=f"wing{i + 1}", lever_arm_m=a, flexure_arcmin=f, flexure_beta_rps=(1.0, 0.8, 1.2)
+        )
         for i, (a, f) in enumerate(zip(arms, flex, strict=True))
     ]
 
@@ -187,6 +189,9 @@ class TransferAlignmentConfig(Model):
     forgetting_factor: float = Field(0.97, ge=0.95, le=0.99, description="Sage-Husa forgetting factor")
     restart: bool = Field(True, description="Sage-Husa restart rule (the paper's)")
     p_fa: float = Field(0.01, gt=0, lt=0.5, description="Fading chi2 test false-alarm probability")
+    r_floor: float = Field(
+        1.0, gt=0, le=1, description="Adapted R_ii never below this fraction of the nominal (docs/seed002.md)"
+    )
     gyro_bias_dph: float = Field(0.05, gt=0, description="Slave gyro bias 1-sigma, deg/h")
     arw_dpsh: float = Field(0.025, gt=0, description="Slave angle random walk, deg/sqrt(h)")
     accel_bias_ug: float = Field(150.0, gt=0, description="Slave accel bias 1-sigma, ug")

@@ -72,7 +72,9 @@ def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
         from service.pipelines.tightly_coupled import TightlyCoupled
 
         return TightlyCoupled(cfg, config.imu, config.major_interval_s)
-    raise ValueError(f"unknown pipeline kind {cfg.kind!r}")  # unreachable: config validates kinds
+    from service.pipelines import build_pipeline as from_registry  # other families (registry)
+
+    return from_registry(cfg, config)
 
 
 class VehicleEngine:
@@ -97,10 +99,18 @@ class VehicleEngine:
         self._last_out_k = -1
         self._lost = False
         self.last_t: float | None = None
+        # IMU nodes (transfer alignment): ids routed to pipelines, never to the vehicle's INS
+        self._node_imus: dict[str, list[Pipeline]] = {}
+        for p in self.pipelines:
+            for sid in p.node_imu_ids():
+                self._node_imus.setdefault(sid, []).append(p)
+        self._sample_pipes = [p for p in self.pipelines if p.wants_imu_samples]
 
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
         """Process one validated event. Returns False when it was rejected (reason counted)."""
+        if kind == "imu" and sensor_id in self._node_imus:
+            return self._on_node_imu(sensor_id, msg)
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if kind == "imu":
             return self._on_imu(msg, verdict)
@@ -173,9 +183,21 @@ class VehicleEngine:
             self._apply(kind, sid, amsg, dt_late=0.0)
         if t - cur > 1e-12:
             self._push(dth, dv, t - cur, t)
+        for p in self._sample_pipes:
+            p.push_imu_sample(msg)
         self.last_imu_t = t
         self.last_t = t
         self._maybe_output(t)
+        return True
+
+    def _on_node_imu(self, sensor_id: str, msg: ImuSample) -> bool:
+        """A node IMU sample: judged by the aiding rules of its own key (duplicate, late,
+        time_backwards, not_initialised, early), then handed to the pipelines that consume it."""
+        verdict = self.rules.decide("imu_node", sensor_id, msg, self.last_imu_t, self.initialised)
+        if not verdict.accepted:
+            return self._reject(verdict.reason)
+        for p in self._node_imus[sensor_id]:
+            p.push_node_imu(sensor_id, msg)
         return True
 
     def _push(self, dth, dv, dt, t_end) -> None:
@@ -239,6 +261,8 @@ class VehicleEngine:
                 self.sink.on_solution(self.vehicle, p.solution(est), err9, est.P9)
             else:  # evaluation without solution messages: skip building them
                 self.sink.on_estimate(self.vehicle, p.name, est.nav.t, err9, est.P9)
+            for out in p.epoch_outputs():
+                self.sink.on_output(self.vehicle, out, None)
 
     def _errors(self, p: Pipeline, t: float, est=None) -> np.ndarray | None:
         """Errors of a pipeline's estimate against truth at t (None without truth at t)."""

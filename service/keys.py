@@ -11,6 +11,7 @@
 {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
 {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
 {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
+{prefix}/{vehicle}/nav/{pipeline}/alignment/{node}  Alignment (transfer alignment, seed 002)
 {prefix}/{vehicle}/service/health             Health
 {prefix}/{vehicle}/service/status             queryable (and .../service/config)
 """
@@ -54,6 +55,12 @@ def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) ->
     if what not in ("solution", "faults", "integrity"):
         raise ValueError(f"unknown nav output {what!r}")
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/nav/{_chunk(pipeline, 'pipeline')}/{what}"
+
+
+def alignment(vehicle: str, pipeline: str, node: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key of a transfer-alignment node output (seed 002)."""
+    v, p, n = _chunk(vehicle, "vehicle"), _chunk(pipeline, "pipeline"), _chunk(node, "node")
+    return f"{prefix}/{v}/nav/{p}/alignment/{n}"
 
 
 def service(vehicle: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:

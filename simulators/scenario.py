@@ -53,8 +53,8 @@ from simulators.sensors import (
     StarSpec,
     epoch_step,
 )
-from simulators.wing import WingSpec
 from simulators.trajectory import Segment, StartSpec, Trajectory, build_trajectory, check_segments
+from simulators.wing import WingSpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 Vec3 = tuple[float, float, float]

@@ -12,13 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import earth
 from service.config import TransferAlignmentConfig
 from service.estimation import transfer_alignment as ta
 from service.pipelines.transfer_alignment import bank_from_config
-from simulators.imu import apply_imu_errors
 from simulators.trajectory import mat_nb_vec
-from simulators.wing import simulate_wing
+from simulators.wing import WingSimulation
 
 NEES_IDX = np.r_[np.arange(0, 3), np.arange(15, 18), np.arange(21, 24)]  # phi, theta, dr
 
@@ -47,10 +45,10 @@ def pipelines_of(scenario) -> list[TransferAlignmentConfig]:
 
 def run_once(scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None) -> dict:
     """One seeded run; returns per pipeline arrays over filter epochs (E) and nodes (B)."""
-    traj = traj if traj is not None else scenario.build_trajectory()
-    rng_m, rng_w = (np.random.default_rng(s) for s in np.random.SeedSequence([seed, 2]).spawn(2))
-    dth_m, dv_m, _ = apply_imu_errors(scenario.imu, traj.dtheta_rad, traj.dvel_mps, rng_m)
-    nodes = simulate_wing(scenario.wing, traj, rng_w, scenario.imu.rate_hz)
+    sim = WingSimulation(scenario, seed, trajectory=traj)  # the same samples the live stream carries
+    traj = sim.master.trajectory
+    dth_m, dv_m = sim.master._dth, sim.master._dv
+    nodes = sim.nodes
     ids = [n.id for n in nodes]
     banks = []
     for cfg in cfgs:
@@ -60,7 +58,10 @@ def run_once(scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None
     dv_s = np.stack([n.dvel_mps for n in nodes], axis=1)
     dt = 1.0 / scenario.imu.rate_hz
     C_nm = mat_nb_vec(traj.rpy_rad)
-    out = {cfg.name: {k: [] for k in ("t", "head", "lever", "phi", "theta", "nees", "R", "s", "trig")} for cfg in cfgs}
+    out = {
+        cfg.name: {k: [] for k in ("t", "head", "lever", "phi", "theta", "nees", "R", "s", "trig")}
+        for cfg in cfgs
+    }
     t_rel = np.arange(traj.t_s.size) * dt
     for k in range(1, traj.t_s.size):
         for cfg, bank, order in banks:
@@ -84,8 +85,10 @@ def run_once(scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None
             o["R"].append(info.R_diag)
             o["s"].append(info.fading_s.max(axis=1))
             o["trig"].append(info.fading_triggered)
-    return {name: {k: np.asarray(v) for k, v in d.items()} | {"nodes": [n.id for n in cfgs[i].nodes]}
-            for i, (name, d) in enumerate(out.items())}
+    return {
+        name: {k: np.asarray(v) for k, v in d.items()} | {"nodes": [n.id for n in cfgs[i].nodes]}
+        for i, (name, d) in enumerate(out.items())
+    }
 
 
 def summarise(runs: list[dict], settle_s: float) -> dict:

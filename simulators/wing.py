@@ -180,7 +180,12 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
         beta = np.asarray(node.flexure_beta_rps, float)
         th, thd = _gm2(n, dt, beta, np.asarray(node.flexure_arcmin) * earth.ARCMIN, rng)
         vib = _resonator(
-            n, dt, spec.vibration_hz, spec.vibration_damping, np.asarray(spec.vibration_arcmin) * earth.ARCMIN, rng
+            n,
+            dt,
+            spec.vibration_hz,
+            spec.vibration_damping,
+            np.asarray(spec.vibration_arcmin) * earth.ARCMIN,
+            rng,
         )
         vib = vib * gain[:, None]
         M = flexure_displacement_matrix(r_nom, spec.kappa)
@@ -213,3 +218,57 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
 
 
 __all__ = ["NodeTruth", "WingNodeSpec", "WingSpec", "simulate_wing", "turbulence_gain"]
+
+
+def wing_rng(seed: int) -> np.random.Generator:
+    """The wing nodes' generator of a run (independent of the master stream's generators)."""
+    return np.random.default_rng(np.random.SeedSequence([seed, 2]).spawn(2)[1])
+
+
+class WingSimulation:
+    """The scenario's message stream (:class:`simulators.stream.Simulation`: master IMU, GNSS,
+    init, truth) with every wing node's ImuSample inserted before the master sample of the same
+    instant (``fednav/{vehicle}/sensor/imu/{node}``), so a service steps the nodes with the master.
+    ``nodes`` holds the nodes' truth; ``master`` the wrapped Simulation."""
+
+    def __init__(
+        self, scenario, seed: int | None = None, vehicle: str = "v1", trajectory=None, prefix: str = "fednav"
+    ):
+        from service import keys
+        from simulators.stream import Simulation
+
+        if scenario.wing is None:
+            raise ValueError("scenario has no [wing] section")
+        seed = scenario.seed if seed is None else int(seed)
+        self.master = Simulation(scenario, seed=seed, vehicle=vehicle, trajectory=trajectory, prefix=prefix)
+        traj = self.master.trajectory
+        self.nodes = simulate_wing(scenario.wing, traj, wing_rng(seed), scenario.imu.rate_hz)
+        self._master_key = keys.sensor(vehicle, "imu", scenario.imu.id, prefix)
+        self._keys = [keys.sensor(vehicle, "imu", n.id, prefix) for n in self.nodes]
+        self._t0 = traj.t0_gps_s
+        self._rate = scenario.imu.rate_hz
+        self._gen = self._messages()
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        return next(self._gen)
+
+    def _messages(self):
+        from service.messages import ImuSample
+
+        dt = 1.0 / self._rate
+        dth = [n.dtheta_rad.tolist() for n in self.nodes]
+        dv = [n.dvel_mps.tolist() for n in self.nodes]
+        for key, msg in self.master:
+            if key == self._master_key:
+                k = int(round((msg.t - self._t0) * self._rate))
+                for j, nkey in enumerate(self._keys):
+                    yield (
+                        nkey,
+                        ImuSample.model_construct(
+                            t=msg.t, dt_s=dt, dtheta_rad=tuple(dth[j][k]), dvel_mps=tuple(dv[j][k])
+                        ),
+                    )
+            yield key, msg

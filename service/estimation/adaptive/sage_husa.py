@@ -114,7 +114,9 @@ class SageHusaR:
         ok = np.isfinite(new) & (new > self.min_eig)
         if mask is not None:
             ok &= np.asarray(mask, dtype=bool)
-        self.fallbacks += np.any(~ok, axis=1) if mask is None else np.any(~ok & np.asarray(mask, bool), axis=1)
+        self.fallbacks += (
+            np.any(~ok, axis=1) if mask is None else np.any(~ok & np.asarray(mask, bool), axis=1)
+        )
         Rd = np.where(ok, new, Rd)
         if self.floor is not None:
             Rd = np.maximum(Rd, self.floor)
