@@ -124,7 +124,55 @@ def summarise(runs: list[dict], settle_s: float) -> dict:
 
 
 def evaluate(scenario, runs: int, seed: int, settle_s: float = 60.0) -> dict:
+    """Seeded Monte Carlo (seeds seed .. seed + runs - 1); improvements of every adaptive
+    pipeline over the first plain-KF pipeline; the paper's figures under ``paper``."""
+    from simulators.papers import reference
+
     cfgs = pipelines_of(scenario)
     traj = scenario.build_trajectory()
     out = [run_once(scenario, cfgs, seed + i, traj) for i in range(runs)]
-    return summarise(out, settle_s)
+    pipes = summarise(out, settle_s)
+    result = {"scenario": scenario.name, "runs": runs, "seed": seed, "settle_s": settle_s, "pipelines": pipes}
+    base = next((c.name for c in cfgs if c.filter == "kf" and c.fusion == "none"), None)
+    if base is not None:
+        result["improvement_pct"] = {
+            c.name: improvement_pct(pipes, base, c.name) for c in cfgs if c.name != base
+        }
+    result["paper"] = reference(scenario.name)
+    return result
+
+
+def improvement_pct(result: dict, base: str, new: str) -> dict:
+    """1 - RMSE_new / RMSE_base in % (mean over nodes), lever arm and heading."""
+    b, n = result[base], result[new]
+    return {
+        "lever_arm": 100.0 * (1.0 - n["lever_rmse_m"] / b["lever_rmse_m"]),
+        "heading": 100.0 * (1.0 - n["heading_rmse_deg"] / b["heading_rmse_deg"]),
+    }
+
+
+def format_table(result: dict) -> str:
+    from simulators.papers import SEED002_IMPROVEMENT_PCT as PCT
+    from simulators.papers import SEED002_TABLE2_LEVER_M, SEED002_TABLE3_HEADING_DEG
+
+    pipes = result["pipelines"]
+    head = f"seed 002 transfer alignment, {result['runs']} runs, seed {result['seed']}"
+    lines = [f"{head}, RMSE after {result['settle_s']:.0f} s"]
+    lines.append(f"{'pipeline':<12} {'node':<6} {'lever E/N/U m':<26} {'heading deg':>11} {'NEES(9)':>8}")
+    for name, r in pipes.items():
+        for node, p in r["nodes"].items():
+            e, nn, u = p["lever_rmse_enu_m"]
+            row = f"{name:<12} {node:<6} {e:8.4f} {nn:8.4f} {u:8.4f}"
+            lines.append(f"{row} {p['heading_rmse_deg']:11.4f} {p['nees_mean']:8.2f}")
+        mean = f"{name:<12} {'mean':<6} {'|r| ' + format(r['lever_rmse_m'], '.4f'):<26}"
+        fad = f"fading engaged {100 * r['fading_trigger_rate']:.1f} % of epochs"
+        lines.append(f"{mean} {r['heading_rmse_deg']:11.4f} {r['nees_mean']:8.2f}  {fad}")
+    lines.append("paper (Tables 2-3, 200 min Y-12 flight):")
+    for alg in ("kf", "fed_kf", "fed_akf"):
+        for imu, (e, nn, u) in SEED002_TABLE2_LEVER_M[alg].items():
+            row = f"{alg:<12} {imu:<6} {e:8.4f} {nn:8.4f} {u:8.4f}"
+            lines.append(f"{row} {SEED002_TABLE3_HEADING_DEG[alg][imu]:11.4f}")
+    for k, v in result.get("improvement_pct", {}).items():
+        ours = f"lever arm {v['lever_arm']:.1f} %, heading {v['heading']:.1f} %"
+        lines.append(f"improvement {k}: {ours}  (paper {PCT['lever_arm']} %, {PCT['heading']} %)")
+    return "\n".join(lines)
