@@ -105,12 +105,19 @@ class VehicleEngine:
             for sid in p.node_imu_ids():
                 self._node_imus.setdefault(sid, []).append(p)
         self._sample_pipes = [p for p in self.pipelines if p.wants_imu_samples]
+        self._node_truth: dict[tuple[str, int], WireModel] = {}
 
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
         """Process one validated event. Returns False when it was rejected (reason counted)."""
         if kind == "imu" and sensor_id in self._node_imus:
             return self._on_node_imu(sensor_id, msg)
+        if kind == "alignment_truth":  # kept for error logging only, like Truth
+            self._node_truth[(sensor_id, self._tkey(msg.t))] = msg
+            if len(self._node_truth) > 1024:
+                for k in sorted(self._node_truth, key=lambda k: k[1])[:512]:
+                    del self._node_truth[k]
+            return True
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if kind == "imu":
             return self._on_imu(msg, verdict)
@@ -261,8 +268,10 @@ class VehicleEngine:
                 self.sink.on_solution(self.vehicle, p.solution(est), err9, est.P9)
             else:  # evaluation without solution messages: skip building them
                 self.sink.on_estimate(self.vehicle, p.name, est.nav.t, err9, est.P9)
-            for out in p.epoch_outputs():
-                self.sink.on_output(self.vehicle, out, None)
+            for out in p.epoch_outputs():  # per-node outputs, with the node's truth when present
+                node = getattr(out, "node", None)
+                truth = self._node_truth.get((node, self._tkey(out.t))) if node else None
+                self.sink.on_output(self.vehicle, out, truth)
 
     def _errors(self, p: Pipeline, t: float, est=None) -> np.ndarray | None:
         """Errors of a pipeline's estimate against truth at t (None without truth at t)."""

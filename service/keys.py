@@ -8,6 +8,7 @@
 {prefix}/{vehicle}/sensor/usbl/{id}           UsblFix
 {prefix}/{vehicle}/sensor/init                InitialNav
 {prefix}/{vehicle}/truth                      Truth
+{prefix}/{vehicle}/truth/alignment/{node}     AlignmentTruth (seed 002 simulators)
 {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
 {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
 {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
@@ -51,6 +52,10 @@ def truth(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/truth"
 
 
+def alignment_truth(vehicle: str, node: str, prefix: str = DEFAULT_PREFIX) -> str:
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/truth/alignment/{_chunk(node, 'node')}"
+
+
 def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
     if what not in ("solution", "faults", "integrity"):
         raise ValueError(f"unknown nav output {what!r}")
@@ -88,7 +93,7 @@ def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
 @dataclass(frozen=True)
 class ParsedKey:
     vehicle: str
-    kind: str  # imu, gnss_fix, gnss_raw, star, dvl, usbl, init, truth
+    kind: str  # imu, gnss_fix, gnss_raw, star, dvl, usbl, init, truth, alignment_truth
     sensor_id: str  # "" for init/truth
 
 
@@ -100,6 +105,8 @@ def parse_input(key: str, prefix: str = DEFAULT_PREFIX) -> ParsedKey | None:
     vehicle, rest = parts[1], parts[2:]
     if rest == ["truth"]:
         return ParsedKey(vehicle, "truth", "")
+    if len(rest) == 3 and rest[:2] == ["truth", "alignment"]:
+        return ParsedKey(vehicle, "alignment_truth", rest[2])
     if not rest or rest[0] != "sensor":
         return None
     rest = rest[1:]

@@ -336,6 +336,17 @@ class Alignment(WireModel):
     share: float | None = None
 
 
+class AlignmentTruth(WireModel):
+    """Truth of one wing node (simulators only; the service uses it only to log errors)."""
+
+    t: Time
+    node: str
+    mount_deg: Vec3 = Field(description="True rotation of the slave from the master (incl. vibration), deg")
+    installation_deg: Vec3 = Field(description="True installation + coupling angle, deg")
+    flexure_deg: Vec3
+    lever_arm_m: Vec3
+
+
 class PipelineHealth(WireModel):
     status: str
     last_t: float | None
@@ -366,6 +377,7 @@ SENSOR_MESSAGES: dict[str, type[WireModel]] = {
     "usbl": UsblFix,
     "init": InitialNav,
     "truth": Truth,
+    "alignment_truth": AlignmentTruth,
 }
 
 ALL_MESSAGES: list[type[WireModel]] = [
@@ -382,6 +394,7 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Integrity,
     Health,
     Alignment,
+    AlignmentTruth,
 ]
 
 

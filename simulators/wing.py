@@ -244,6 +244,8 @@ class WingSimulation:
         traj = self.master.trajectory
         self.nodes = simulate_wing(scenario.wing, traj, wing_rng(seed), scenario.imu.rate_hz)
         self._master_key = keys.sensor(vehicle, "imu", scenario.imu.id, prefix)
+        self._truth_key = keys.truth(vehicle, prefix)
+        self._node_truth_keys = [keys.alignment_truth(vehicle, n.id, prefix) for n in self.nodes]
         self._keys = [keys.sensor(vehicle, "imu", n.id, prefix) for n in self.nodes]
         self._t0 = traj.t0_gps_s
         self._rate = scenario.imu.rate_hz
@@ -251,6 +253,20 @@ class WingSimulation:
 
     def __iter__(self):
         return self
+
+    def node_truth(self, j: int, k: int, t: float):
+        from service.messages import AlignmentTruth
+
+        n = self.nodes[j]
+        deg = 1.0 / earth.DEG
+        return AlignmentTruth(
+            t=t,
+            node=n.id,
+            mount_deg=tuple(float(v) for v in rotvec(n.C_ms[k]) * deg),
+            installation_deg=tuple(float(v) for v in (n.rho0_rad + n.coupling_rad) * deg),
+            flexure_deg=tuple(float(v) for v in n.theta_rad[k] * deg),
+            lever_arm_m=tuple(float(v) for v in n.lever_arm_m[k]),
+        )
 
     def __next__(self):
         return next(self._gen)
@@ -262,6 +278,12 @@ class WingSimulation:
         dth = [n.dtheta_rad.tolist() for n in self.nodes]
         dv = [n.dvel_mps.tolist() for n in self.nodes]
         for key, msg in self.master:
+            if key == self._truth_key:
+                yield key, msg
+                k = int(round((msg.t - self._t0) * self._rate))
+                for j, tkey in enumerate(self._node_truth_keys):
+                    yield tkey, self.node_truth(j, k, msg.t)
+                continue
             if key == self._master_key:
                 k = int(round((msg.t - self._t0) * self._rate))
                 for j, nkey in enumerate(self._keys):

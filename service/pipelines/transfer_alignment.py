@@ -84,7 +84,7 @@ class TransferAlignment(LooselyCoupled):
 
     def initialise(self, nav, std) -> None:
         super().initialise(nav, std)
-        self.ta = None  # the node filters start at the next complete set of samples
+        self.ta = bank_from_config(self.ta_cfg, t0=nav.t)  # the node filters start with the INS
         self._pending.clear()
 
     def push_node_imu(self, sensor_id: str, msg: ImuSample) -> None:
