@@ -289,6 +289,7 @@ class TransferAlignmentBank:
         self.V = None  # set at the first sample (needs the master rate)
         self.t = t0
         self._acc_T = 0.0
+        self._w_prev: np.ndarray | None = None
         self._acc_w = np.zeros(3)
         self._acc_f = np.zeros((B, 3))
         self.epochs = 0
@@ -320,7 +321,11 @@ class TransferAlignmentBank:
         self._acc_w += dth_m
         self._acc_f += f_sm
         self.t = t_end
-        self._last_rates = (w_m, dth_s / dt)
+        # master rate at the end of the sample: the sample means are rates at mid-sample; linear
+        # extrapolation by half a sample (matters in roll/turn entries: omega_dot x r ~ 1e-3 m/s)
+        w_end = w_m if self._w_prev is None else 1.5 * w_m - 0.5 * self._w_prev
+        self._w_prev = w_m
+        self._last_rates = (w_m, dth_s / dt, w_end)
         if self._acc_T >= self.T - 1e-9:
             return self._epoch()
         return None
@@ -330,9 +335,9 @@ class TransferAlignmentBank:
         return self.V @ self.C_im
 
     def measurements(self) -> np.ndarray:
-        w_m, w_s = self._last_rates
+        w_m, w_s, w_end = self._last_rates
         z_a = rotvec(self.C_ms)
-        z_v = self.w_hat() - np.cross(w_m, self.p.lever_arm_m)
+        z_v = self.w_hat() - np.cross(w_end, self.p.lever_arm_m)
         z_w = w_s - w_m
         return np.concatenate([z_a, z_v, z_w], axis=1)
 
@@ -349,8 +354,7 @@ class TransferAlignmentBank:
         Phi, Qd = discretise(F, Qc, T)
         x_pred = np.einsum("bij,bj->bi", Phi, self.x)
         J = kalman.symmetrise(Phi @ self.P @ np.swapaxes(Phi, 1, 2))
-        w_m = self._last_rates[0]
-        H = measurement_matrix(w_m, self.p)
+        H = measurement_matrix(self._last_rates[2], self.p)
         z = self.measurements()
         r = z - np.einsum("bij,bj->bi", H, x_pred)
         Ht = np.swapaxes(H, 1, 2)
