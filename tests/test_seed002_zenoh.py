@@ -67,9 +67,11 @@ def test_alignment_messages_per_node_arrive_over_zenoh(wing_run):
         assert last["node"] == node and last["pipeline"] == "ta"
         for key in ("mount_deg", "misalignment_std_deg", "lever_arm_m", "lever_arm_std_m", "flexure_deg"):
             assert len(last[key]) == 3, key
-        # 20 s of straight flight: the misalignment converges from 30 arcmin, the lever arm stays
-        # near its prior (unobservable without rotation: honest sigmas, not a fake convergence)
-        assert max(last["misalignment_std_deg"]) * 60.0 < 1.0
+        # 20 s of straight flight: the level misalignment converges from 30 arcmin (velocity
+        # matching under gravity); the heading one and the lever arm stay near their priors
+        # (separable from the mounting angle only by manoeuvres: honest sigmas, no fake convergence)
+        sx, sy, sz = (v * 60.0 for v in last["misalignment_std_deg"])
+        assert sx < 1.0 and sy < 1.0 and sz > 5.0
         assert 0.05 < last["lever_arm_std_m"][0] <= 0.2 + 1e-9
         assert len(last["r_std"]) == 9 and last["fading"] >= 1.0
 
