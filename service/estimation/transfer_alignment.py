@@ -161,28 +161,31 @@ class TAParams:
         return P
 
 
+_D3 = np.arange(3)
+
+
 def continuous_model(
     omega_m: np.ndarray, f_sm: np.ndarray, C_ms: np.ndarray, p: TAParams
 ) -> tuple[np.ndarray, np.ndarray]:
-    """F (B, 27, 27) and Qc (B, 27, 27) of the error model at master rate omega_m (3,) or (B, 3),
+    """F (B, 27, 27) and Qc (B, 27, 27) of the error model at master rate omega_m (3,),
     slave specific force in master axes f_sm (B, 3) and relative attitude C_ms (B, 3, 3)."""
     B = p.B
-    W = np.broadcast_to(skew(omega_m), (B, 3, 3))
+    W = skew(omega_m)
     F = np.zeros((B, N_STATES, N_STATES))
     F[:, PHI, PHI] = -W
     F[:, PHI, EPS] = -C_ms
     F[:, DW, PHI] = skew(f_sm)
     F[:, DW, DW] = -W
     F[:, DW, NAB] = C_ms
-    F[:, TH, THD] = _I3
+    F[:, 15 + _D3, 18 + _D3] = 1.0  # theta' = theta_dot
     beta = p.flex_beta_rps
-    F[:, THD, TH] = -np.einsum("bi,ij->bij", beta**2, _I3)
-    F[:, THD, THD] = -np.einsum("bi,ij->bij", 2.0 * beta, _I3)
+    F[:, 18 + _D3, 15 + _D3] = -(beta**2)
+    F[:, 18 + _D3, 18 + _D3] = -2.0 * beta
     F[:, DR, THD] = p.M
     Qc = np.zeros((B, N_STATES, N_STATES))
-    Qc[:, PHI, PHI] = p.arw_rad_psqrts**2 * _I3
-    Qc[:, DW, DW] = p.vrw_mps_psqrts**2 * _I3
-    Qc[:, THD, THD] = np.einsum("bi,ij->bij", flexure_q(beta, p.flex_sigma_rad), _I3)
+    Qc[:, _D3, _D3] = p.arw_rad_psqrts**2
+    Qc[:, 3 + _D3, 3 + _D3] = p.vrw_mps_psqrts**2
+    Qc[:, 18 + _D3, 18 + _D3] = flexure_q(beta, p.flex_sigma_rad)
     return F, Qc
 
 
@@ -202,24 +205,29 @@ def discretise(F: np.ndarray, Qc: np.ndarray, T: float) -> tuple[np.ndarray, np.
     return Phi, kalman.symmetrise(Qd)
 
 
+def _h_template() -> np.ndarray:
+    H = np.zeros((N_MEAS, N_STATES))
+    H[_D3, _D3] = -1.0  # attitude: -phi
+    for c in (12, 15, 24):  # + rho0 + theta + d_delta
+        H[_D3, c + _D3] = 1.0
+    H[3 + _D3, 3 + _D3] = 1.0  # velocity: dw
+    H[6 + _D3, 6 + _D3] = 1.0  # rate: eps
+    H[6 + _D3, 18 + _D3] = 1.0  # rate: theta_dot
+    return H
+
+
+_H0 = _h_template()
+
+
 def measurement_matrix(omega_m: np.ndarray, p: TAParams) -> np.ndarray:
-    """H (B, 9, 27) (eq 4, small-angle reading; see the module docstring)."""
-    B = p.B
-    W = np.broadcast_to(skew(omega_m), (B, 3, 3))
-    H = np.zeros((B, N_MEAS, N_STATES))
-    a, v, w = slice(0, 3), slice(3, 6), slice(6, 9)
-    H[:, a, PHI] = -_I3
-    H[:, a, RHO] = _I3
-    H[:, a, TH] = _I3
-    H[:, a, DD] = _I3
-    H[:, v, DW] = _I3
-    H[:, v, THD] = p.M
-    H[:, v, DR] = W
-    H[:, w, EPS] = _I3
-    H[:, w, RHO] = W
-    H[:, w, TH] = W
-    H[:, w, THD] = _I3
-    H[:, w, DD] = W
+    """H (B, 9, 27) (eq 4, small-angle reading; see the module docstring) at the master rate (3,)."""
+    W = skew(omega_m)
+    H = np.repeat(_H0[None], p.B, axis=0)
+    H[:, 3:6, THD] = p.M
+    H[:, 3:6, DR] = W
+    H[:, 6:9, RHO] = W
+    H[:, 6:9, TH] = W
+    H[:, 6:9, DD] = W
     return H
 
 
@@ -313,7 +321,7 @@ class TransferAlignmentBank:
         Ks = skew(dth_s)
         C_new = dCm.T @ self.C_ms @ (_I3 + Ks + 0.5 * (Ks @ Ks))
         C_mid = 0.5 * (self.C_ms + C_new)  # mid-interval relative attitude (error O(dmu^2) ~ 1e-8)
-        f_sm = (C_mid @ dv_s[:, :, None])[:, :, 0]
+        f_sm = np.einsum("bij,bj->bi", C_mid, dv_s)
         self.V = self.V + (f_sm - dv_m) @ (self.C_im + 0.5 * (self.C_im @ Km)).T
         self.C_ms = C_new
         self.C_im = self.C_im @ dCm
