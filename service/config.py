@@ -188,6 +188,7 @@ class TransferAlignmentConfig(Model):
     filter_period_s: float = Field(0.1, gt=0, le=1.0, description="Filter (measurement) period, s")
     forgetting_factor: float = Field(0.97, ge=0.95, le=0.99, description="Sage-Husa forgetting factor")
     restart: bool = Field(True, description="Sage-Husa restart rule (the paper's)")
+    fading: bool = Field(True, description="akf: chi2-triggered fading factors on P (eq 8-17)")
     p_fa: float = Field(0.01, gt=0, lt=0.5, description="Fading chi2 test false-alarm probability")
     r_floor: float = Field(
         1.0, gt=0, le=1, description="Adapted R_ii never below this fraction of the nominal (docs/seed002.md)"

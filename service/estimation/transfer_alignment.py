@@ -32,7 +32,7 @@ states and splits the sum by their priors.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -272,6 +272,7 @@ class TransferAlignmentBank:
         restart: bool = True,
         p_fa: float = 0.01,
         r_floor: float = 0.1,
+        fading: bool = True,
         t0: float = 0.0,
     ):
         if mode not in ("kf", "akf"):
@@ -280,6 +281,7 @@ class TransferAlignmentBank:
             raise ValueError(f"fusion {fusion!r}: use 'none' or 'paper'")
         self.p = p
         self.mode, self.fusion = mode, fusion
+        self.fading = fading
         self.T = float(filter_period_s)
         B = p.B
         self.x = np.zeros((B, N_STATES))
@@ -370,6 +372,8 @@ class TransferAlignmentBank:
         if self.mode == "akf":
             R_prev = self.sh.R
             fad = fading_factors(r, H, J, H @ Qd @ Ht + R_prev, self.thr, self.row_thr, FADING_STATES)
+            if not self.fading:  # Sage-Husa R only: the statistic is still reported
+                fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
             P_pred = faded_covariance(J, fad.s, Qd)
             R = self.sh.update(r, H @ P_pred @ Ht).copy()
             s, gamma, trig = fad.s, fad.gamma, fad.triggered

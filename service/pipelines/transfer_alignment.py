@@ -51,6 +51,7 @@ def bank_from_config(cfg: TransferAlignmentConfig, t0: float = 0.0) -> ta.Transf
         filter_period_s=cfg.filter_period_s,
         forgetting=cfg.forgetting_factor,
         restart=cfg.restart,
+        fading=cfg.fading,
         p_fa=cfg.p_fa,
         r_floor=cfg.r_floor,
         t0=t0,
