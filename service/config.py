@@ -189,6 +189,9 @@ class TransferAlignmentConfig(Model):
     forgetting_factor: float = Field(0.97, ge=0.95, le=0.99, description="Sage-Husa forgetting factor")
     restart: bool = Field(True, description="Sage-Husa restart rule (the paper's)")
     fading: bool = Field(True, description="akf: chi2-triggered fading factors on P (eq 8-17)")
+    adaptive_order: Literal["r_then_p", "p_then_r"] = Field(
+        "r_then_p", description="akf: Sage-Husa R before the chi2 fading test (section 1.2 order) or after"
+    )
     p_fa: float = Field(0.01, gt=0, lt=0.5, description="Fading chi2 test false-alarm probability")
     r_floor: float = Field(
         1.0, gt=0, le=1, description="Adapted R_ii never below this fraction of the nominal (docs/seed002.md)"

@@ -24,6 +24,7 @@ coupling angle. Continuous model (derivation in docs/seed002.md):
 Measurements every filter period (eq 3-4, small-angle reading):
     z_a = rotvec(C_ms^)               = mu - phi                     H_a = [-I 0 0 0 I I 0 0 I]
     z_v = w^ - omega_m x r_nom        = dw + [omega_m x] dr + M theta_dot
+                                      (omega_m: the last sample's mean rate extrapolated to its end)
     z_w = omega_s~ - omega_m~         = [omega_m x](rho0 + theta + d_delta) + theta_dot + eps
 rho0 and d_delta enter every row through the same columns (the paper's extra K(omega_theta)
 term of H_w1 is undefined in the paper): only their sum is observable; the filter keeps both
@@ -273,6 +274,7 @@ class TransferAlignmentBank:
         p_fa: float = 0.01,
         r_floor: float = 0.1,
         fading: bool = True,
+        order: str = "r_then_p",
         t0: float = 0.0,
     ):
         if mode not in ("kf", "akf"):
@@ -282,6 +284,9 @@ class TransferAlignmentBank:
         self.p = p
         self.mode, self.fusion = mode, fusion
         self.fading = fading
+        if order not in ("r_then_p", "p_then_r"):
+            raise ValueError(f"order {order!r}: use 'r_then_p' or 'p_then_r'")
+        self.order = order
         self.T = float(filter_period_s)
         B = p.B
         self.x = np.zeros((B, N_STATES))
@@ -369,13 +374,19 @@ class TransferAlignmentBank:
         r = z - np.einsum("bij,bj->bi", H, x_pred)
         Ht = np.swapaxes(H, 1, 2)
         B = self.p.B
-        if self.mode == "akf":
-            R_prev = self.sh.R
-            fad = fading_factors(r, H, J, H @ Qd @ Ht + R_prev, self.thr, self.row_thr, FADING_STATES)
+        if self.mode == "akf" and self.order == "p_then_r":
+            fad = fading_factors(r, H, J, H @ Qd @ Ht + self.sh.R, self.thr, self.row_thr, FADING_STATES)
             if not self.fading:  # Sage-Husa R only: the statistic is still reported
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
             P_pred = faded_covariance(J, fad.s, Qd)
             R = self.sh.update(r, H @ P_pred @ Ht).copy()
+            s, gamma, trig = fad.s, fad.gamma, fad.triggered
+        elif self.mode == "akf":  # R first (section 1.2 order): the chi2 test sees the adapted R
+            R = self.sh.update(r, H @ kalman.symmetrise(J + Qd) @ Ht).copy()
+            fad = fading_factors(r, H, J, H @ Qd @ Ht + R, self.thr, self.row_thr, FADING_STATES)
+            if not self.fading:
+                fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
+            P_pred = faded_covariance(J, fad.s, Qd)
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         else:
             P_pred = kalman.symmetrise(J + Qd)

@@ -52,6 +52,7 @@ def bank_from_config(cfg: TransferAlignmentConfig, t0: float = 0.0) -> ta.Transf
         forgetting=cfg.forgetting_factor,
         restart=cfg.restart,
         fading=cfg.fading,
+        order=cfg.adaptive_order,
         p_fa=cfg.p_fa,
         r_floor=cfg.r_floor,
         t0=t0,
