@@ -252,3 +252,20 @@ def test_short_scenario_converges_and_is_consistent(engine_run):
             for i in range(3)
         ]
         assert np.mean(inside) > 0.95, (p, np.mean(inside))
+
+
+def test_paper_fusion_literal_reading():
+    """eq 20-21 on whole state vectors: every member gets x_g and P_g / alpha_j; the information
+    shares alpha_j add up to one (three slaves), so the total information equals the fused one."""
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((3, 4, 4))
+    P = A @ np.swapaxes(A, 1, 2) + 0.5 * np.eye(4)
+    x = rng.standard_normal((3, 4))
+    xs, Ps, alpha = ta._paper_fusion(x, P)
+    Pg = np.linalg.inv(sum(np.linalg.inv(p) for p in P))
+    xg = Pg @ sum(np.linalg.solve(p, v) for p, v in zip(P, x, strict=True))
+    np.testing.assert_allclose(xs, np.broadcast_to(xg, (3, 4)), rtol=1e-9, atol=1e-12)
+    for j in range(3):
+        np.testing.assert_allclose(Ps[j], Pg / alpha[j], rtol=1e-9)
+    info = sum(np.linalg.inv(p) for p in Ps)
+    np.testing.assert_allclose(info, np.linalg.inv(Pg), rtol=1e-8)
