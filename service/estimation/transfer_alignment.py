@@ -424,7 +424,7 @@ def _paper_fusion(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     _, alpha = norm_weights(P)
     xg, Pg = kalman.information_fusion(x, P)
     B = x.shape[0]
-    return np.broadcast_to(xg, (B, N_STATES)).copy(), Pg[None] / alpha[:, None, None], alpha
+    return np.broadcast_to(xg, x.shape).copy(), Pg[None] / alpha[:, None, None], alpha
 
 
 __all__ = [
