@@ -423,7 +423,6 @@ def _paper_fusion(x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     x_j = x_g. Treats every slave's 27 states as the same quantities (the literal reading)."""
     _, alpha = norm_weights(P)
     xg, Pg = kalman.information_fusion(x, P)
-    B = x.shape[0]
     return np.broadcast_to(xg, x.shape).copy(), Pg[None] / alpha[:, None, None], alpha
 
 
