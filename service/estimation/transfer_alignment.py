@@ -382,8 +382,10 @@ class TransferAlignmentBank:
             R = self.sh.update(r, H @ P_pred @ Ht).copy()
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         elif self.mode == "akf":  # R first (section 1.2 order): the chi2 test sees the adapted R
-            R = self.sh.update(r, H @ kalman.symmetrise(J + Qd) @ Ht).copy()
-            fad = fading_factors(r, H, J, H @ Qd @ Ht + R, self.thr, self.row_thr, FADING_STATES)
+            HJHt = H @ J @ Ht
+            HQHt = H @ Qd @ Ht
+            R = self.sh.update(r, HJHt + HQHt).copy()
+            fad = fading_factors(r, H, J, HQHt + R, self.thr, self.row_thr, FADING_STATES, HJHt=HJHt)
             if not self.fading:
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
             P_pred = faded_covariance(J, fad.s, Qd)

@@ -51,15 +51,18 @@ def fading_factors(
     threshold: float,
     row_threshold: float,
     observable: np.ndarray | None = None,
+    HJHt: np.ndarray | None = None,
 ) -> FadingResult:
     """Per-state fading factors of a bank (eq 9-17).
 
     r (B, m) innovations; H (B, m, n) or (m, n); J (B, n, n) = F P F'; Bk (B, m, m) = H Q H' + R;
     threshold: chi2(m) quantile of the whole test; row_threshold: eps_i (chi2(1) quantile);
     observable (n,) or (B, n) bool: states allowed to fade (default: those with a nonzero H column).
+    HJHt: H J H' when the caller has it already.
     """
-    HJ = H @ J
-    HJHt = HJ @ np.swapaxes(H, -1, -2) if H.ndim == 3 else HJ @ H.T
+    if HJHt is None:
+        HJ = H @ J
+        HJHt = HJ @ np.swapaxes(H, -1, -2) if H.ndim == 3 else HJ @ H.T
     S = HJHt + Bk
     L = np.linalg.cholesky(0.5 * (S + np.swapaxes(S, -1, -2)))
     w = np.linalg.solve(L, r[:, :, None])[:, :, 0]
