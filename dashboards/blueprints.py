@@ -220,6 +220,18 @@ def _group_tab(v: str, p: str, family: str) -> rrb.TimeSeriesView:
     return _ts(f"{p}: {title}", f"{paths.group(v, p, group)}/**")
 
 
+def _alignment_tab(v: str, p: str) -> rrb.Grid:
+    """Transfer alignment (seed 002): per-node errors against truth with +-3 sigma bounds
+    (misalignment and flexure in arcmin, lever arm in m), estimates, adaptive R and fading."""
+    return rrb.Grid(
+        _ts(f"{p}: errors vs truth, ±3σ", f"{paths.group(v, p, 'alignment_error')}/**"),
+        _ts(f"{p}: lever arm, flexure, mount estimates", f"{paths.group(v, p, 'alignment')}/**"),
+        _ts(f"{p}: adaptive R (1σ), fading factor, NIS", f"{paths.group(v, p, 'alignment_adaptive')}/**"),
+        grid_columns=2,
+        name=f"{p}: alignment",
+    )
+
+
 def _health_tab(v: str) -> rrb.Grid:
     def h(leaf: str) -> str:
         return paths.health(v, leaf)
@@ -247,6 +259,8 @@ def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
             tabs.append(_faults_tab(vehicle, p, with_sharing=family == "federated"))
         elif family == "integrity":
             tabs.append(_integrity_tab(vehicle, p))
+        elif family == "transfer_alignment":
+            tabs.append(_alignment_tab(vehicle, p))
         else:
             tabs.append(_group_tab(vehicle, p, family))
     tabs.append(_health_tab(vehicle))

@@ -26,6 +26,7 @@ from service.engine import EstimateOutput, VehicleEngine
 from service.evaluation import recording_errors
 from service.messages import (
     SENSOR_MESSAGES,
+    Alignment,
     Faults,
     Health,
     Integrity,
@@ -80,6 +81,36 @@ def _blueprint_plugin(pipelines: dict[str, str]):
     return None
 
 
+def alignment_scalars(msg: Alignment, truth=None) -> dict[str, dict[str, float]]:
+    """Recording groups of one node's alignment (``/{vehicle}/{pipeline}/{group}/{node}.{name}``):
+    estimates, and with the node's truth the errors and their 3-sigma bounds (misalignment and
+    flexure in arcmin, lever arm in m), adaptive R (1 sigma) and the fading factor."""
+    n = msg.node
+    ax = "xyz"
+    est = {f"{n}.lever_{ax[i]}_m": msg.lever_arm_m[i] for i in range(3)}
+    est |= {f"{n}.flexure_{ax[i]}_deg": msg.flexure_deg[i] for i in range(3)}
+    est |= {f"{n}.mount_{ax[i]}_deg": msg.mount_deg[i] for i in range(3)}
+    adaptive = {f"{n}.r_std_{i}": v for i, v in enumerate(msg.r_std)} | {
+        f"{n}.fading": msg.fading,
+        f"{n}.nis": msg.nis,
+    }
+    out = {"alignment": est, "alignment_adaptive": adaptive}
+    if truth is not None:
+        err, bnd = {}, {}
+        for i in range(3):
+            for name, e, s, scale in (
+                ("misalignment", msg.mount_deg[i] - truth.mount_deg[i], msg.misalignment_std_deg[i], 60.0),
+                ("flexure", msg.flexure_deg[i] - truth.flexure_deg[i], msg.flexure_std_deg[i], 60.0),
+                ("lever", msg.lever_arm_m[i] - truth.lever_arm_m[i], msg.lever_arm_std_m[i], 1.0),
+            ):
+                key = f"{n}.{name}_{ax[i]}"
+                err[key] = e * scale
+                bnd[key + "_p3s"] = 3.0 * s * scale
+                bnd[key + "_m3s"] = -3.0 * s * scale
+        out["alignment_error"] = err | bnd
+    return out
+
+
 class _RateLimitedLog:
     def __init__(self, period_s: float = 5.0):
         self.period_s = period_s
@@ -112,6 +143,12 @@ class OutputSink:
                 self.rr.log_errors(vehicle, sol.pipeline, sol.t, errors, bounds)
 
     def on_output(self, vehicle: str, msg: WireModel, err9=None) -> None:
+        if isinstance(msg, Alignment):  # transfer alignment (seed 002); err9: the node's truth
+            self.pubs.publish(keys.alignment(vehicle, msg.pipeline, msg.node, self.prefix), msg)
+            if self.rr is not None:
+                for group, values in alignment_scalars(msg, err9).items():
+                    self.rr.log_scalars(vehicle, msg.pipeline, msg.t, group, values)
+            return
         what = "faults" if isinstance(msg, Faults) else "integrity" if isinstance(msg, Integrity) else None
         if what is None:
             return

@@ -156,8 +156,77 @@ class TightlyCoupledConfig(Model):
     elevation_mask_deg: float = Field(5.0, ge=0, lt=90)
 
 
+Vec3 = tuple[float, float, float]
+
+
+class AlignmentNodeConfig(Model):
+    """A slave IMU node of transfer alignment (seed 002): its IMU id and the filter's model of it."""
+
+    id: str = Field(pattern=r"^[A-Za-z0-9_\-.]+$", description="IMU sensor id of the node (key id)")
+    lever_arm_m: Vec3 = Field(description="Nominal lever arm from the master, master axes (RFU), m")
+    flexure_arcmin: tuple[
+        Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]
+    ] = Field(description="Flexure angle rms per axis the filter assumes, arcmin")
+    flexure_beta_rps: tuple[
+        Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)], Annotated[float, Field(gt=0)]
+    ] = Field(description="Flexure second-order Gauss-Markov beta per axis, rad/s")
+
+
+def _paper_nodes() -> list[AlignmentNodeConfig]:
+    """The three slaves of Zhu, Ma, Wang, Chen 2022 (Table 1 lever arms; our flexure model)."""
+    arms = ((0.85, 0.15, 0.25), (2.0, 0.15, 0.28), (2.65, 0.15, 0.31))
+    flex = ((1.0, 2.0, 0.5), (2.0, 4.0, 1.0), (3.0, 6.0, 1.5))
+    return [
+        AlignmentNodeConfig(
+            id=f"wing{i + 1}", lever_arm_m=a, flexure_arcmin=f, flexure_beta_rps=(1.0, 0.8, 1.2)
+        )
+        for i, (a, f) in enumerate(zip(arms, flex, strict=True))
+    ]
+
+
+class TransferAlignmentConfig(Model):
+    """Transfer alignment of wing IMUs to the master (seed 002): a 27-state local filter per slave
+    node on one bank, plain KF or adaptive (Sage-Husa R + chi2 fading on P), optional fusion."""
+
+    kind: Literal["transfer_alignment"] = "transfer_alignment"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    nodes: list[AlignmentNodeConfig] = Field(default_factory=_paper_nodes, min_length=1)
+    filter: Literal["kf", "akf"] = Field("akf", description="kf: plain Kalman; akf: adaptive R and P")
+    fusion: Literal["none", "paper"] = Field(
+        "none", description="none: locals only; paper: eq 18-21 on all 27 states (docs/seed002.md)"
+    )
+    filter_period_s: float = Field(0.1, gt=0, le=1.0, description="Filter (measurement) period, s")
+    forgetting_factor: float = Field(0.97, ge=0.95, le=0.99, description="Sage-Husa forgetting factor")
+    restart: bool = Field(True, description="Sage-Husa restart rule (the paper's)")
+    fading: bool = Field(True, description="akf: chi2-triggered fading factors on P (eq 8-17)")
+    adaptive_order: Literal["r_then_p", "p_then_r"] = Field(
+        "r_then_p", description="akf: Sage-Husa R before the chi2 fading test (section 1.2 order) or after"
+    )
+    p_fa: float = Field(0.01, gt=0, lt=0.5, description="Fading chi2 test false-alarm probability")
+    r_floor: float = Field(
+        1.0, gt=0, le=1, description="Adapted R_ii never below this fraction of the nominal (docs/seed002.md)"
+    )
+    gyro_bias_dph: float = Field(0.05, gt=0, description="Slave gyro bias 1-sigma, deg/h")
+    arw_dpsh: float = Field(0.025, gt=0, description="Slave angle random walk, deg/sqrt(h)")
+    accel_bias_ug: float = Field(150.0, gt=0, description="Slave accel bias 1-sigma, ug")
+    vrw_ugpsHz: float = Field(50.0, gt=0, description="Slave velocity random walk, ug/sqrt(Hz)")
+    install_arcmin: float = Field(0.5, gt=0, description="Installation angle prior 1-sigma, arcmin")
+    coupling_arcmin: float = Field(10.0, gt=0, description="Coupling angle prior 1-sigma, arcmin")
+    lever_arm_error_m: Vec3 = Field((0.2, 0.1, 0.1), description="Lever-arm error prior 1-sigma, m")
+    initial_attitude_arcmin: float = Field(30.0, gt=0, description="Misalignment prior 1-sigma, arcmin")
+    initial_velocity_mps: float = Field(0.1, gt=0, description="Velocity-difference prior 1-sigma, m/s")
+    kappa: float = Field(0.5, ge=0, description="Flexure lever-arm displacement factor")
+    r_att_arcmin: float = Field(0.3, gt=0, description="Nominal attitude-difference noise, arcmin")
+    r_vel_mps: float = Field(2.0e-4, gt=0, description="Nominal velocity-difference noise, m/s")
+    r_rate_dps: float = Field(0.19, gt=0, description="Nominal angular-rate-difference noise, deg/s")
+
+
 PipelineConfig = Annotated[
-    LooselyCoupledConfig | FederatedConfig | CentralizedConfig | TightlyCoupledConfig,
+    LooselyCoupledConfig
+    | FederatedConfig
+    | CentralizedConfig
+    | TightlyCoupledConfig
+    | TransferAlignmentConfig,
     Field(discriminator="kind"),
 ]
 

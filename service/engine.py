@@ -143,10 +143,25 @@ class VehicleEngine:
         self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
         self._warned: set[tuple[str, str]] = set()
         self._start_t: float | None = None
+        # IMU nodes (transfer alignment): ids routed to pipelines, never to the vehicle's INS
+        self._node_imus: dict[str, list[Pipeline]] = {}
+        for p in self.pipelines:
+            for sid in p.node_imu_ids():
+                self._node_imus.setdefault(sid, []).append(p)
+        self._sample_pipes = [p for p in self.pipelines if p.wants_imu_samples]
+        self._node_truth: dict[tuple[str, int], WireModel] = {}
 
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
         """Process one validated event. Returns False when it was rejected (reason counted)."""
+        if kind == "imu" and sensor_id in self._node_imus:
+            return self._on_node_imu(sensor_id, msg)
+        if kind == "alignment_truth":  # kept for error logging only, like Truth
+            self._node_truth[(sensor_id, self._tkey(msg.t))] = msg
+            if len(self._node_truth) > 1024:
+                for k in sorted(self._node_truth, key=lambda k: k[1])[:512]:
+                    del self._node_truth[k]
+            return True
         previous_t = self.rules.last_t.get((kind, sensor_id))
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if verdict.accepted or verdict.reason in ("not_initialised", "imu_gap", "time_jump"):
@@ -292,9 +307,21 @@ class VehicleEngine:
             self._apply(kind, sid, amsg, dt_late=0.0)
         if t - cur > 1e-12:
             self._push(dth, dv, t - cur, t)
+        for p in self._sample_pipes:
+            p.push_imu_sample(msg)
         self.last_imu_t = t
         self.last_t = t
         self._maybe_output(t)
+        return True
+
+    def _on_node_imu(self, sensor_id: str, msg: ImuSample) -> bool:
+        """A node IMU sample: judged by the aiding rules of its own key (duplicate, late,
+        time_backwards, not_initialised, early), then handed to the pipelines that consume it."""
+        verdict = self.rules.decide("imu_node", sensor_id, msg, self.last_imu_t, self.initialised)
+        if not verdict.accepted:
+            return self._reject(verdict.reason)
+        for p in self._node_imus[sensor_id]:
+            p.push_node_imu(sensor_id, msg)
         return True
 
     def _push(self, dth, dv, dt, t_end) -> None:
@@ -404,6 +431,10 @@ class VehicleEngine:
                 self.rejected["pipeline_failed"] += 1
                 continue
             self.sink.on_estimate(self.vehicle, EstimateOutput(p, est, self._errors(p, est.nav.t, est)))
+            for out in p.epoch_outputs():  # per-node outputs, with the node's truth when present
+                node = getattr(out, "node", None)
+                truth = self._node_truth.get((node, self._tkey(out.t))) if node else None
+                self.sink.on_output(self.vehicle, out, truth)
 
     def _errors(self, p: Pipeline, t: float, est: Estimate | None = None) -> np.ndarray | None:
         """Errors of a pipeline's estimate against truth at t (None without truth at t)."""

@@ -44,7 +44,7 @@ OUT_OF_SEQUENCE = frozenset({"duplicate", "time_backwards", "late", "future", "o
 #: overlaps it (timestamp jitter of genuine samples is far smaller)
 OVERLAP_FRACTION = 0.25
 #: kinds without a sensor id
-_NO_ID = frozenset({"init", "truth"})
+_NO_ID = frozenset({"init", "truth", "imu_node"})  # node ids: declared by their pipelines
 
 
 @dataclass(frozen=True)

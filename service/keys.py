@@ -8,9 +8,11 @@
 {prefix}/{vehicle}/sensor/usbl/{id}           UsblFix
 {prefix}/{vehicle}/sensor/init                InitialNav
 {prefix}/{vehicle}/truth                      Truth
+{prefix}/{vehicle}/truth/alignment/{node}     AlignmentTruth (seed 002 simulators)
 {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
 {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
 {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
+{prefix}/{vehicle}/nav/{pipeline}/alignment/{node}  Alignment (transfer alignment, seed 002)
 {prefix}/{vehicle}/service/health             Health
 {prefix}/{vehicle}/service/status             queryable (and .../service/config)
 {prefix}/{vehicle}/nav/{pipeline}/solution    also a queryable: the latest Solution
@@ -61,10 +63,20 @@ def truth(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/truth"
 
 
+def alignment_truth(vehicle: str, node: str, prefix: str = DEFAULT_PREFIX) -> str:
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/truth/alignment/{_chunk(node, 'node')}"
+
+
 def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
     if what not in ("solution", "faults", "integrity"):
         raise ValueError(f"unknown nav output {what!r}")
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/nav/{_chunk(pipeline, 'pipeline')}/{what}"
+
+
+def alignment(vehicle: str, pipeline: str, node: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key of a transfer-alignment node output (seed 002)."""
+    v, p, n = _chunk(vehicle, "vehicle"), _chunk(pipeline, "pipeline"), _chunk(node, "node")
+    return f"{prefix}/{v}/nav/{p}/alignment/{n}"
 
 
 def service(vehicle: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
@@ -97,7 +109,7 @@ def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
 @dataclass(frozen=True)
 class ParsedKey:
     vehicle: str
-    kind: str  # imu, gnss_fix, gnss_raw, star, dvl, usbl, init, truth
+    kind: str  # imu, gnss_fix, gnss_raw, star, dvl, usbl, init, truth, alignment_truth
     sensor_id: str  # "" for init/truth
 
 
@@ -109,6 +121,8 @@ def parse_input(key: str, prefix: str = DEFAULT_PREFIX) -> ParsedKey | None:
     vehicle, rest = parts[1], parts[2:]
     if rest == ["truth"]:
         return ParsedKey(vehicle, "truth", "")
+    if len(rest) == 3 and rest[:2] == ["truth", "alignment"]:
+        return ParsedKey(vehicle, "alignment_truth", rest[2])
     if not rest or rest[0] != "sensor":
         return None
     rest = rest[1:]

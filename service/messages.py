@@ -310,6 +310,48 @@ class Integrity(WireModel):
     detected_by: str = Field("", description="'separation', 'residual', 'separation+residual' or ''")
 
 
+class Alignment(WireModel):
+    """Transfer alignment of one slave IMU node (seed 002), per filter epoch at the output rate.
+
+    Angles in master body axes (right-forward-up). ``mount_deg``: the estimated rotation of the
+    slave from the master (installation + coupling + flexure), whose error is the misalignment
+    with 1-sigma ``misalignment_std_deg``; ``lever_arm_m`` the estimated lever arm (nominal +
+    error estimate); ``flexure_deg`` the dynamic flexure angle. ``r_std`` the square roots of the
+    measurement-noise variances in use (attitude deg, velocity m/s, rate deg/s); ``fading`` the
+    largest fading factor of the epoch (1: not engaged); ``share`` the fusion weight alpha_j (eq
+    19) when the pipeline fuses, else None.
+    """
+
+    t: Time
+    pipeline: str
+    node: str
+    mount_deg: Vec3
+    misalignment_std_deg: Vec3
+    installation_deg: Vec3 = Field(description="Installation + coupling angle estimate, deg")
+    installation_std_deg: Vec3
+    flexure_deg: Vec3
+    flexure_std_deg: Vec3
+    lever_arm_m: Vec3
+    lever_arm_std_m: Vec3
+    gyro_bias_dph: Vec3
+    accel_bias_ug: Vec3
+    r_std: tuple[float, float, float, float, float, float, float, float, float]
+    fading: float
+    nis: float
+    share: float | None = None
+
+
+class AlignmentTruth(WireModel):
+    """Truth of one wing node (simulators only; the service uses it only to log errors)."""
+
+    t: Time
+    node: str
+    mount_deg: Vec3 = Field(description="True rotation of the slave from the master (incl. vibration), deg")
+    installation_deg: Vec3 = Field(description="True installation + coupling angle, deg")
+    flexure_deg: Vec3
+    lever_arm_m: Vec3
+
+
 class PipelineHealth(WireModel):
     status: NavStatus
     last_t: float | None
@@ -355,6 +397,7 @@ SENSOR_MESSAGES: dict[str, type[WireModel]] = {
     "usbl": UsblFix,
     "init": InitialNav,
     "truth": Truth,
+    "alignment_truth": AlignmentTruth,
 }
 
 ALL_MESSAGES: list[type[WireModel]] = [
@@ -370,6 +413,8 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Faults,
     Integrity,
     Health,
+    Alignment,
+    AlignmentTruth,
 ]
 
 

@@ -86,8 +86,10 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         from simulators.publisher import MatchTimeout, publish_stream
         from simulators.stream import Simulation
+        from simulators.wing import WingSimulation
 
-        sim = Simulation(scenario, seed=args.seed, vehicle=args.vehicle, prefix=args.prefix)
+        make = WingSimulation if scenario.wing is not None else Simulation  # seed 002: wing nodes too
+        sim = make(scenario, seed=args.seed, vehicle=args.vehicle, prefix=args.prefix)
         try:
             stats = publish_stream(
                 sim, speed=args.speed, connect=args.connect, zenoh_config=args.zenoh_config
@@ -103,6 +105,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs < 1:
         print("--runs must be >= 1", file=sys.stderr)
         return 2
+    if scenario.wing is not None:  # transfer alignment (seed 002): per-node alignment metrics
+        from simulators import transfer_eval
+
+        seed = scenario.seed if args.seed is None else args.seed
+        result = transfer_eval.evaluate(scenario, runs=args.runs, seed=seed)
+        print(json.dumps(result, indent=2) if args.json else transfer_eval.format_table(result))
+        return 0
     try:
         result = evaluate(
             scenario,

@@ -65,4 +65,39 @@ def reference(scenario_name: str) -> dict:
         return {"table1": SEED000_TABLE1_RMS, "table2": SEED000_TABLE2_RMS}
     if scenario_name.startswith("seed001"):
         return {"integrity_table1": SEED001_TABLE1, "ramp": SEED001_RAMP}
+    if scenario_name.startswith("seed002"):
+        return {
+            "table2_lever_m": SEED002_TABLE2_LEVER_M,
+            "table3_heading_deg": SEED002_TABLE3_HEADING_DEG,
+            "improvement_pct": SEED002_IMPROVEMENT_PCT,
+        }
     return {}
+
+
+# seed 002 (Zhu, Ma, Wang, Chen 2022), Tables 2-3: RMSE of the dynamic lever arm (east, north, up;
+# m) and of the heading (deg) per slave IMU, for the plain Kalman filter ("kf"), the federated
+# filter with Kalman sub-filters ("fed_kf") and the proposed federated adaptive filter ("fed_akf");
+# abstract: lever arm improved 61.54 %, heading 42.35 % (proposed versus plain KF).
+SEED002_TABLE2_LEVER_M = {
+    "kf": {
+        "IMU1": (0.0031, 0.0100, 0.0025),
+        "IMU2": (0.0099, 0.0580, 0.0078),
+        "IMU3": (0.0020, 0.0075, 0.0029),
+    },
+    "fed_kf": {
+        "IMU1": (0.0027, 0.0099, 0.0024),
+        "IMU2": (0.0045, 0.0175, 0.0028),
+        "IMU3": (0.0018, 0.0073, 0.0026),
+    },
+    "fed_akf": {
+        "IMU1": (0.0010, 0.0020, 0.0009),
+        "IMU2": (0.0021, 0.0049, 0.0030),
+        "IMU3": (0.0008, 0.0018, 0.0011),
+    },
+}
+SEED002_TABLE3_HEADING_DEG = {
+    "kf": {"IMU1": 0.0170, "IMU2": 0.0121, "IMU3": 0.0170},
+    "fed_kf": {"IMU1": 0.0084, "IMU2": 0.0101, "IMU3": 0.0109},
+    "fed_akf": {"IMU1": 0.0067, "IMU2": 0.0045, "IMU3": 0.0098},
+}
+SEED002_IMPROVEMENT_PCT = {"lever_arm": 61.54, "heading": 42.35}

@@ -55,6 +55,7 @@ from simulators.sensors import (
     epoch_step,
 )
 from simulators.trajectory import Segment, StartSpec, Trajectory, build_trajectory, check_segments
+from simulators.wing import WingSpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 Vec3 = tuple[float, float, float]
@@ -253,6 +254,9 @@ class Scenario(BaseModel):
         default=10.0, gt=0.0, description="Truth message rate, Hz (divides the IMU rate)"
     )
     faults: list[FaultSpec] = Field(default_factory=list, description="Injected sensor faults")
+    wing: WingSpec | None = Field(
+        default=None, description="Wing IMU nodes for transfer alignment (seed 002, optional)"
+    )
     service: dict[str, Any] = Field(
         default_factory=dict, description="Passed untouched to the service config"
     )

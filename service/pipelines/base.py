@@ -184,6 +184,27 @@ class Pipeline(ABC):
     @abstractmethod
     def estimate(self) -> Estimate: ...
 
+    # --- several IMU nodes (transfer alignment, seed 002); defaults: one IMU stream ---------------
+    def node_imu_ids(self) -> frozenset[str]:
+        """IMU sensor ids this pipeline consumes as nodes: the engine routes their samples to
+        :meth:`push_node_imu` and never to the vehicle's INS."""
+        return frozenset()
+
+    #: True: the engine also hands every accepted INS-driving IMU sample to :meth:`push_imu_sample`
+    wants_imu_samples: bool = False
+
+    def push_node_imu(self, sensor_id: str, msg) -> None:
+        """A node IMU sample (accepted by the engine's rules for its key)."""
+        return None
+
+    def push_imu_sample(self, msg) -> None:
+        """An INS-driving IMU sample, after the vehicle's INS took it."""
+        return None
+
+    def epoch_outputs(self) -> list[WireModel]:
+        """Extra messages at an output epoch (published by the engine's sink)."""
+        return []
+
     def recover_covariance(self) -> None:
         """Numerical-health recovery after a covariance lost positive definiteness.
 

@@ -1,0 +1,96 @@
+"""Real-time factor of seed-002 transfer alignment: three slave IMUs at 100 Hz (one core).
+
+1. ``bank``: the 27-state bank of three slaves alone (relative mechanisation of every 100 Hz
+   sample + one filter epoch per 0.1 s), plain KF and adaptive (Sage-Husa R + chi2 fading).
+2. ``engine``: the whole vehicle path of the service -- VehicleEngine with one transfer_alignment
+   pipeline (the master's loosely coupled INS/GNSS + the node bank), fed the validated message
+   stream of four IMU nodes, GNSS, truth and node truth (message construction excluded).
+
+Usage: .venv/bin/python benchmarks/seed002_transfer.py [--seconds 120]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from service import keys  # noqa: E402
+from service.config import TransferAlignmentConfig  # noqa: E402
+from service.engine import VehicleEngine  # noqa: E402
+from service.pipelines.transfer_alignment import bank_from_config  # noqa: E402
+from simulators.evaluate import service_config  # noqa: E402
+from simulators.scenario import load_scenario, parse_scenario  # noqa: E402
+from simulators.wing import WingSimulation  # noqa: E402
+
+
+def scenario(seconds: float, pipelines: list[dict]):
+    d = load_scenario("seed002_wing").model_dump()
+    d["duration_s"] = seconds
+    segs, acc = [], 0.0
+    for s in d["segments"]:
+        if acc + s["duration_s"] <= seconds:
+            segs.append(s)
+            acc += s["duration_s"]
+    d["segments"] = segs
+    d["service"] = dict(d["service"]) | {"pipelines": pipelines}
+    return parse_scenario(d)
+
+
+def bench_bank(sc, mode: str) -> float:
+    sim = WingSimulation(sc, seed=1)
+    dth_m, dv_m = sim.master._dth, sim.master._dv
+    dth_s = np.stack([n.dtheta_rad for n in sim.nodes], axis=1)
+    dv_s = np.stack([n.dvel_mps for n in sim.nodes], axis=1)
+    bank = bank_from_config(TransferAlignmentConfig(name="b", filter=mode))
+    t0 = time.perf_counter()
+    for k in range(1, dth_m.shape[0]):
+        bank.push(dth_m[k], dv_m[k], dth_s[k], dv_s[k], 0.01, k * 0.01)
+    return sc.duration_s / (time.perf_counter() - t0)
+
+
+def bench_engine(sc) -> float:
+    class Sink:
+        def on_estimate(self, *a):
+            pass
+
+        def on_output(self, *a):
+            pass
+
+        def on_truth(self, *a):
+            pass
+
+    events = [(keys.parse_input(k), m) for k, m in WingSimulation(sc, seed=1)]
+    eng = VehicleEngine("v1", service_config(sc), Sink())
+    t0 = time.perf_counter()
+    for pk, m in events:
+        eng.handle(pk.kind, pk.sensor_id, m)
+    return sc.duration_s / (time.perf_counter() - t0)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seconds", type=float, default=120.0)
+    args = ap.parse_args()
+    sc = scenario(args.seconds, [{"name": "ta", "kind": "transfer_alignment", "filter": "akf"}])
+    out = {
+        "scenario_s": args.seconds,
+        "slaves": 3,
+        "imu_rate_hz": 100.0,
+        "bank_kf_rtf": round(bench_bank(sc, "kf"), 1),
+        "bank_akf_rtf": round(bench_bank(sc, "akf"), 1),
+        "engine_akf_rtf": round(bench_engine(sc), 1),
+        "cpu_count": os.cpu_count(),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
+    }
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,175 @@
+"""Transfer alignment family (Zhu, Ma, Wang, Chen 2022): wing IMU nodes aligned to the master.
+
+The vehicle's INS (the master IMU stream, aided by GNSS when present) runs as a loosely coupled
+pipeline, so the pipeline's Solution is the master's navigation. On top, every configured slave
+node has a 27-state local filter, one member of a :class:`TransferAlignmentBank`, fed by the
+master's and the nodes' raw IMU samples (the engine routes node IMU ids to
+:meth:`push_node_imu`, docs/seed002.md). Each filter epoch produces an
+:class:`~service.messages.Alignment` per node (misalignment, lever arm, flexure with sigmas,
+adaptive R and fading factors), published at the output epochs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service import earth
+from service.config import ImuModel, LooselyCoupledConfig, TransferAlignmentConfig
+from service.estimation import transfer_alignment as ta
+from service.messages import Alignment, ImuSample, WireModel
+from service.pipelines.loosely_coupled import LooselyCoupled
+
+
+def params_from_config(cfg: TransferAlignmentConfig) -> ta.TAParams:
+    """The filter's assumptions (TAParams) from a pipeline configuration."""
+    r_att = (cfg.r_att_arcmin * earth.ARCMIN) ** 2
+    r_vel = cfg.r_vel_mps**2
+    r_rate = (cfg.r_rate_dps * earth.DEG) ** 2
+    return ta.TAParams(
+        lever_arm_m=np.array([n.lever_arm_m for n in cfg.nodes]),
+        flex_beta_rps=np.array([n.flexure_beta_rps for n in cfg.nodes]),
+        flex_sigma_rad=np.array([n.flexure_arcmin for n in cfg.nodes]) * earth.ARCMIN,
+        arw_rad_psqrts=cfg.arw_dpsh * earth.DEG / 60.0,
+        vrw_mps_psqrts=cfg.vrw_ugpsHz * earth.UG,
+        gyro_bias_rps=cfg.gyro_bias_dph * earth.DPH,
+        accel_bias_mps2=cfg.accel_bias_ug * earth.UG,
+        R0=np.array([r_att] * 3 + [r_vel] * 3 + [r_rate] * 3),
+        phi0_rad=cfg.initial_attitude_arcmin * earth.ARCMIN,
+        dw0_mps=cfg.initial_velocity_mps,
+        install_rad=cfg.install_arcmin * earth.ARCMIN,
+        coupling_rad=cfg.coupling_arcmin * earth.ARCMIN,
+        lever_arm_err_m=tuple(cfg.lever_arm_error_m),
+        kappa=cfg.kappa,
+    )
+
+
+def bank_from_config(cfg: TransferAlignmentConfig, t0: float = 0.0) -> ta.TransferAlignmentBank:
+    return ta.TransferAlignmentBank(
+        params_from_config(cfg),
+        mode=cfg.filter,
+        fusion=cfg.fusion,
+        filter_period_s=cfg.filter_period_s,
+        forgetting=cfg.forgetting_factor,
+        restart=cfg.restart,
+        fading=cfg.fading,
+        order=cfg.adaptive_order,
+        p_fa=cfg.p_fa,
+        r_floor=cfg.r_floor,
+        t0=t0,
+    )
+
+
+class TransferAlignment(LooselyCoupled):
+    """Master navigation as a loosely coupled pipeline plus the slave nodes' transfer alignment."""
+
+    wants_imu_samples = True
+
+    def __init__(self, cfg: TransferAlignmentConfig, imu: ImuModel, major_interval_s: float):
+        super().__init__(LooselyCoupledConfig(name=cfg.name), imu, major_interval_s)
+        self.ta_cfg = cfg
+        self.node_ids = [n.id for n in cfg.nodes]
+        self.ta: ta.TransferAlignmentBank | None = None
+        self._pending: dict[str, ImuSample] = {}
+        self._t_prev: float | None = None
+        self.node_resets = 0
+        self._out: list[WireModel] = []
+
+    @classmethod
+    def config_errors(cls, cfg) -> list[tuple[str, str]]:
+        ids = [n.id for n in cfg.nodes]
+        if len(set(ids)) != len(ids):
+            return [("nodes", f"node ids must be unique, got {ids}")]
+        return []
+
+    def node_imu_ids(self) -> frozenset[str]:
+        return frozenset(self.node_ids)
+
+    def initialise(self, nav, std) -> None:
+        super().initialise(nav, std)
+        self.ta = bank_from_config(self.ta_cfg, t0=nav.t)  # the node filters start with the INS
+        self._pending.clear()
+
+    def push_node_imu(self, sensor_id: str, msg: ImuSample) -> None:
+        self._pending[sensor_id] = msg
+
+    def push_imu_sample(self, msg: ImuSample) -> None:
+        """A master sample at t: step the node filters with the nodes' samples ending at t. A node
+        missing at t (lost or late) restarts the node filters at the next complete set (the
+        relative mechanisation needs every interval of every node; counted in ``node_resets``)."""
+        got = [self._pending.get(i) for i in self.node_ids]
+        complete = all(
+            m is not None and abs(m.t - msg.t) < 1e-6 and abs(m.dt_s - msg.dt_s) < 1e-9 for m in got
+        )
+        self._pending.clear()
+        if not complete:
+            if self.ta is not None:
+                self.ta = None
+                self.node_resets += 1
+            return
+        if self.ta is None:
+            self.ta = bank_from_config(self.ta_cfg, t0=msg.t)
+            return  # the filters start at this instant; the next interval is the first one
+        info = self.ta.push(
+            msg.dtheta_rad,
+            msg.dvel_mps,
+            np.array([m.dtheta_rad for m in got]),
+            np.array([m.dvel_mps for m in got]),
+            msg.dt_s,
+            msg.t,
+        )
+        if info is not None:
+            self._out = self._alignment_messages(info)
+
+    def epoch_outputs(self) -> list[WireModel]:
+        out, self._out = self._out, []
+        return out
+
+    def _alignment_messages(self, info: ta.StepInfo) -> list[Alignment]:
+        bank = self.ta
+        sd = bank.sigmas()
+        mount = ta.rotvec(bank.C_ms)
+        deg = 1.0 / earth.DEG
+        R = np.sqrt(info.R_diag)
+        R[:, [0, 1, 2, 6, 7, 8]] *= deg
+        msgs = []
+        for b, node in enumerate(self.node_ids):
+            x, s = bank.x[b], sd[b]
+
+            def v3(a, scale=1.0):
+                return tuple(float(q) * scale for q in a)
+
+            msgs.append(
+                Alignment(
+                    t=float(info.t),
+                    pipeline=self.name,
+                    node=node,
+                    mount_deg=v3(mount[b], deg),
+                    misalignment_std_deg=v3(s[ta.PHI], deg),
+                    installation_deg=v3(x[ta.RHO] + x[ta.DD], deg),
+                    installation_std_deg=v3(
+                        np.sqrt(
+                            np.clip(
+                                np.diagonal(
+                                    bank.P[b][ta.RHO, ta.RHO]
+                                    + bank.P[b][ta.DD, ta.DD]
+                                    + 2 * bank.P[b][ta.RHO, ta.DD]
+                                ),
+                                0.0,
+                                None,
+                            )
+                        ),
+                        deg,
+                    ),
+                    flexure_deg=v3(x[ta.TH], deg),
+                    flexure_std_deg=v3(s[ta.TH], deg),
+                    lever_arm_m=v3(bank.lever_arm_m()[b]),
+                    lever_arm_std_m=v3(s[ta.DR]),
+                    gyro_bias_dph=v3(x[ta.EPS], 1.0 / earth.DPH),
+                    accel_bias_ug=v3(x[ta.NAB], 1.0 / earth.UG),
+                    r_std=tuple(float(q) for q in R[b]),
+                    fading=float(info.fading_s[b].max()),
+                    nis=float(info.nis[b]),
+                    share=None if info.alpha is None else float(info.alpha[b]),
+                )
+            )
+        return msgs
