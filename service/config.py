@@ -157,7 +157,11 @@ class ZenohConfig(Model):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
-    config_file: Path | None = Field(None, description="A full Zenoh json5 config (overrides the above)")
+    config_file: Path | None = Field(
+        None,
+        description="A Zenoh json5 config (TLS, access control...) overlaid on the safe values above: "
+        "mode, endpoints and discovery keep these unless the file sets them",
+    )
 
 
 class IntakeConfig(Model):

@@ -34,10 +34,12 @@ def publish_stream(
     """Publish (key, message) pairs in order; returns counts and timing."""
     # client mode: the service (a peer) routes our samples to its other clients (dashboards,
     # subscribers); two peers connected only through the service would not see each other
+    # (a --zenoh-config file is overlaid on these safe defaults: see make_config; explicit
+    # --connect endpoints replace the file's)
     cfg = make_config(
-        ZenohConfig(mode="client"),
-        listen=listen or [],
-        connect=connect or ["tcp/127.0.0.1:7447"],
+        ZenohConfig(mode="client", listen=[], connect=["tcp/127.0.0.1:7447"]),
+        listen=listen or None,
+        connect=connect or None,
         config_file=zenoh_config,
     )
     session = zenoh.open(cfg)

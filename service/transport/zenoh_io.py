@@ -18,6 +18,45 @@ import zenoh
 from service.config import ZenohConfig
 from service.messages import WireModel
 
+#: fednav's safe defaults, overlaid on a ``--zenoh-config`` file unless the file sets the key itself:
+#: (key path, where the value comes from). Zenoh's own defaults listen on every interface
+#: (``tcp/[::]:0``) and discover peers by UDP multicast (224.0.0.224:7446) and gossip.
+SAFE_KEYS = (
+    "mode",
+    "listen/endpoints",
+    "connect/endpoints",
+    "scouting/multicast/enabled",
+    "scouting/gossip/enabled",
+)
+
+
+def _file_keys(path: str) -> tuple[zenoh.Config, dict]:
+    """The file loaded by Zenoh, and the file's own content as plain JSON (parsed by Zenoh's JSON5
+    parser through the free-form ``metadata`` field, so comments, unquoted keys and trailing
+    commas read exactly as Zenoh reads them)."""
+    loaded = zenoh.Config.from_file(path)
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    raw = zenoh.Config()
+    raw.insert_json5("metadata", text)
+    content = json.loads(raw.get_json("metadata"))
+    if not isinstance(content, dict):
+        raise ValueError(f"{path}: a Zenoh config file must hold one JSON5 object")
+    return loaded, content
+
+
+def _explicit(content: dict, loaded: zenoh.Config, key: str) -> bool:
+    """True when the file sets ``key``: written in the file, or (through an included file) resolved to
+    a value other than Zenoh's built-in default."""
+    node = content
+    for part in key.split("/"):
+        if not isinstance(node, dict) or part not in node:
+            break
+        node = node[part]
+    else:
+        return True
+    return json.loads(loaded.get_json(key)) != json.loads(zenoh.Config().get_json(key))
+
 
 def make_config(
     zc: ZenohConfig | None = None,
@@ -25,16 +64,36 @@ def make_config(
     connect: list[str] | None = None,
     config_file: str | None = None,
 ) -> zenoh.Config:
-    """Explicit endpoints, multicast scouting off unless asked; a json5 file overrides everything."""
-    path = config_file or (str(zc.config_file) if zc and zc.config_file else None)
-    if path:
-        return zenoh.Config.from_file(path)
+    """The session config: fednav's safe defaults, a json5 file overlaid on them, explicit endpoints.
+
+    Safe defaults (``SAFE_KEYS``), from ``zc``: its mode, loopback listen endpoints, its connect
+    endpoints, multicast scouting and gossip off (both follow ``zc.multicast_scouting``). A config
+    file (``config_file``, else ``zc.config_file``) is loaded by Zenoh as written (TLS, access control,
+    anything else); only the safe keys the file does not set itself keep fednav's values, so a file
+    with only mode and listen does not turn multicast scouting on. ``listen``/``connect`` (the
+    command line's ``--listen``/``--connect``; None: not given) replace the endpoints of both.
+    """
     zc = zc or ZenohConfig()
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps(zc.mode))
-    c.insert_json5("scouting/multicast/enabled", "true" if zc.multicast_scouting else "false")
-    c.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else zc.listen))
-    c.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else zc.connect))
+    path = config_file or (str(zc.config_file) if zc.config_file else None)
+    if path:
+        c, content = _file_keys(path)
+    else:
+        c, content = zenoh.Config(), {}
+    discovery = "true" if zc.multicast_scouting else "false"
+    safe = {
+        "mode": json.dumps(zc.mode),
+        "listen/endpoints": json.dumps(zc.listen),
+        "connect/endpoints": json.dumps(zc.connect),
+        "scouting/multicast/enabled": discovery,
+        "scouting/gossip/enabled": discovery,
+    }
+    for key in SAFE_KEYS:
+        if not (path and _explicit(content, c, key)):
+            c.insert_json5(key, safe[key])
+    if listen is not None:
+        c.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect is not None:
+        c.insert_json5("connect/endpoints", json.dumps(connect))
     return c
 
 
