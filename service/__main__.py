@@ -54,7 +54,13 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    svc.start()
+    import zenoh
+
+    try:
+        svc.start()
+    except zenoh.ZError as exc:  # bad Zenoh config file, certificate or endpoint, port in use
+        print(f"fednav-service: Zenoh session not opened: {exc}", file=sys.stderr)
+        return 2
     print(f"fednav-service ready (recording: {svc.rrd_path if not args.no_record else 'off'})", flush=True)
     while not stop.wait(0.2):
         pass
