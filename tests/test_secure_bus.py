@@ -196,6 +196,11 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
         for spoofer in (open_(intruder_tls), open_({})):
             _spoof(spoofer, genuine)
 
+        # the status and config queryables answer no reader
+        status_replies = [
+            r for k in ("status", "config") for r in reader_probe.get(f"fednav/v1/service/{k}", timeout=2.0)
+        ]
+
         # wait until the service is idle: health's received count stops moving
         last, deadline = None, time.monotonic() + 180
         while time.monotonic() < deadline:
@@ -218,8 +223,8 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
         f"simulator published {published}; service received {h[-1]['received'] if h else None}; "
         f"reader: {len(solutions)} solutions, {len(h)} health; intruder {len(intruder_nav)}+"
         f"{len(intruder_all)}; reader on sensor/** {len(reader_sensors)}, on fednav/** {len(reader_all)}; "
-        f"simulator certificate on nav/** {len(sim_cert_nav)}; refused in "
-        + ", ".join(f"{k} {v:.1f} s" for k, v in refused.items())
+        f"simulator certificate on nav/** {len(sim_cert_nav)}; status/config replies {len(status_replies)}; "
+        "refused in " + ", ".join(f"{k} {v:.1f} s" for k, v in refused.items())
     )
     assert rc == 0, svc.output()
     # the authorised reader gets the solutions (demo: 300 s at 10 Hz) and health
@@ -232,4 +237,5 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
     assert len(intruder_nav) == 0 and len(intruder_all) == 0
     assert len(reader_sensors) == 0 and len(reader_all) == 0
     assert len(sim_cert_nav) == 0
+    assert status_replies == []
     assert os.path.exists(tmp_path / "certs" / "ca-key.pem")  # made by the shipped script
