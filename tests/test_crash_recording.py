@@ -20,7 +20,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from dashboards.inspect import inspect_rrd, read_series
+from dashboards.inspect import InspectError, inspect_rrd, read_series
+from service.messages import Truth
+from service.transport.rerun_sink import RerunSink
 from simulators.processes import free_port, start_service, start_sim
 
 from .plain_zenoh import client as zenoh_client
@@ -34,6 +36,52 @@ FLUSH_INTERVAL_S = 1.0  # RerunSink's default
 #: what kill -9 may lose, in seconds of a real-time run: the flush interval, one solution period
 #: (0.1 s) and scheduling slack on a loaded 2-core machine
 MAX_LOSS_S = FLUSH_INTERVAL_S + 0.5
+
+
+def _truth(t: float) -> Truth:
+    return Truth(t=t, lat_deg=40.0, lon_deg=118.0, height_m=100.0, vel_enu_mps=(1, 2, 0), rpy_deg=(0, 0, 45))
+
+
+def test_rows_reach_the_file_without_further_logging(tmp_path):
+    """The sink's background flusher sends rows older than the flush interval even when no logging
+    call follows (input stopped): the open, footer-less file holds them."""
+    rrd = tmp_path / "open.rrd"
+    sink = RerunSink(rrd, flush_interval_s=0.2)
+    try:
+        for k in range(5):
+            sink.log_truth("v1", _truth(1000.0 + 0.1 * k))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            deadline = time.monotonic() + 10.0
+            n = 0
+            while time.monotonic() < deadline:
+                time.sleep(0.2)
+                try:
+                    n = len(read_series(rrd)[1].get("/v1/truth/lat_deg", []))
+                except InspectError:
+                    n = 0
+                if n == 5:
+                    break
+        assert n == 5
+        assert not sink.closed
+    finally:
+        sink.close()
+    # a sink without the flusher keeps them in memory until the next call (what kill -9 would lose)
+    rrd2 = tmp_path / "held.rrd"
+    held = RerunSink(rrd2, flush_interval_s=0.2, background_flush=False)
+    try:
+        for k in range(5):
+            held.log_truth("v1", _truth(1000.0 + 0.1 * k))
+        time.sleep(1.0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                n = len(read_series(rrd2)[1].get("/v1/truth/lat_deg", []))
+            except InspectError:
+                n = 0
+        assert n == 0
+    finally:
+        held.close()
 
 
 def test_kill_9_loses_at_most_about_the_last_second(tmp_path):
