@@ -265,7 +265,9 @@ class Service:
             blueprint = _blueprint_plugin({p.name: p.kind for p in cfg.pipelines})
             self.rr = RerunSink(self.rrd_path, viewer_addr=self.viewer, blueprint=blueprint)
         self.session = zenoh.open(
-            zenoh_io.make_config(cfg.zenoh, self.listen, self.connect, self.zenoh_config_file)
+            zenoh_io.make_config(
+                cfg.zenoh, self.listen, self.connect, self.zenoh_config_file, outputs_prefix=cfg.prefix
+            )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
         self.sink = OutputSink(cfg.prefix, self.pubs, self.rr)

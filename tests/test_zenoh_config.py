@@ -126,3 +126,53 @@ def test_service_process_with_a_minimal_file_opens_no_multicast_socket(tmp_path,
         assert listening == [("127.0.0.1", port)], listening
     else:
         assert any(c.laddr[1] == 7446 for c in udp), udp
+
+
+@pytest.mark.integration
+def test_default_service_refuses_spoofed_outputs():
+    """fednav-service with its defaults (no config file): a client on the bus cannot publish
+    solutions or health, nor answer status queries, to the other clients routed through the
+    service; what is not an output (a sensor key) is still routed."""
+    import signal
+    import threading
+    import time
+
+    from simulators.processes import free_port, start_service
+
+    from .plain_zenoh import client
+
+    port = free_port()
+    svc = start_service(port)
+    spoofer, reader = client(port), client(port)
+    got: list[tuple[str, str]] = []
+    lock = threading.Lock()
+
+    def cb(sample: zenoh.Sample) -> None:
+        with lock:
+            got.append((str(sample.key_expr), sample.payload.to_string()))
+
+    try:
+        reader.declare_subscriber("fednav/**", cb)
+        rogue = spoofer.declare_queryable(
+            "fednav/v1/service/status", lambda q: q.reply(q.key_expr, '{"spoofed": true}')
+        )
+        time.sleep(0.5)
+        for _ in range(10):
+            spoofer.put("fednav/v1/nav/lc/solution", '{"spoofed": true}')
+            spoofer.put("fednav/v1/service/health", '{"spoofed": true}')
+            spoofer.put("fednav/v2/sensor/imu/x", "routed")  # not served by the service: a plain route
+        time.sleep(0.5)
+        replies = [
+            r.ok.payload.to_string() for r in reader.get("fednav/v1/service/status", timeout=3.0) if r.ok
+        ]
+        rogue.undeclare()
+    finally:
+        svc.signal(signal.SIGTERM)
+        svc.wait(timeout=30)
+        spoofer.close()
+        reader.close()
+    with lock:
+        keys = [k for k, _ in got]
+    assert keys.count("fednav/v2/sensor/imu/x") == 10  # routing through the service works
+    assert not any("spoofed" in p for _, p in got), got
+    assert len(replies) == 1 and "spoofed" not in replies[0], replies  # the service's own answer

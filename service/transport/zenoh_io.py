@@ -58,11 +58,41 @@ def _explicit(content: dict, loaded: zenoh.Config, key: str) -> bool:
     return json.loads(loaded.get_json(key)) != json.loads(zenoh.Config().get_json(key))
 
 
+def outputs_guard(prefix: str) -> dict:
+    """Zenoh access control that refuses, from every remote session, publications and queryables
+    under the service's output keys (``{prefix}/*/nav/**``, ``{prefix}/*/service/**``): only the
+    service itself publishes solutions and health and answers status, so a client on the bus cannot
+    spoof them to the other clients routed through the service. Everything else is allowed."""
+    outputs = [f"{prefix}/*/nav/**", f"{prefix}/*/service/**"]
+    return {
+        "enabled": True,
+        "default_permission": "allow",
+        "rules": [
+            {
+                "id": "no-spoofed-outputs",
+                "permission": "deny",
+                "flows": ["ingress"],
+                "messages": ["put", "delete", "declare_queryable", "reply"],
+                "key_exprs": outputs,
+            }
+        ],
+        "subjects": [{"id": "every-remote-session"}],
+        "policies": [
+            {
+                "id": "outputs-are-the-services",
+                "rules": ["no-spoofed-outputs"],
+                "subjects": ["every-remote-session"],
+            }
+        ],
+    }
+
+
 def make_config(
     zc: ZenohConfig | None = None,
     listen: list[str] | None = None,
     connect: list[str] | None = None,
     config_file: str | None = None,
+    outputs_prefix: str | None = None,
 ) -> zenoh.Config:
     """The session config: fednav's safe defaults, a json5 file overlaid on them, explicit endpoints.
 
@@ -72,6 +102,8 @@ def make_config(
     anything else); only the safe keys the file does not set itself keep fednav's values, so a file
     with only mode and listen does not turn multicast scouting on. ``listen``/``connect`` (the
     command line's ``--listen``/``--connect``; None: not given) replace the endpoints of both.
+    ``outputs_prefix`` (the service's prefix) adds :func:`outputs_guard` as access control unless the
+    file configures ``access_control`` itself.
     """
     zc = zc or ZenohConfig()
     path = config_file or (str(zc.config_file) if zc.config_file else None)
@@ -90,6 +122,8 @@ def make_config(
     for key in SAFE_KEYS:
         if not (path and _explicit(content, c, key)):
             c.insert_json5(key, safe[key])
+    if outputs_prefix is not None and not (path and _explicit(content, c, "access_control")):
+        c.insert_json5("access_control", json.dumps(outputs_guard(outputs_prefix)))
     if listen is not None:
         c.insert_json5("listen/endpoints", json.dumps(listen))
     if connect is not None:
