@@ -176,3 +176,23 @@ def test_default_service_refuses_spoofed_outputs():
     assert keys.count("fednav/v2/sensor/imu/x") == 10  # routing through the service works
     assert not any("spoofed" in p for _, p in got), got
     assert len(replies) == 1 and "spoofed" not in replies[0], replies  # the service's own answer
+
+
+def test_simulator_config_is_overlaid_the_same_way(tmp_path):
+    from simulators.publisher import session_config
+
+    c = session_config()
+    assert _get(c, "mode") == "client"
+    assert _get(c, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert _get(c, "listen/endpoints") == []
+    assert _get(c, "scouting/multicast/enabled") is False
+    path = _write(tmp_path, '{ transport: { link: { tls: { root_ca_certificate: "ca.pem" } } } }')
+    c = session_config(zenoh_config=path)
+    assert _get(c, "mode") == "client"
+    assert _get(c, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert _get(c, "listen/endpoints") == []
+    assert _get(c, "scouting/multicast/enabled") is False
+    assert _get(c, "scouting/gossip/enabled") is False
+    assert _get(c, "transport/link/tls/root_ca_certificate") == "ca.pem"
+    c = session_config(connect=["tls/127.0.0.1:7000"], zenoh_config=path)
+    assert _get(c, "connect/endpoints") == ["tls/127.0.0.1:7000"]
