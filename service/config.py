@@ -200,6 +200,13 @@ class ServiceConfig(Model):
         default_factory=lambda: [LooselyCoupledConfig(name="lc")], min_length=1
     )
     rrd: Path | None = Field(None, description="Recording path (.rrd); None: recordings/<time>.rrd")
+    rrd_flush_interval_s: float = Field(
+        1.0,
+        gt=0,
+        le=60,
+        description="Recording rows are sent to the file this often: about what a crash (kill -9) loses. "
+        "Each send is one chunk per entity: shorter means a bigger file and more memory for its footer",
+    )
     viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
 
 

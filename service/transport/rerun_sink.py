@@ -15,8 +15,12 @@ with 10 satellites: ~235 entities) in real time: 1 s flushes -> ~1 GB/h of file,
 crash (kill -9, power loss) loses, so a background thread also sends rows older than the interval
 when no logging call comes, and each periodic send starts an SDK flush to the file. Measured by
 tests/test_crash_recording.py (demo, real time, kill -9): the last ~1 s of solutions lost (5 s
-before). The price is file size (demo, one pipeline: ~1.2 MB per 16 s at 1 s, ~0.5 MB at 5 s);
-pass ``flush_interval_s=5`` for smaller files that may lose 5 s. ``optimize_rrd`` (``rerun rrd
+before). The price is chunk count, five times that of 5 s flushes: file size (demo, one pipeline:
+~1.2 MB per 16 s at 1 s, ~0.5 MB at 5 s) and, with ``write_footer``, the footer's per-chunk
+metadata held in memory until close (~210 B per chunk measured: 400,000 chunks of 200 entities ->
++154 MB RSS with the footer, +71 MB without; ~180 MB/h for the ~235-entity case above at 1 s).
+The service's ``rrd_flush_interval_s`` (default 1 s) sets the trade: 5 s for long runs that
+may lose 5 s. ``optimize_rrd`` (``rerun rrd
 optimize``) compacts a finished file ~10x (``optimize_on_close=True`` runs it in
 :meth:`RerunSink.close`, ~5 s per 10 min of such a recording). A file cut by a crash has no footer
 (``rerun rrd verify`` rejects it; Rerun's reader and viewer read it by scanning):
