@@ -196,3 +196,31 @@ def test_simulator_config_is_overlaid_the_same_way(tmp_path):
     assert _get(c, "transport/link/tls/root_ca_certificate") == "ca.pem"
     c = session_config(connect=["tls/127.0.0.1:7000"], zenoh_config=path)
     assert _get(c, "connect/endpoints") == ["tls/127.0.0.1:7000"]
+
+
+def test_yaml_file_is_overlaid_by_resolved_values(tmp_path):
+    p = tmp_path / "zenoh.yaml"
+    p.write_text('mode: "peer"\nlisten:\n  endpoints: ["tcp/127.0.0.1:17447"]\n')
+    c = make_config(ZenohConfig(), config_file=str(p))
+    assert _get(c, "listen/endpoints") == ["tcp/127.0.0.1:17447"]
+    assert _get(c, "scouting/multicast/enabled") is False
+    p.write_text('mode: "peer"\nscouting:\n  multicast:\n    enabled: true\n')
+    c = make_config(ZenohConfig(), config_file=str(p))
+    assert _get(c, "scouting/multicast/enabled") is True
+    assert _get(c, "listen/endpoints") == ["tcp/127.0.0.1:7447"]
+
+
+def test_output_guard_unless_the_file_sets_access_control(tmp_path):
+    c = make_config(ZenohConfig(), outputs_prefix="fleet")
+    acl = _get(c, "access_control")
+    assert acl["enabled"] is True and acl["default_permission"] == "allow"
+    assert acl["rules"][0]["key_exprs"] == ["fleet/*/nav/**", "fleet/*/service/**"]
+    assert acl["rules"][0]["permission"] == "deny" and acl["rules"][0]["flows"] == ["ingress"]
+    assert _get(make_config(ZenohConfig()), "access_control")["enabled"] is False  # simulators, clients
+    path = _write(tmp_path, "{ access_control: { enabled: false } }")
+    assert (
+        _get(make_config(ZenohConfig(), config_file=path, outputs_prefix="fleet"), "access_control")[
+            "enabled"
+        ]
+        is False
+    )

@@ -18,8 +18,8 @@ import zenoh
 from service.config import ZenohConfig
 from service.messages import WireModel
 
-#: fednav's safe defaults, overlaid on a ``--zenoh-config`` file unless the file sets the key itself:
-#: (key path, where the value comes from). Zenoh's own defaults listen on every interface
+#: Keys of fednav's safe defaults, overlaid on a ``--zenoh-config`` file unless the file sets them
+#: itself (values in :func:`make_config`). Zenoh's own defaults listen on every interface
 #: (``tcp/[::]:0``) and discover peers by UDP multicast (224.0.0.224:7446) and gossip.
 SAFE_KEYS = (
     "mode",
@@ -33,16 +33,18 @@ SAFE_KEYS = (
 def _file_keys(path: str) -> tuple[zenoh.Config, dict]:
     """The file loaded by Zenoh, and the file's own content as plain JSON (parsed by Zenoh's JSON5
     parser through the free-form ``metadata`` field, so comments, unquoted keys and trailing
-    commas read exactly as Zenoh reads them)."""
+    commas read exactly as Zenoh reads them). A file that is not JSON5 (Zenoh also reads YAML)
+    gives no content: its keys are then judged by their resolved values alone (:func:`_explicit`)."""
     loaded = zenoh.Config.from_file(path)
     with open(path, encoding="utf-8") as f:
         text = f.read()
     raw = zenoh.Config()
-    raw.insert_json5("metadata", text)
-    content = json.loads(raw.get_json("metadata"))
-    if not isinstance(content, dict):
-        raise ValueError(f"{path}: a Zenoh config file must hold one JSON5 object")
-    return loaded, content
+    try:
+        raw.insert_json5("metadata", text)
+        content = json.loads(raw.get_json("metadata"))
+    except zenoh.ZError:
+        content = {}
+    return loaded, content if isinstance(content, dict) else {}
 
 
 def _explicit(content: dict, loaded: zenoh.Config, key: str) -> bool:
