@@ -142,9 +142,30 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
         reader_all = Sink(reader_probe, "fednav/**")
 
         # no certificate, another CA's certificate (with the reader's name), plain TCP: no session
+        no_cert = {
+            "root_ca_certificate": "certs/ca.pem",
+            "enable_mtls": False,
+            "connect_certificate": None,
+            "connect_private_key": None,
+        }
+        # control: the same certificate-less client does open a session with a TLS listener of the
+        # same server certificate that does not ask for client certificates (so below, it is mTLS
+        # that refuses it)
+        ctl_ep = f"tls/127.0.0.1:{free_port()}"
+        ctl = zenoh.Config()
+        ctl.insert_json5("scouting/multicast/enabled", "false")
+        ctl.insert_json5("listen/endpoints", json.dumps([ctl_ep]))
+        for k, v in {
+            "root_ca_certificate": "certs/ca.pem",
+            "listen_certificate": "certs/service.pem",
+            "listen_private_key": "certs/service-key.pem",
+        }.items():
+            ctl.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
+        with zenoh.open(ctl):
+            zenoh.open(_config(ctl_ep, no_cert)).close()
         refused = {}
         for name, tls, endpoint in (
-            ("no certificate", {"root_ca_certificate": "certs/ca.pem", "enable_mtls": False}, ep),
+            ("no certificate", no_cert, ep),
             (
                 "wrong CA",
                 {
@@ -157,9 +178,10 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
             ("plain tcp", None, f"tcp/127.0.0.1:{port}"),
         ):
             t0 = time.monotonic()
-            with pytest.raises(zenoh.ZError):
+            with pytest.raises(zenoh.ZError) as err:
                 open_(tls, endpoint)
             refused[name] = time.monotonic() - t0
+            assert "Unable to connect" in str(err.value), err.value  # refused, not a config error
 
         intruder_tls = {
             "root_ca_certificate": "certs/ca.pem",
