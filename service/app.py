@@ -340,9 +340,16 @@ class Service:
 
             Path(self.rrd_path).parent.mkdir(parents=True, exist_ok=True)
             blueprint = _blueprint_plugin({p.name: p.kind for p in cfg.pipelines})
-            self.rr = RerunSink(self.rrd_path, viewer_addr=self.viewer, blueprint=blueprint)
+            self.rr = RerunSink(
+                self.rrd_path,
+                viewer_addr=self.viewer,
+                blueprint=blueprint,
+                flush_interval_s=cfg.rrd_flush_interval_s,
+            )
         self.session = zenoh.open(
-            zenoh_io.make_config(cfg.zenoh, self.listen, self.connect, self.zenoh_config_file)
+            zenoh_io.make_config(
+                cfg.zenoh, self.listen, self.connect, self.zenoh_config_file, outputs_prefix=cfg.prefix
+            )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
         self.sink = OutputSink(cfg.prefix, self.pubs, self.rr)

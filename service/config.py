@@ -236,7 +236,11 @@ class ZenohConfig(Model):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = False
-    config_file: Path | None = Field(None, description="A full Zenoh json5 config (overrides the above)")
+    config_file: Path | None = Field(
+        None,
+        description="A Zenoh json5 config (TLS, access control...) overlaid on the safe values above: "
+        "mode, endpoints and discovery keep these unless the file sets them",
+    )
 
 
 class IntakeConfig(Model):
@@ -300,6 +304,13 @@ class ServiceConfig(Model):
         default_factory=lambda: [LooselyCoupledConfig(name="lc")], min_length=1
     )
     rrd: Path | None = Field(None, description="Recording path (.rrd); None: recordings/<time>.rrd")
+    rrd_flush_interval_s: float = Field(
+        1.0,
+        gt=0,
+        le=60,
+        description="Recording rows are sent to the file this often: about what a crash (kill -9) loses. "
+        "Each send is one chunk per entity: shorter means a bigger file and more memory for its footer",
+    )
     viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
 
 

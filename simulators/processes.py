@@ -25,7 +25,7 @@ def free_port() -> int:
 class Proc:
     """A child process whose output lines are collected by a thread (never blocks the pipe)."""
 
-    def __init__(self, args: list[str], name: str, env: dict | None = None):
+    def __init__(self, args: list[str], name: str, env: dict | None = None, cwd: str | Path | None = None):
         self.name = name
         self.lines: list[str] = []
         self._cv = threading.Condition()
@@ -34,7 +34,9 @@ class Proc:
         e["PYTHONUNBUFFERED"] = "1"
         if env:
             e.update(env)
-        self.p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=e)
+        self.p = subprocess.Popen(
+            args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=e, cwd=cwd
+        )
         self._t = threading.Thread(target=self._read, daemon=True)
         self._t.start()
 

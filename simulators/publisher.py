@@ -21,6 +21,23 @@ class MatchTimeout(RuntimeError):
     pass
 
 
+def session_config(
+    connect: list[str] | None = None, listen: list[str] | None = None, zenoh_config: str | None = None
+) -> zenoh.Config:
+    """The simulator's Zenoh config: a client of the service on loopback, no discovery.
+
+    Client mode: the service (a peer) routes our samples to its other clients (dashboards,
+    subscribers); two peers connected only through the service would not see each other. A
+    ``--zenoh-config`` file is overlaid on these safe defaults (``make_config``); explicit
+    ``--connect`` endpoints replace the file's."""
+    return make_config(
+        ZenohConfig(mode="client", listen=[], connect=["tcp/127.0.0.1:7447"]),
+        listen=listen or None,
+        connect=connect or None,
+        config_file=zenoh_config,
+    )
+
+
 def publish_stream(
     stream: Iterable[tuple[str, WireModel]],
     *,
@@ -32,15 +49,7 @@ def publish_stream(
     linger_s: float = 0.5,
 ) -> dict:
     """Publish (key, message) pairs in order; returns counts and timing."""
-    # client mode: the service (a peer) routes our samples to its other clients (dashboards,
-    # subscribers); two peers connected only through the service would not see each other
-    cfg = make_config(
-        ZenohConfig(mode="client"),
-        listen=listen or [],
-        connect=connect or ["tcp/127.0.0.1:7447"],
-        config_file=zenoh_config,
-    )
-    session = zenoh.open(cfg)
+    session = zenoh.open(session_config(connect=connect, listen=listen, zenoh_config=zenoh_config))
     pubs: dict[str, zenoh.Publisher] = {}
 
     def pub_for(key: str, msg: WireModel) -> zenoh.Publisher:

@@ -127,6 +127,11 @@ def test_single_hostile_messages_cost_no_navigation(tmp_path):
             sols[str(sample.key_expr).split("/")[1]][round(d["t"], 3)] = d
 
     session.declare_subscriber("fednav/*/nav/lc/solution", on_solution)
+    faults: list[tuple[str, dict]] = []
+    session.declare_subscriber(
+        "fednav/*/nav/lc/faults",
+        lambda s: faults.append((str(s.key_expr).split("/")[1], json.loads(s.payload.to_bytes()))),
+    )
     pub = Publisher(session)
     try:
         for v in VEHICLES:
@@ -183,6 +188,18 @@ def test_single_hostile_messages_cost_no_navigation(tmp_path):
     # (the genuine fix's) are consistent and used, which moves the solution by centimetres
     null = status["null_island"]["health"]["pipelines"]["lc"]["screened"]
     assert null.get("innovation_gate", 0) == 3 and report["null_island"][0] < 1.0, (null, report)
+    # ... and the refusal is on Faults: position rows flagged and isolated, velocity rows used
+    (f,) = [f for v, f in faults if v == "null_island"]
+    rows = {o["label"]: o["isolated"] for o in f["subsystems"][0]["observations"]}
+    assert rows == {
+        "pos_e": True,
+        "pos_n": True,
+        "pos_u": True,
+        "vel_e": False,
+        "vel_n": False,
+        "vel_u": False,
+    }
+    assert not [f for v, f in faults if v == "clean"]  # genuine data: nothing refused
     star = status["second_star"]["health"]["pipelines"]["lc"]["screened"]
     assert star.get("innovation_gate", 0) == 3, star  # far off at 0.001 deg: all three rows refused
     # a fix claiming 1e-9 m (the genuine position, 10 m noise): its sigmas are raised to the

@@ -13,7 +13,7 @@ from service.estimation.ins_filter import InsFilterBank
 from service.estimation.measurements import MeasurementModel
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
-from service.messages import WireModel
+from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
@@ -51,12 +51,14 @@ class LooselyCoupled(Pipeline):
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
         gate = self.cfg.innovation_gate_sigma
         refused = np.abs(res.standardised[0]) > gate if gate is not None else np.zeros(len(meas.z), bool)
+        outputs: list[WireModel] = []
         if refused.any():
             self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
+            outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], refused))
             if refused.all():
                 since = self._refused_since.setdefault(kind, nav.t)
                 if kind not in self._trusted or nav.t - since < self.cfg.gate_recovery_s:
-                    return []  # a sensor never accepted is never trusted by recovery
+                    return outputs  # a sensor never accepted is never trusted by recovery
                 # a sensor accepted before, every row refused for gate_recovery_s: the filter,
                 # not the sensor, is wrong
                 self.screened["gate_recovery"] += 1
@@ -70,13 +72,29 @@ class LooselyCoupled(Pipeline):
             # numerical health: never continue on a broken P; keep the INS, re-initialise the
             # covariance to the initial one and flag it
             self.recover_covariance()
-            return []
+            return outputs
         bank.x, bank.P = x, P
         bank.feedback(bank.x[0].copy())
         self.last_nis = float(res.nis[0])
         self.nis_history.append((nav.t, kind, self.last_nis, int(res.dof[0])))
         self.mark_aided(nav.t)
-        return []
+        return outputs
+
+    def _gate_faults(self, t: float, kind: str, labels, standardised, refused) -> Faults:
+        """The gate's decision on Faults (published only when it refuses a row): per row |r|/sqrt(S)
+        against the gate; refused rows are flagged and isolated."""
+        gate = float(self.cfg.innovation_gate_sigma)
+        rows = [
+            ObservationFault(
+                label=label, statistic=float(abs(v)), threshold=gate, flagged=bool(r), isolated=bool(r)
+            )
+            for label, v, r in zip(labels, standardised, refused, strict=True)
+        ]
+        return Faults(
+            t=t,
+            pipeline=self.name,
+            subsystems=[SubsystemFaults(name=kind, isolated=bool(refused.all()), observations=rows)],
+        )
 
     def recover_covariance(self) -> None:
         self.bank.x[:] = 0.0

@@ -22,6 +22,75 @@ from service.config import ZenohConfig
 from service.messages import WireModel
 
 log = logging.getLogger("fednav.service")
+#: Keys of fednav's safe defaults, overlaid on a ``--zenoh-config`` file unless the file sets them
+#: itself (values in :func:`make_config`). Zenoh's own defaults listen on every interface
+#: (``tcp/[::]:0``) and discover peers by UDP multicast (224.0.0.224:7446) and gossip.
+SAFE_KEYS = (
+    "mode",
+    "listen/endpoints",
+    "connect/endpoints",
+    "scouting/multicast/enabled",
+    "scouting/gossip/enabled",
+)
+
+
+def _file_keys(path: str) -> tuple[zenoh.Config, dict]:
+    """The file loaded by Zenoh, and the file's own content as plain JSON (parsed by Zenoh's JSON5
+    parser through the free-form ``metadata`` field, so comments, unquoted keys and trailing
+    commas read exactly as Zenoh reads them). A file that is not JSON5 (Zenoh also reads YAML)
+    gives no content: its keys are then judged by their resolved values alone (:func:`_explicit`)."""
+    loaded = zenoh.Config.from_file(path)
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    raw = zenoh.Config()
+    try:
+        raw.insert_json5("metadata", text)
+        content = json.loads(raw.get_json("metadata"))
+    except zenoh.ZError:
+        content = {}
+    return loaded, content if isinstance(content, dict) else {}
+
+
+def _explicit(content: dict, loaded: zenoh.Config, key: str) -> bool:
+    """True when the file sets ``key``: written in the file, or (through an included file) resolved to
+    a value other than Zenoh's built-in default."""
+    node = content
+    for part in key.split("/"):
+        if not isinstance(node, dict) or part not in node:
+            break
+        node = node[part]
+    else:
+        return True
+    return json.loads(loaded.get_json(key)) != json.loads(zenoh.Config().get_json(key))
+
+
+def outputs_guard(prefix: str) -> dict:
+    """Zenoh access control that refuses, from every remote session, publications and queryables
+    under the service's output keys (``{prefix}/*/nav/**``, ``{prefix}/*/service/**``): only the
+    service itself publishes solutions and health and answers status, so a client on the bus cannot
+    spoof them to the other clients routed through the service. Everything else is allowed."""
+    outputs = [f"{prefix}/*/nav/**", f"{prefix}/*/service/**"]
+    return {
+        "enabled": True,
+        "default_permission": "allow",
+        "rules": [
+            {
+                "id": "no-spoofed-outputs",
+                "permission": "deny",
+                "flows": ["ingress"],
+                "messages": ["put", "delete", "declare_queryable", "reply"],
+                "key_exprs": outputs,
+            }
+        ],
+        "subjects": [{"id": "every-remote-session"}],
+        "policies": [
+            {
+                "id": "outputs-are-the-services",
+                "rules": ["no-spoofed-outputs"],
+                "subjects": ["every-remote-session"],
+            }
+        ],
+    }
 
 
 def make_config(
@@ -29,17 +98,42 @@ def make_config(
     listen: list[str] | None = None,
     connect: list[str] | None = None,
     config_file: str | None = None,
+    outputs_prefix: str | None = None,
 ) -> zenoh.Config:
-    """Explicit endpoints, multicast scouting off unless asked; a json5 file overrides everything."""
-    path = config_file or (str(zc.config_file) if zc and zc.config_file else None)
-    if path:
-        return zenoh.Config.from_file(path)
+    """The session config: fednav's safe defaults, a json5 file overlaid on them, explicit endpoints.
+
+    Safe defaults (``SAFE_KEYS``), from ``zc``: its mode, loopback listen endpoints, its connect
+    endpoints, multicast scouting and gossip off (both follow ``zc.multicast_scouting``). A config
+    file (``config_file``, else ``zc.config_file``) is loaded by Zenoh as written (TLS, access control,
+    anything else); only the safe keys the file does not set itself keep fednav's values, so a file
+    with only mode and listen does not turn multicast scouting on. ``listen``/``connect`` (the
+    command line's ``--listen``/``--connect``; None: not given) replace the endpoints of both.
+    ``outputs_prefix`` (the service's prefix) adds :func:`outputs_guard` as access control unless the
+    file configures ``access_control`` itself.
+    """
     zc = zc or ZenohConfig()
-    c = zenoh.Config()
-    c.insert_json5("mode", json.dumps(zc.mode))
-    c.insert_json5("scouting/multicast/enabled", "true" if zc.multicast_scouting else "false")
-    c.insert_json5("listen/endpoints", json.dumps(listen if listen is not None else zc.listen))
-    c.insert_json5("connect/endpoints", json.dumps(connect if connect is not None else zc.connect))
+    path = config_file or (str(zc.config_file) if zc.config_file else None)
+    if path:
+        c, content = _file_keys(path)
+    else:
+        c, content = zenoh.Config(), {}
+    discovery = "true" if zc.multicast_scouting else "false"
+    safe = {
+        "mode": json.dumps(zc.mode),
+        "listen/endpoints": json.dumps(zc.listen),
+        "connect/endpoints": json.dumps(zc.connect),
+        "scouting/multicast/enabled": discovery,
+        "scouting/gossip/enabled": discovery,
+    }
+    for key in SAFE_KEYS:
+        if not (path and _explicit(content, c, key)):
+            c.insert_json5(key, safe[key])
+    if outputs_prefix is not None and not (path and _explicit(content, c, "access_control")):
+        c.insert_json5("access_control", json.dumps(outputs_guard(outputs_prefix)))
+    if listen is not None:
+        c.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect is not None:
+        c.insert_json5("connect/endpoints", json.dumps(connect))
     return c
 
 
