@@ -39,7 +39,9 @@ T_MAX_S = 1.0e10  # GPS seconds; ~300 years
 class WireModel(BaseModel):
     """Base of all wire messages: strict, closed, immutable, finite."""
 
-    model_config = ConfigDict(strict=True, extra="forbid", frozen=True, allow_inf_nan=False)
+    model_config = ConfigDict(
+        strict=True, extra="forbid", frozen=True, allow_inf_nan=False, use_attribute_docstrings=True
+    )
 
     @classmethod
     def encoding(cls) -> str:
@@ -101,10 +103,13 @@ class GnssFix(WireModel):
     lon_deg: Lon
     height_m: Height
     vel_enu_mps: Vec3
+    """Velocity, east/north/up, m/s"""
     pos_std_enu_m: PosStd3 = Field(description="1-sigma position noise, east/north/up, m")
     vel_std_enu_mps: PosStd3 = Field(description="1-sigma velocity noise, east/north/up, m/s")
     constellation: Literal["GPS", "BDS", "GAL", "GLO", "MULTI"] = "GPS"
+    """Constellation(s) of the solution"""
     num_sats: int = Field(default=0, ge=0, le=200)
+    """Satellites used in the solution (0: not reported)"""
 
     @model_validator(mode="after")
     def _plausible(self):
@@ -117,15 +122,24 @@ class SatObservation(WireModel):
 
     id: str = Field(pattern=r"^[GCERJ]\d{2}$", description="RINEX-style id, e.g. C03, G12")
     constellation: Literal["GPS", "BDS", "GAL", "GLO", "QZS"]
+    """Constellation of the satellite"""
     pseudorange_m: float = Field(gt=1.0e6, lt=MAX_RANGE_M)
+    """Pseudorange, m"""
     range_rate_mps: float = Field(ge=-2.0e4, le=2.0e4)
+    """Pseudorange rate (Doppler x -wavelength), m/s"""
     pseudorange_sigma_m: float = Field(gt=0.0, le=1.0e4)
+    """1-sigma pseudorange noise, m"""
     range_rate_sigma_mps: float = Field(gt=0.0, le=1.0e3)
+    """1-sigma range-rate noise, m/s"""
     sat_pos_ecef_m: Vec3
+    """Satellite position at transmission, ECEF (rotated to reception), m"""
     sat_vel_ecef_mps: Vec3
+    """Satellite velocity, ECEF, m/s"""
     sat_clock_m: float = Field(default=0.0, ge=-1.0e7, le=1.0e7, description="Satellite clock bias x c, m")
     sat_clock_drift_mps: float = Field(default=0.0, ge=-1.0e3, le=1.0e3)
+    """Satellite clock drift x c, m/s"""
     elevation_deg: float | None = Field(default=None, ge=-90.0, le=90.0)
+    """Elevation seen from the receiver, deg (None: not reported)"""
 
     @model_validator(mode="after")
     def _plausible(self):
@@ -141,6 +155,7 @@ class GnssRaw(WireModel):
 
     t: Time
     sats: list[SatObservation] = Field(max_length=128)
+    """One entry per tracked satellite"""
 
 
 class StarAttitude(WireModel):
@@ -148,7 +163,9 @@ class StarAttitude(WireModel):
 
     t: Time
     rpy_deg: Vec3
+    """Body attitude: roll (right wing down +), pitch (nose up +), heading (clockwise from north), deg"""
     rpy_std_deg: PosStd3
+    """1-sigma roll, pitch, heading noise, deg"""
 
     @model_validator(mode="after")
     def _plausible(self):
@@ -161,7 +178,9 @@ class DvlVelocity(WireModel):
 
     t: Time
     vel_b_mps: Vec3
+    """Velocity over ground in the body frame (right, forward, up), m/s"""
     vel_std_mps: PosStd3
+    """1-sigma velocity noise per body axis, m/s"""
 
     @model_validator(mode="after")
     def _plausible(self):
@@ -174,10 +193,12 @@ class UsblFix(WireModel):
 
     t: Time
     rel_b_m: Vec3
+    """Vector from the vehicle's array to the transponder in the body frame (right, forward, up), m"""
     transponder_lat_deg: Lat
     transponder_lon_deg: Lon
     transponder_height_m: Height
     rel_std_m: PosStd3
+    """1-sigma noise per body axis, m"""
 
     @model_validator(mode="after")
     def _plausible(self):
@@ -194,10 +215,15 @@ class InitialNav(WireModel):
     lon_deg: Lon
     height_m: Height
     vel_enu_mps: Vec3
+    """Velocity, east/north/up, m/s"""
     rpy_deg: Vec3
+    """Attitude: roll (right wing down +), pitch (nose up +), heading (clockwise from north), deg"""
     pos_std_enu_m: PosStd3
+    """1-sigma position uncertainty, east/north/up, m"""
     vel_std_enu_mps: PosStd3
+    """1-sigma velocity uncertainty, east/north/up, m/s"""
     rpy_std_deg: PosStd3
+    """1-sigma roll, pitch, heading uncertainty, deg"""
 
     @model_validator(mode="after")
     def _plausible(self):
@@ -210,8 +236,11 @@ class ActiveFault(WireModel):
     """A fault the simulator is injecting at this instant (truth side only)."""
 
     sensor: str
+    """Faulted sensor kind (gnss, gnss_raw, star, ...)"""
     kind: Literal["step", "ramp", "noise", "random_walk", "oscillation", "scale"]
+    """Fault type"""
     channels: list[str]
+    """Faulted channels (e.g. pos_e, C03.pseudorange)"""
 
 
 class Truth(WireModel):
@@ -222,8 +251,11 @@ class Truth(WireModel):
     lon_deg: Lon
     height_m: Height
     vel_enu_mps: Vec3
+    """True velocity, east/north/up, m/s"""
     rpy_deg: Vec3
+    """True roll, pitch, heading (clockwise from north), deg"""
     faults: list[ActiveFault] = Field(default_factory=list)
+    """Faults the simulator is injecting at this instant"""
 
 
 # --- service outputs ------------------------------------------------------------------------------
@@ -240,31 +272,48 @@ class Solution(WireModel):
 
     t: Time
     pipeline: str
+    """Pipeline name (as configured)"""
     lat_deg: Lat
     lon_deg: Lon
     height_m: Height
     vel_enu_mps: Vec3
+    """Velocity, east/north/up, m/s"""
     rpy_deg: Vec3
+    """Roll (right wing down +), pitch (nose up +), heading (clockwise from north), deg"""
     pos_std_enu_m: Vec3
+    """1-sigma position, east/north/up, m (the filter's own covariance)"""
     vel_std_enu_mps: Vec3
+    """1-sigma velocity, east/north/up, m/s"""
     rpy_std_deg: Vec3
+    """1-sigma roll, pitch, heading, deg"""
     gyro_bias_dph: Vec3 = (0.0, 0.0, 0.0)
+    """Estimated gyro bias per body axis, deg/h"""
     accel_bias_ug: Vec3 = (0.0, 0.0, 0.0)
+    """Estimated accelerometer bias per body axis, micro-g"""
     status: NavStatus
+    """initialising, unaided, aided, coasting, degraded or failed (see the README)"""
 
 
 class ObservationFault(WireModel):
     label: str
+    """Observation (row) label, e.g. pos_e, vel_n, yaw"""
     statistic: float
+    """Test statistic of the row (its standardised innovation, squared or not as the test defines)"""
     threshold: float
+    """Threshold the statistic is compared with"""
     flagged: bool
+    """The statistic exceeded the threshold"""
     isolated: bool
+    """The row was not used in the update"""
 
 
 class SubsystemFaults(WireModel):
     name: str
+    """Local filter or sensor kind"""
     isolated: bool
+    """The whole subsystem was isolated at this epoch"""
     observations: list[ObservationFault]
+    """Per observation row"""
 
 
 class Faults(WireModel):
@@ -272,7 +321,9 @@ class Faults(WireModel):
 
     t: Time
     pipeline: str
+    """Pipeline name"""
     subsystems: list[SubsystemFaults]
+    """One entry per local filter (subsystem) or sensor kind that was tested"""
     sharing: dict[str, list[float]] = Field(
         default_factory=dict, description="Per local filter, its sharing coefficient per common state"
     )
@@ -282,10 +333,13 @@ class SatelliteTest(WireModel):
     """Per-satellite tests: solution separation (horizontal, vertical) and the windowed residual."""
 
     id: str
+    """Satellite id, e.g. C03"""
     statistic_m: float = Field(description="Horizontal separation |dx_0n|, m")
     threshold_m: float = Field(description="Horizontal separation threshold T_n, m")
     vertical_statistic_m: float = 0.0
+    """Vertical separation |dx_0n,up|, m"""
     vertical_threshold_m: float = 0.0
+    """Vertical separation threshold, m"""
     residual_statistic_m: float = Field(0.0, description="Windowed mean residual vs the sub-filter, m")
     residual_threshold_m: float = Field(
         0.0, description="Its threshold (the window with the largest ratio), m"
@@ -297,16 +351,27 @@ class Integrity(WireModel):
 
     t: Time
     pipeline: str
+    """Pipeline name"""
     phase: str
+    """Flight phase whose alert limits apply (e.g. npa, lpv200)"""
     hpl_m: float
+    """Horizontal protection level, m"""
     vpl_m: float
+    """Vertical protection level, m"""
     hal_m: float
+    """Horizontal alert limit of the phase, m"""
     val_m: float | None
+    """Vertical alert limit of the phase, m (None: the phase has none)"""
     alarm: bool
+    """Protection level above the alert limit, or a fault detected and not excluded"""
     available: bool
+    """Protection levels within the alert limits"""
     detected: bool
+    """A separation or residual test failed at this epoch"""
     excluded: list[str]
+    """Satellites excluded (by this or an earlier epoch)"""
     satellites: list[SatelliteTest]
+    """Per satellite in use: its tests"""
     detected_by: str = Field("", description="'separation', 'residual', 'separation+residual' or ''")
 
 
@@ -324,21 +389,36 @@ class Alignment(WireModel):
 
     t: Time
     pipeline: str
+    """Pipeline name"""
     node: str
+    """Slave IMU node id (e.g. wing1)"""
     mount_deg: Vec3
+    """Rotation of the slave from the master (installation + coupling + flexure), master axes, deg"""
     misalignment_std_deg: Vec3
+    """1-sigma of the misalignment (the error of mount_deg), deg"""
     installation_deg: Vec3 = Field(description="Installation + coupling angle estimate, deg")
     installation_std_deg: Vec3
+    """1-sigma of installation_deg, deg"""
     flexure_deg: Vec3
+    """Dynamic flexure angle estimate, deg"""
     flexure_std_deg: Vec3
+    """1-sigma of flexure_deg, deg"""
     lever_arm_m: Vec3
+    """Lever arm estimate (nominal + error estimate), master body axes, m"""
     lever_arm_std_m: Vec3
+    """1-sigma of lever_arm_m, m"""
     gyro_bias_dph: Vec3
+    """Slave gyro bias estimate, deg/h"""
     accel_bias_ug: Vec3
+    """Slave accelerometer bias estimate, micro-g"""
     r_std: tuple[float, float, float, float, float, float, float, float, float]
+    """Square roots of the measurement-noise variances in use (attitude deg, velocity m/s, rate deg/s)"""
     fading: float
+    """Largest fading factor of the epoch (1: not engaged)"""
     nis: float
+    """Normalised innovation squared of the epoch"""
     share: float | None = None
+    """Fusion weight alpha_j (eq 19) when the pipeline fuses, else None"""
 
 
 class AlignmentTruth(WireModel):
@@ -346,17 +426,24 @@ class AlignmentTruth(WireModel):
 
     t: Time
     node: str
+    """Slave IMU node id"""
     mount_deg: Vec3 = Field(description="True rotation of the slave from the master (incl. vibration), deg")
     installation_deg: Vec3 = Field(description="True installation + coupling angle, deg")
     flexure_deg: Vec3
+    """True dynamic flexure angle, deg"""
     lever_arm_m: Vec3
+    """True lever arm, master body axes, m"""
 
 
 class PipelineHealth(WireModel):
     status: NavStatus
+    """initialising, unaided, aided, coasting, degraded or failed"""
     last_t: float | None
+    """Latest sensor time processed"""
     updates: int
+    """Aiding updates applied"""
     reinitialisations: int = 0
+    """Restarts of the filter (InitialNav, INS loss, numerical recovery)"""
     screened: dict[str, int] = Field(
         default_factory=dict,
         description="Observations refused (or sigmas raised) by screening, by reason: innovation_gate, "
@@ -369,16 +456,22 @@ class Health(WireModel):
 
     t: float | None = Field(description="Latest sensor time processed (None before any)")
     uptime_s: float
+    """Seconds since the vehicle's worker started"""
     received: int
+    """Messages received for this vehicle"""
     accepted: int
+    """Messages accepted"""
     rejected: dict[str, int] = Field(description="Rejections by reason")
     dropped_overload: int
+    """Messages dropped because the intake queue was full (overload = drop)"""
     queue_depth: int
+    """Messages waiting in the vehicle's queue"""
     latency_ms: dict[str, float] = Field(
         description="Latency percentiles (p50, p99, max) from a message's arrival in the service process "
         "(Zenoh callback), queue time included, to the end of its processing (outputs published)"
     )
     pipelines: dict[str, PipelineHealth]
+    """Per pipeline: status, screening and counts"""
     sensors: dict[str, float] = Field(
         default_factory=dict, description="Last accepted sensor time per stream ('kind/id' -> t)"
     )
@@ -418,12 +511,18 @@ ALL_MESSAGES: list[type[WireModel]] = [
 ]
 
 
+def schema_id(name: str) -> str:
+    """The schema's URI (a URN: it names the message type and version, it is not fetched); the
+    samples' encoding ``application/json;fednav.<name>/<version>`` names the same pair."""
+    return f"urn:fednav:schema:{name}:{SCHEMA_VERSION}"
+
+
 def json_schemas() -> dict[str, dict]:
     """JSON Schema (draft 2020-12, pydantic's validation mode) of every wire message."""
     out = {}
     for m in ALL_MESSAGES:
-        s = m.model_json_schema()
-        s["$id"] = f"fednav.{m.__name__}/{SCHEMA_VERSION}"
+        s = {"$schema": "https://json-schema.org/draft/2020-12/schema", **m.model_json_schema()}
+        s["$id"] = schema_id(m.__name__)
         out[m.__name__] = s
     return out
 

@@ -64,3 +64,24 @@ def test_keys_round_trip():
     assert keys.parse_input("other/v1/truth") is None
     with pytest.raises(ValueError):
         keys.sensor("v/1", "imu", "main")
+
+
+def test_schemas_are_2020_12_with_uri_ids_and_every_field_described():
+    from urllib.parse import urlparse
+
+    from jsonschema import Draft202012Validator
+
+    from service.messages import json_schemas
+
+    for name, schema in json_schemas().items():
+        assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"
+        assert urlparse(schema["$id"]).scheme == "urn" and name in schema["$id"]
+        Draft202012Validator.check_schema(schema)
+        parts = [(name, schema)] + [(f"{name}/$defs/{d}", s) for d, s in schema.get("$defs", {}).items()]
+        undescribed = [
+            f"{where}.{p}"
+            for where, s in parts
+            for p, ps in s.get("properties", {}).items()
+            if not ps.get("description")
+        ]
+        assert not undescribed, undescribed

@@ -28,6 +28,8 @@ def test_late_joiner_finds_the_service_and_the_latest_solution(tmp_path):
     port = free_port()
     svc = start_service(port, config=SCENARIOS / "demo_aircraft.toml", table="service")
     session = zenoh_client(port)
+    samples: list[tuple[str, bytes]] = []  # every sample on the bus: (encoding, payload)
+    session.declare_subscriber("fednav/**", lambda s: samples.append((str(s.encoding), s.payload.to_bytes())))
     try:
         sim = start_sim(port, SCENARIOS / "demo_aircraft.toml", speed=0.0, seed=3)
         assert sim.wait(timeout=120) == 0, sim.output()
@@ -56,3 +58,24 @@ def test_late_joiner_finds_the_service_and_the_latest_solution(tmp_path):
         rc = svc.wait(timeout=30)
         session.close()
     assert rc == 0
+    _validate_against_shipped_schemas(samples)
+
+
+def _validate_against_shipped_schemas(samples) -> None:
+    """Every live sample validates, with a standard 2020-12 validator, against the shipped schema
+    its encoding names (application/json;fednav.<Type>/<version>)."""
+    from pathlib import Path
+
+    from jsonschema import Draft202012Validator
+
+    folder = Path(__file__).resolve().parents[1] / "docs" / "schemas"
+    validators = {}
+    seen: dict[str, int] = {}
+    for encoding, payload in samples:
+        kind = encoding.split(";fednav.")[1].split("/")[0]
+        if kind not in validators:
+            validators[kind] = Draft202012Validator(json.loads((folder / f"{kind}.schema.json").read_text()))
+        validators[kind].validate(json.loads(payload))
+        seen[kind] = seen.get(kind, 0) + 1
+    assert {"ImuSample", "GnssFix", "InitialNav", "Truth", "Solution", "Health"} <= set(seen), seen
+    assert sum(seen.values()) > 30000
