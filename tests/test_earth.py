@@ -93,3 +93,16 @@ def test_heading_convention():
     # body forward axis of heading 90 deg points east
     c = earth.rpy_to_mat_nb([0.0, 0.0, earth.yaw_from_heading_deg(90.0)])
     np.testing.assert_allclose(c @ [0, 1, 0], [1, 0, 0], atol=1e-15)
+
+
+def test_message_angle_signs_as_the_readme_states():
+    """roll + : right wing (body x) down; pitch + : nose (body y) up; heading 90: nose east."""
+    import numpy as np
+
+    def axis_up(rpy, axis):
+        return (earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(rpy)) @ axis)[2]
+
+    assert axis_up((10.0, 0.0, 0.0), [1.0, 0.0, 0.0]) < -0.17
+    assert axis_up((0.0, 10.0, 0.0), [0.0, 1.0, 0.0]) > 0.17
+    nose = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg((0.0, 0.0, 90.0))) @ [0.0, 1.0, 0.0]
+    assert np.allclose(nose, [1.0, 0.0, 0.0], atol=1e-12)
