@@ -72,6 +72,10 @@ def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
         from service.pipelines.tightly_coupled import TightlyCoupled
 
         return TightlyCoupled(cfg, config.imu, config.major_interval_s)
+    if cfg.kind == "underwater":
+        from service.pipelines.underwater import Underwater
+
+        return Underwater(cfg, config.imu, config.major_interval_s)
     raise ValueError(f"unknown pipeline kind {cfg.kind!r}")  # unreachable: config validates kinds
 
 

@@ -262,6 +262,23 @@ class SubsystemFaults(WireModel):
     observations: list[ObservationFault]
 
 
+class Reconfiguration(WireModel):
+    """A subsystem leaving or rejoining the fusion (seed 004: chi2 test on the USBL local)."""
+
+    subsystem: str
+    action: Literal["excluded", "rejoined"]
+    statistic: float = Field(description="Test statistic of the epoch that changed it (NIS)")
+    threshold: float
+
+
+class StateEstimate(WireModel):
+    """A filter state outside the navigation solution (e.g. a DVL offset) with its 1-sigma."""
+
+    name: str
+    value: float
+    std: float
+
+
 class Faults(WireModel):
     """Per-subsystem, per-observation fault tests of one pipeline at one aiding epoch."""
 
@@ -270,6 +287,13 @@ class Faults(WireModel):
     subsystems: list[SubsystemFaults]
     sharing: dict[str, list[float]] = Field(
         default_factory=dict, description="Per local filter, its sharing coefficient per common state"
+    )
+    reconfiguration: list[Reconfiguration] = Field(
+        default_factory=list, description="Subsystems excluded from or rejoining the fusion at this epoch"
+    )
+    excluded: list[str] = Field(default_factory=list, description="Subsystems excluded after this epoch")
+    states: list[StateEstimate] = Field(
+        default_factory=list, description="Private states of the tested subsystem (estimate and 1-sigma)"
     )
 
 
