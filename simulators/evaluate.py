@@ -119,10 +119,12 @@ def evaluate(
         sink, _ = run_once(scenario, seed + i, cfg, trajectory=traj)
         collect_integrity(integ_runs, sink)
         for name, rec in sink.records.items():
-            p = pooled.setdefault(name, {"t": [], "err": [], "nees": []})
+            p = pooled.setdefault(name, {"t": [], "err": [], "nees": [], "end": []})
             p["t"] += [t - t0 for t in rec.t]
             p["err"] += rec.err
             p["nees"] += rec.nees
+            if rec.err:
+                p["end"].append(rec.err[-1])
     wall = time.perf_counter() - wall0
     out = {
         "scenario": scenario.name,
@@ -144,6 +146,13 @@ def evaluate(
             "h_rms_m": float(math.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
+        entry.update(end_errors(p["end"]))
+        onset = min((f.start_s for f in scenario.faults), default=None)
+        if onset is not None:
+            t = np.array(p["t"])
+            sel = t >= onset
+            if sel.any():
+                entry["after_fault"] = {"t0": onset, "rms": _stats(err[sel])[0]}
         fw = _fault_window_max_vel(scenario, np.array(p["t"]), err)
         if fw is not None:
             entry["fault_windows_max_vel_err_mps"] = fw
@@ -156,6 +165,28 @@ def evaluate(
         out["pipelines"][name] = entry
     add_integrity(out, scenario, integ_runs)
     return out
+
+
+def end_errors(ends: list[np.ndarray]) -> dict:
+    """Errors at the last solution epoch of each run: horizontal position and velocity error norms
+    (mean and max over runs) and the mean signed east/north components (seed 004's Table 3)."""
+    if not ends:
+        return {}
+    e = np.array(ends)
+    pos = np.hypot(e[:, 0], e[:, 1])
+    vel = np.hypot(e[:, 3], e[:, 4])
+    return {
+        "end_pos_m": float(pos.mean()),
+        "end_pos_m_max": float(pos.max()),
+        "end_vel_mps": float(vel.mean()),
+        "end_vel_mps_max": float(vel.max()),
+        "end": {
+            "east_m": float(e[:, 0].mean()),
+            "north_m": float(e[:, 1].mean()),
+            "ve_mps": float(e[:, 3].mean()),
+            "vn_mps": float(e[:, 4].mean()),
+        },
+    }
 
 
 def _fault_window_max_vel(scenario: Scenario, t_rel: np.ndarray, err: np.ndarray) -> float | None:
@@ -208,6 +239,7 @@ def format_table(result: dict) -> str:
             ours = ours.get("window", ours).get("rms", {}) if ours else {}
             cells = "  ".join(f"{k} {v:.3f} (ours {ours.get(k, float('nan')):.3f})" for k, v in vals.items())
             lines.append(f"  {name:<20}{cells}")
+    lines += format_end_errors(result)
     for name, e in result["pipelines"].items():
         if "fault_windows_max_vel_err_mps" in e:
             lines.append(
@@ -216,6 +248,40 @@ def format_table(result: dict) -> str:
     lines += format_integrity(result)
     lines.append("units: lat_m/lon_m/h_m metres (north/east/up), v m/s, phi arcsec")
     return "\n".join(lines)
+
+
+def format_end_errors(result: dict) -> list[str]:
+    """End errors (and RMS after the first fault) per pipeline; the paper's figures beside them
+    where the scenario reproduces one (seed 004)."""
+    ref = reference(result["scenario"])
+    lines = []
+    ends = {n: e for n, e in result["pipelines"].items() if "end_pos_m" in e}
+    if not ends:
+        return lines
+    lines.append(
+        f"{'end of run':<28}{'pos m':>9}{'(max)':>9}{'vel m/s':>9}{'(max)':>9}"
+        f"{'east m':>10}{'north m':>10}{'ve m/s':>9}{'vn m/s':>9}"
+    )
+    for name, e in ends.items():
+        c = e["end"]
+        lines.append(
+            f"  {name:<26}{e['end_pos_m']:9.2f}{e['end_pos_m_max']:9.2f}{e['end_vel_mps']:9.3f}"
+            f"{e['end_vel_mps_max']:9.3f}{c['east_m']:10.2f}{c['north_m']:10.2f}{c['ve_mps']:9.3f}{c['vn_mps']:9.3f}"
+        )
+    for name, e in ends.items():
+        if "after_fault" in e:
+            r = e["after_fault"]["rms"]
+            vel = f"ve {r['ve_mps']:.3f} m/s, vn {r['vn_mps']:.3f} m/s"
+            lines.append(
+                f"  {name}: RMS after the fault (t >= {e['after_fault']['t0']:g} s): "
+                f"east {r['lon_m']:.2f} m, north {r['lat_m']:.2f} m, {vel}"
+            )
+    for key, label in (("nominal", "paper, fault free"), ("usbl_fault", "paper, USBL fault (Table 3)")):
+        if key in ref:
+            for pname, vals in ref[key].items():
+                cells = ", ".join(f"{k} {v:g}" for k, v in vals.items())
+                lines.append(f"  {label}: {pname}: {cells}")
+    return lines
 
 
 # --- integrity (seed 001): per-epoch classes of the paper's Table 1 --------------------------------

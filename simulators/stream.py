@@ -2,9 +2,9 @@
 
 Order: ``InitialNav`` and ``Truth`` at ``t0``; then for every IMU sample ``k >= 1`` at ``t_k``:
 ``Truth`` (at the truth rate, listing the active faults), the aiding measurements of that instant
-(``GnssFix``, ``GnssRaw``, ``StarAttitude``, then ``UsblFix`` and ``DvlVelocity``, faults applied), and last the ``ImuSample``
-ending at ``t_k`` (the engine holds aiding until the INS reaches its time, so solutions at ``t_k``
-are post-update).
+(``GnssFix``, ``GnssRaw``, ``StarAttitude``, ``UsblFix``, then ``DvlVelocity``, faults applied),
+and last the ``ImuSample`` ending at ``t_k`` (the engine holds aiding until the INS reaches its
+time, so solutions at ``t_k`` are post-update).
 
 Raw GNSS (``scenario.gnss_raw``): a :class:`~simulators.gnss.raw_sensor.GnssRawSensor` measured at
 every ``imu_rate / gnss_raw.rate_hz``-th IMU sample (from one period after the start) with the
