@@ -177,12 +177,24 @@ class Underwater(_CorePipeline):
         return [faults.model_copy(update={"reconfiguration": events, "excluded": excluded, "states": states})]
 
     def dvl_states(self) -> list[StateEstimate]:
-        """The DVL offset/scale estimates (reference minus the owner's error state) and sigmas."""
+        """The DVL offset/scale estimates (reference minus the owner's error state) and sigmas.
+
+        The sigma is the DVL block's marginal given the FUSED common states: the owner's
+        conditional P_pp|c plus A P_g A' (A = P_pc P_cc^-1 of the owner). The owner's own P_pp is
+        larger by A (P_g / beta - P_g) A' after a fusion-reset (its common prior is the fused one
+        inflated by 1/beta, and the core keeps p | c); for the centralised filter both agree."""
         b = self.bank
         cols = b.columns[DVL_BLOCK]
         names = self.channels["dvl"].model.private_states[0].names
         est = b.reference[DVL_BLOCK] - b.x[self.dvl_owner, cols]
-        sd = np.sqrt(np.clip(np.diagonal(b.P[self.dvl_owner])[cols], 0.0, None))
+        P = b.P[self.dvl_owner]
+        c = em.N_STATES
+        Pcc, Pcp, Ppp = P[:c, :c], P[:c, cols], P[cols, cols]
+        d = np.sqrt(np.diagonal(Pcc))
+        At = np.linalg.solve(Pcc / np.outer(d, d), Pcp / d[:, None]) / d[:, None]  # P_cc^-1 P_cp
+        P_g = self.fused_covariance() if self.federated else Pcc
+        var = np.diagonal(Ppp - Pcp.T @ At + At.T @ P_g @ At)
+        sd = np.sqrt(np.clip(var, 0.0, None))
         return [
             StateEstimate(name=n, value=float(v), std=float(s))
             for n, v, s in zip(names, est, sd, strict=True)

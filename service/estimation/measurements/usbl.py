@@ -10,11 +10,13 @@ position, with the array at lever arm l_b from the IMU (body frame, metres):
 INS-predicted minus measured, linearised about the INS (computed C_nb = (I - [phi x]) C_nb,
 computed position p + dp):
 
-    z = r_b(INS) - r_b(USBL) = -C_nb' dp - C_nb' [d_n x] phi + n_r                      eq (21)-(22)
+    z = r_b(INS) - r_b(USBL) = -C_nb' (I - [d_n x] M) dp - C_nb' [d_n x] phi + n_r       eq (21)-(22)
 
-i.e. H = [-C_nb', 0, -C_nb' [d_n x], 0, 0] (eq 24-25 with the position error in ENU metres
-instead of (dL, dlon, dh): A and C_e^n are absorbed, and -[B_r x] R' phi = -R' [d x] phi since
-B_r = R' d; the sign of the whole row is ours because z is INS minus sensor).
+i.e. H = [-C_nb' (I - [d_n x] M), 0, -C_nb' [d_n x], 0, 0]: eq (24)-(25) with the position
+error in ENU metres instead of (dL, dlon, dh) (A and C_e^n are absorbed), -[B_r x] R' phi =
+-R' [d x] phi since B_r = R' d, and the sign of the whole row ours (z is INS minus sensor).
+M dp is the turn of the local ENU frame when the position moves by dp (a term the paper's ECEF
+form leaves inside its attitude error; ~4e-4 per metre at 2.6 km, checked by finite differences).
 
 Noise (the paper's USBL error, Table 2 and section 6): a floor of ``base_std_m`` on every axis,
 ``range_fraction`` of the slant range along the line of sight and ``angle_std_deg`` of bearing
@@ -111,8 +113,17 @@ class UsblModel:
             return None
         c_bn = nav.mat_nb.T
         H = np.zeros((3, ctx.n_states))
-        H[:, em.POS] = -c_bn  # eq (24): position block (ENU metres)
-        H[:, em.ATT] = -c_bn @ earth.skew(d_n)  # eq (25): -[B_r x] R' phi = -R' [d x] phi
+        # eq (24): position block (ENU metres), plus the turn of the local ENU frame with the
+        # position (d_n is resolved at the INS position): d_n(p + dp) = (I - [dtheta x]) (d_n - dp),
+        # dtheta = M dp -> -C_nb' dp + C_nb' [d_n x] M dp (4e-4 per metre at 2.6 km: kept exact)
+        r_m, r_n = earth.radii(nav.lat_rad)
+        M = np.zeros((3, 3))
+        M[0, 1] = -1.0 / (r_m + nav.h_m)
+        M[1, 0] = 1.0 / (r_n + nav.h_m)
+        M[2, 0] = math.tan(nav.lat_rad) / (r_n + nav.h_m)
+        skew_d = earth.skew(d_n)
+        H[:, em.POS] = -c_bn + c_bn @ skew_d @ M
+        H[:, em.ATT] = -c_bn @ skew_d  # eq (25): -[B_r x] R' phi = -R' [d x] phi
         if self.base_std_m is None:
             R = np.diag(np.square(msg.rel_std_m))
         else:
