@@ -36,7 +36,10 @@ def nav_state(rpy=(0.02, -0.03, 0.7), vel=(3.6, 3.7, -0.2), h=-30.0) -> NavState
     return NavState(t=T0, lat_rad=LAT, lon_rad=LON, h_m=h, vel_enu_mps=np.array(vel), q_nb=q)
 
 
-def perturbed(nav: NavState, dp=np.zeros(3), dv=np.zeros(3), phi=np.zeros(3)) -> NavState:
+ZERO3 = (0.0, 0.0, 0.0)
+
+
+def perturbed(nav: NavState, dp=ZERO3, dv=ZERO3, phi=ZERO3) -> NavState:
     """The navigation state ``nav + dx`` in the error-state convention: position + dp (ENU m),
     velocity + dv, C_nb -> exp(-[phi x]) C_nb."""
     dllh = earth.enu_m_to_llh_delta(np.asarray(dp, float), nav.lat_rad, nav.h_m)
