@@ -153,6 +153,26 @@ def test_models_are_registered_and_the_dvl_needs_its_private_block():
     assert np.all(np.diag(Qd) > 0.0)
 
 
+def test_bank_feeds_back_common_and_private_corrections_separately():
+    """The federated master's correction has the 15 common states only: it must leave the
+    private references alone; the owner's private estimate goes in with ``feedback_private``."""
+    from service.config import ImuModel
+    from service.estimation.ins_filter import InsFilterBank
+
+    dvl = DvlModel()
+    bank = InsFilterBank(nav_state(), np.eye(21), ImuModel().noise(), bank_size=3, private=dvl.private_states)
+    bank.x[:] = np.arange(21.0) * 1e-3
+    lat0 = bank.nav().lat_rad
+    bank.feedback(np.r_[np.full(3, 1e-3), np.zeros(12)])
+    np.testing.assert_array_equal(bank.reference[BLOCK], np.zeros(6))
+    np.testing.assert_allclose(bank.x[:, 15:], np.tile(np.arange(15.0, 21.0) * 1e-3, (3, 1)))
+    assert bank.nav().lat_rad != lat0
+    dxp = bank.x[1, 15:].copy()
+    bank.feedback_private(dxp)
+    np.testing.assert_allclose(bank.reference[BLOCK], -dxp)  # estimate = reference - x
+    np.testing.assert_allclose(bank.x[1, 15:], 0.0, atol=1e-15)
+
+
 def test_underwater_config_is_validated_at_load():
     cfg = config.from_dict({"pipelines": [{"kind": "underwater", "name": "uw"}]})
     assert cfg.pipelines[0].sharing == "edop" and cfg.pipelines[0].usbl_fault_handling == "chi2_reconfig"
