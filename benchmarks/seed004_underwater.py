@@ -4,8 +4,9 @@ The seed004_nominal stream (1000 s, IMU 100 Hz, USBL and DVL 1 Hz) is generated 
 then each case is timed through the service's engine alone (acceptance rules, INS, filter bank,
 fusion and reset, Faults/Solution outputs to an in-memory sink), so the figure is the family's
 cost, not the simulator's. Both wall-clock and process CPU time are printed: on a shared
-machine the CPU figure is the one-core cost. Cases: one federated pipeline per sharing method (5.1 as printed, 5.2,
-5.3), the centralised comparator, and the six pipelines of the scenario side by side. The
+machine the CPU figure is the one-core cost. Cases: one federated pipeline per sharing method
+(5.1 as printed, 5.2, 5.3), the centralised comparator, and the six pipelines of the scenario
+side by side. The
 figure of the whole ``fednav-sim eval`` path (simulation included) is printed last.
 
 Usage: .venv/bin/python benchmarks/seed004_underwater.py [--duration 1000]
