@@ -19,7 +19,7 @@ import numpy as np
 from service import config as config_mod
 from service import keys
 from service.engine import VehicleEngine
-from service.messages import Integrity, Solution, Truth, WireModel
+from service.messages import Faults, Integrity, Solution, Truth, WireModel
 from service.pipelines.base import ERROR_KEYS, error_dict, nees
 from simulators.papers import reference
 from simulators.scenario import Scenario
@@ -125,6 +125,11 @@ def evaluate(
             p["nees"] += rec.nees
             if rec.err:
                 p["end"].append(rec.err[-1])
+            shares = [m.sharing for m in rec.outputs if isinstance(m, Faults) and m.sharing]
+            if shares:  # time-mean share of each local over this run (mean over the 15 states)
+                p.setdefault("sharing", []).append(
+                    {k: float(np.mean([np.mean(s[k]) for s in shares if k in s])) for k in shares[-1]}
+                )
     wall = time.perf_counter() - wall0
     out = {
         "scenario": scenario.name,
@@ -147,6 +152,8 @@ def evaluate(
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
         entry.update(end_errors(p["end"]))
+        if p.get("sharing"):
+            entry["sharing_mean"] = {k: float(np.mean([r[k] for r in p["sharing"]])) for k in p["sharing"][0]}
         onset = min((f.start_s for f in scenario.faults), default=None)
         if onset is not None:
             t = np.array(p["t"])
@@ -276,6 +283,10 @@ def format_end_errors(result: dict) -> list[str]:
                 f"  {name}: RMS after the fault (t >= {e['after_fault']['t0']:g} s): "
                 f"east {r['lon_m']:.2f} m, north {r['lat_m']:.2f} m, {vel}"
             )
+    for name, e in ends.items():
+        if "sharing_mean" in e:
+            cells = ", ".join(f"{k} {v:.3f}" for k, v in e["sharing_mean"].items())
+            lines.append(f"  {name}: mean sharing coefficients {cells}")
     for key, label in (("nominal", "paper, fault free"), ("usbl_fault", "paper, USBL fault (Table 3)")):
         if key in ref:
             for pname, vals in ref[key].items():
