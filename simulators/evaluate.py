@@ -116,7 +116,7 @@ def evaluate(
     wall0 = time.perf_counter()
     integ_runs: dict[str, list] = {}
     for i in range(runs):
-        sink, _ = run_once(scenario, seed + i, cfg, trajectory=traj)
+        sink, sim = run_once(scenario, seed + i, cfg, trajectory=traj)
         collect_integrity(integ_runs, sink)
         for name, rec in sink.records.items():
             p = pooled.setdefault(name, {"t": [], "err": [], "nees": [], "end": []})
@@ -125,6 +125,9 @@ def evaluate(
             p["nees"] += rec.nees
             if rec.err:
                 p["end"].append(rec.err[-1])
+            dvl = dvl_state_errors(rec, sim.truth)
+            if dvl:
+                p.setdefault("dvl", []).append(dvl)
             shares = [m.sharing for m in rec.outputs if isinstance(m, Faults) and m.sharing]
             if shares:  # time-mean share of each local over this run (mean over the 15 states)
                 p.setdefault("sharing", []).append(
@@ -152,6 +155,8 @@ def evaluate(
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
         entry.update(end_errors(p["end"]))
+        if p.get("dvl"):
+            entry["dvl_states"] = dvl_state_summary(p["dvl"])
         if p.get("sharing"):
             entry["sharing_mean"] = {k: float(np.mean([r[k] for r in p["sharing"]])) for k in p["sharing"][0]}
         onset = min((f.start_s for f in scenario.faults), default=None)
@@ -171,6 +176,38 @@ def evaluate(
                 entry["window"] = {"t0": window[0], "t1": window[1], "rms": wr, "max": wm}
         out["pipelines"][name] = entry
     add_integrity(out, scenario, integ_runs)
+    return out
+
+
+def dvl_state_errors(rec: RunRecord, truth) -> dict[str, tuple[float, float]]:
+    """{state: (estimate - truth, 1-sigma)} of the last DVL states a pipeline reported in one
+    run (seed 004: ``Faults.states``), else {}."""
+    if getattr(truth, "dvl_offset_mps", None) is None:
+        return {}
+    last = next((m.states for m in reversed(rec.outputs) if isinstance(m, Faults) and m.states), None)
+    if not last:
+        return {}
+    true = dict(zip(("x", "y", "z"), zip(truth.dvl_offset_mps, truth.dvl_scale, strict=True), strict=True))
+    out = {}
+    for st in last:
+        axis = st.name.split("_")[2]  # dvl_offset_x_mps, dvl_scale_x
+        t = true[axis][0 if "offset" in st.name else 1]
+        out[st.name] = (st.value - float(t), st.std)
+    return out
+
+
+def dvl_state_summary(runs: list[dict]) -> dict:
+    """Per DVL state over the runs: RMS of (estimate - truth) at the end, mean 1-sigma, and the
+    mean normalised squared error (1 when the sigma is consistent)."""
+    out = {}
+    for name in runs[0]:
+        e = np.array([r[name][0] for r in runs])
+        sd = np.array([r[name][1] for r in runs])
+        out[name] = {
+            "rms_error": float(np.sqrt(np.mean(e**2))),
+            "sigma": float(np.mean(sd)),
+            "nees": float(np.mean((e / np.maximum(sd, 1e-300)) ** 2)),
+        }
     return out
 
 
@@ -283,6 +320,13 @@ def format_end_errors(result: dict) -> list[str]:
                 f"  {name}: RMS after the fault (t >= {e['after_fault']['t0']:g} s): "
                 f"east {r['lon_m']:.2f} m, north {r['lat_m']:.2f} m, {vel}"
             )
+    for name, e in ends.items():
+        if "dvl_states" in e:
+            cells = ", ".join(
+                f"{k.removeprefix('dvl_')} {v['rms_error']:.2g}/{v['sigma']:.2g}/{v['nees']:.2f}"
+                for k, v in e["dvl_states"].items()
+            )
+            lines.append(f"  {name}: DVL states at the end, RMS error/sigma/NEES: {cells}")
     for name, e in ends.items():
         if "sharing_mean" in e:
             cells = ", ".join(f"{k} {v:.3f}" for k, v in e["sharing_mean"].items())
