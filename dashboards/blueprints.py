@@ -215,6 +215,31 @@ def _integrity_tab(v: str, p: str) -> rrb.Grid:
     )
 
 
+def _underwater_tab(v: str, p: str) -> rrb.Grid:
+    """Seed 004: USBL/DVL tests vs thresholds and flags, reconfiguration events, sharing
+    coefficients, DVL offset and scale-factor estimates with their 1-sigma."""
+
+    def st(prefix: str) -> list[str]:
+        return [f"{paths.filter_state(v, p)}/{prefix}_{a}/**" for a in "xyz"]
+
+    return rrb.Grid(
+        _ts(f"{p}: USBL / DVL test statistics vs thresholds", f"{paths.faults(v, p)}/**"),
+        rrb.StateTimelineView(
+            name=f"{p}: rows in use / flagged", origin=paths.faults(v, p), contents="$origin/**"
+        ),
+        rrb.TextLogView(
+            name=f"{p}: reconfiguration",
+            origin=paths.pipeline_root(v, p),
+            contents=[paths.reconfiguration(v, p)],
+        ),
+        _ts(f"{p}: sharing coefficients", f"{paths.sharing(v, p)}/**"),
+        _ts(f"{p}: DVL offset (m/s) and 1σ", st("dvl_offset")),
+        _ts(f"{p}: DVL scale factor and 1σ", st("dvl_scale")),
+        grid_columns=2,
+        name=f"{p}: underwater",
+    )
+
+
 def _group_tab(v: str, p: str, family: str) -> rrb.TimeSeriesView:
     group, title = _GROUP_OF_FAMILY[family]
     return _ts(f"{p}: {title}", f"{paths.group(v, p, group)}/**")
@@ -261,6 +286,8 @@ def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
             tabs.append(_integrity_tab(vehicle, p))
         elif family == "transfer_alignment":
             tabs.append(_alignment_tab(vehicle, p))
+        elif family == "underwater":
+            tabs.append(_underwater_tab(vehicle, p))
         else:
             tabs.append(_group_tab(vehicle, p, family))
     tabs.append(_health_tab(vehicle))

@@ -446,7 +446,6 @@ class Service:
                 "pipelines": [p.name for p in self.config.pipelines],
                 "health": json.loads(w.health().model_dump_json()) if w else None,
                 "refused_before_routing": dict(self.unrouted),
-                "intake_backlog": self.intake.backlog(),
             }
         )
 

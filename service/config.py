@@ -221,12 +221,65 @@ class TransferAlignmentConfig(Model):
     r_rate_dps: float = Field(0.19, gt=0, description="Nominal angular-rate-difference noise, deg/s")
 
 
+class TransponderConfig(Model):
+    """Surveyed position of a USBL transponder (seed 004)."""
+
+    lat_deg: float = Field(ge=-90, le=90)
+    lon_deg: float = Field(ge=-180, le=180)
+    height_m: float = Field(ge=-12000, le=1000, description="Ellipsoidal height (negative under water), m")
+
+
+class UsblModelConfig(Model):
+    """USBL measurement model (seed 004): noise from slant range and angle, lever arm."""
+
+    base_std_m: float = Field(5.0, gt=0, description="Noise floor on every axis, m")
+    range_fraction: float = Field(0.005, ge=0, lt=1, description="Along-line-of-sight noise / slant range")
+    angle_std_deg: float = Field(0.1, ge=0, lt=10, description="Bearing noise across the line of sight, deg")
+    lever_arm_b_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Array in body axes, m")
+
+
+class DvlModelConfig(Model):
+    """DVL measurement model (seed 004): priors of its private offset and scale states, lever arm."""
+
+    offset_std_mps: float = Field(0.4, gt=0, description="Prior 1-sigma of the velocity offset, m/s")
+    scale_std: float = Field(
+        1e-3, gt=0, description="Prior 1-sigma of the scale-factor error (0.001 = 0.1 %)"
+    )
+    offset_rw_mps_per_sqrt_s: float = Field(1e-5, ge=0, description="Offset random walk, m/s/sqrt(s)")
+    scale_rw_per_sqrt_s: float = Field(1e-7, ge=0, description="Scale-factor random walk, 1/sqrt(s)")
+    lever_arm_b_m: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="DVL in body axes, m")
+
+
+class UnderwaterConfig(Model):
+    """Seed 004 INS/USBL/DVL: federated (INS/USBL + INS/DVL locals) or its centralised comparator."""
+
+    kind: Literal["underwater"] = "underwater"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    architecture: Literal["federated", "centralized"] = Field(
+        "federated", description="Two locals and a master, or one filter on every row (comparator)"
+    )
+    sharing: SharingName = Field("edop", description="Information sharing of the federated filter")
+    reset: Literal["fusion_reset", "no_reset"] = Field("fusion_reset", description="Master reset mode")
+    master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
+    usbl_fault_handling: FaultHandlingName = Field(
+        "chi2_reconfig", description="Test of the USBL rows (chi2_reconfig: exclude, rejoin on a pass)"
+    )
+    dvl_fault_handling: FaultHandlingName = Field("none", description="Test of the DVL rows")
+    false_alarm_prob: float = Field(0.001, gt=0, lt=0.5, description="Per-test false-alarm probability")
+    transponder: TransponderConfig | None = Field(
+        None, description="Surveyed transponder position (None: the one each UsblFix carries)"
+    )
+    usbl: UsblModelConfig = UsblModelConfig()
+    dvl: DvlModelConfig = DvlModelConfig()
+
+
 PipelineConfig = Annotated[
     LooselyCoupledConfig
     | FederatedConfig
     | CentralizedConfig
     | TightlyCoupledConfig
-    | TransferAlignmentConfig,
+    | TransferAlignmentConfig
+    | UnderwaterConfig,
     Field(discriminator="kind"),
 ]
 

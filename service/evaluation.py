@@ -123,6 +123,44 @@ def fault_window_max_vel(windows: list[FaultWindow], t_rel: np.ndarray, err: np.
     return worst
 
 
+# --- end errors and private states (seed 004) ----------------------------------------------------
+def dvl_state_summary(runs: list[dict]) -> dict:
+    """Per DVL state over the runs: RMS of (estimate - truth) at the end, mean 1-sigma, and the
+    mean normalised squared error (1 when the sigma is consistent)."""
+    out = {}
+    for name in runs[0]:
+        e = np.array([r[name][0] for r in runs])
+        sd = np.array([r[name][1] for r in runs])
+        out[name] = {
+            "rms_error": float(np.sqrt(np.mean(e**2))),
+            "sigma": float(np.mean(sd)),
+            "nees": float(np.mean((e / np.maximum(sd, 1e-300)) ** 2)),
+        }
+    return out
+
+
+def end_errors(ends: list[np.ndarray]) -> dict:
+    """Errors at the last solution epoch of each run: horizontal position and velocity error norms
+    (mean and max over runs) and the mean signed east/north components (seed 004's Table 3)."""
+    if not ends:
+        return {}
+    e = np.array(ends)
+    pos = np.hypot(e[:, 0], e[:, 1])
+    vel = np.hypot(e[:, 3], e[:, 4])
+    return {
+        "end_pos_m": float(pos.mean()),
+        "end_pos_m_max": float(pos.max()),
+        "end_vel_mps": float(vel.mean()),
+        "end_vel_mps_max": float(vel.max()),
+        "end": {
+            "east_m": float(e[:, 0].mean()),
+            "north_m": float(e[:, 1].mean()),
+            "ve_mps": float(e[:, 3].mean()),
+            "vn_mps": float(e[:, 4].mean()),
+        },
+    }
+
+
 # --- integrity (seed 001): per-epoch classes of the paper's Table 1 ------------------------------
 INTEGRITY_CLASSES = ("normal", "detected", "missed", "false_alarm", "undetected")
 

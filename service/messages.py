@@ -316,6 +316,29 @@ class SubsystemFaults(WireModel):
     """Per observation row"""
 
 
+class Reconfiguration(WireModel):
+    """A subsystem leaving or rejoining the fusion (seed 004: chi2 test on the USBL local)."""
+
+    subsystem: str
+    """Local filter (subsystem) name"""
+    action: Literal["excluded", "rejoined"]
+    """Whether it left (excluded) or rejoined the fusion at this epoch"""
+    statistic: float = Field(description="Test statistic of the epoch that changed it (NIS)")
+    threshold: float
+    """Threshold of that test"""
+
+
+class StateEstimate(WireModel):
+    """A filter state outside the navigation solution (e.g. a DVL offset) with its 1-sigma."""
+
+    name: str
+    """State name with its unit (e.g. dvl_offset_x_mps, dvl_scale_x)"""
+    value: float
+    """Estimate"""
+    std: float
+    """1-sigma"""
+
+
 class Faults(WireModel):
     """Per-subsystem, per-observation fault tests of one pipeline at one aiding epoch."""
 
@@ -326,6 +349,13 @@ class Faults(WireModel):
     """One entry per local filter (subsystem) or sensor kind that was tested"""
     sharing: dict[str, list[float]] = Field(
         default_factory=dict, description="Per local filter, its sharing coefficient per common state"
+    )
+    reconfiguration: list[Reconfiguration] = Field(
+        default_factory=list, description="Subsystems excluded from or rejoining the fusion at this epoch"
+    )
+    excluded: list[str] = Field(default_factory=list, description="Subsystems excluded after this epoch")
+    states: list[StateEstimate] = Field(
+        default_factory=list, description="Private states of the tested subsystem (estimate and 1-sigma)"
     )
 
 

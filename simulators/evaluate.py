@@ -23,12 +23,14 @@ from service.evaluation import (
     INTEGRITY_CLASSES,
     REPORT_KEYS,
     FaultWindow,
+    dvl_state_summary,
+    end_errors,
     error_stats,
     fault_window_max_vel,
     integrity_metrics,
     nees,
 )
-from service.messages import Integrity, Solution, Truth, WireModel
+from service.messages import Faults, Integrity, Solution, Truth, WireModel
 from simulators.papers import reference
 from simulators.scenario import Scenario
 from simulators.stream import Simulation
@@ -116,15 +118,25 @@ def evaluate(
     wall0 = time.perf_counter()
     integ_runs: dict[str, list] = {}
     for i in range(runs):
-        sink, _ = run_once(scenario, seed + i, cfg, trajectory=traj)
+        sink, sim = run_once(scenario, seed + i, cfg, trajectory=traj)
         if progress is not None:
             progress(i + 1, runs, time.perf_counter() - wall0)
         collect_integrity(integ_runs, sink)
         for name, rec in sink.records.items():
-            p = pooled.setdefault(name, {"t": [], "err": [], "nees": []})
+            p = pooled.setdefault(name, {"t": [], "err": [], "nees": [], "end": []})
             p["t"] += [t - t0 for t in rec.t]
             p["err"] += rec.err
             p["nees"] += rec.nees
+            if rec.err:
+                p["end"].append(rec.err[-1])
+            dvl = dvl_state_errors(rec, sim.truth)
+            if dvl:
+                p.setdefault("dvl", []).append(dvl)
+            shares = [m.sharing for m in rec.outputs if isinstance(m, Faults) and m.sharing]
+            if shares:  # time-mean share of each local over this run (mean over the 15 states)
+                p.setdefault("sharing", []).append(
+                    {k: float(np.mean([np.mean(s[k]) for s in shares if k in s])) for k in shares[-1]}
+                )
     wall = time.perf_counter() - wall0
     out = {
         "scenario": scenario.name,
@@ -146,6 +158,17 @@ def evaluate(
             "h_rms_m": float(math.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
+        entry.update(end_errors(p["end"]))
+        if p.get("dvl"):
+            entry["dvl_states"] = dvl_state_summary(p["dvl"])
+        if p.get("sharing"):
+            entry["sharing_mean"] = {k: float(np.mean([r[k] for r in p["sharing"]])) for k in p["sharing"][0]}
+        onset = min((f.start_s for f in scenario.faults), default=None)
+        if onset is not None:
+            t = np.array(p["t"])
+            sel = t >= onset
+            if sel.any():
+                entry["after_fault"] = {"t0": onset, "rms": error_stats(err[sel])[0]}
         fw = fault_window_max_vel(fault_windows(scenario), np.array(p["t"]), err)
         if fw is not None:
             entry["fault_windows_max_vel_err_mps"] = fw
@@ -157,6 +180,23 @@ def evaluate(
                 entry["window"] = {"t0": window[0], "t1": window[1], "rms": wr, "max": wm}
         out["pipelines"][name] = entry
     add_integrity(out, scenario, integ_runs)
+    return out
+
+
+def dvl_state_errors(rec: RunRecord, truth) -> dict[str, tuple[float, float]]:
+    """{state: (estimate - truth, 1-sigma)} of the last DVL states a pipeline reported in one
+    run (seed 004: ``Faults.states``), else {}."""
+    if getattr(truth, "dvl_offset_mps", None) is None:
+        return {}
+    last = next((m.states for m in reversed(rec.outputs) if isinstance(m, Faults) and m.states), None)
+    if not last:
+        return {}
+    true = dict(zip(("x", "y", "z"), zip(truth.dvl_offset_mps, truth.dvl_scale, strict=True), strict=True))
+    out = {}
+    for st in last:
+        axis = st.name.split("_")[2]  # dvl_offset_x_mps, dvl_scale_x
+        t = true[axis][0 if "offset" in st.name else 1]
+        out[st.name] = (st.value - float(t), st.std)
     return out
 
 
@@ -189,6 +229,7 @@ def format_table(result: dict) -> str:
             ours = ours.get("window", ours).get("rms", {}) if ours else {}
             cells = "  ".join(f"{k} {v:.3f} (ours {ours.get(k, float('nan')):.3f})" for k, v in vals.items())
             lines.append(f"  {name:<20}{cells}")
+    lines += format_end_errors(result)
     for name, e in result["pipelines"].items():
         if "fault_windows_max_vel_err_mps" in e:
             lines.append(
@@ -197,6 +238,51 @@ def format_table(result: dict) -> str:
     lines += format_integrity(result)
     lines.append("units: lat_m/lon_m/h_m metres (north/east/up), v m/s, phi arcsec")
     return "\n".join(lines)
+
+
+def format_end_errors(result: dict) -> list[str]:
+    """End errors (and RMS after the first fault) per pipeline; the paper's figures beside them
+    where the scenario reproduces one (seed 004)."""
+    ref = reference(result["scenario"])
+    lines = []
+    ends = {n: e for n, e in result["pipelines"].items() if "end_pos_m" in e}
+    if not ends:
+        return lines
+    lines.append(
+        f"{'end of run':<28}{'pos m':>9}{'(max)':>9}{'vel m/s':>9}{'(max)':>9}"
+        f"{'east m':>10}{'north m':>10}{'ve m/s':>9}{'vn m/s':>9}"
+    )
+    for name, e in ends.items():
+        c = e["end"]
+        lines.append(
+            f"  {name:<26}{e['end_pos_m']:9.2f}{e['end_pos_m_max']:9.2f}{e['end_vel_mps']:9.3f}"
+            f"{e['end_vel_mps_max']:9.3f}{c['east_m']:10.2f}{c['north_m']:10.2f}{c['ve_mps']:9.3f}{c['vn_mps']:9.3f}"
+        )
+    for name, e in ends.items():
+        if "after_fault" in e:
+            r = e["after_fault"]["rms"]
+            vel = f"ve {r['ve_mps']:.3f} m/s, vn {r['vn_mps']:.3f} m/s"
+            lines.append(
+                f"  {name}: RMS after the fault (t >= {e['after_fault']['t0']:g} s): "
+                f"east {r['lon_m']:.2f} m, north {r['lat_m']:.2f} m, {vel}"
+            )
+    for name, e in ends.items():
+        if "dvl_states" in e:
+            cells = ", ".join(
+                f"{k.removeprefix('dvl_')} {v['rms_error']:.2g}/{v['sigma']:.2g}/{v['nees']:.2f}"
+                for k, v in e["dvl_states"].items()
+            )
+            lines.append(f"  {name}: DVL states at the end, RMS error/sigma/NEES: {cells}")
+    for name, e in ends.items():
+        if "sharing_mean" in e:
+            cells = ", ".join(f"{k} {v:.3f}" for k, v in e["sharing_mean"].items())
+            lines.append(f"  {name}: mean sharing coefficients {cells}")
+    for key, label in (("nominal", "paper, fault free"), ("usbl_fault", "paper, USBL fault (Table 3)")):
+        if key in ref:
+            for pname, vals in ref[key].items():
+                cells = ", ".join(f"{k} {v:g}" for k, v in vals.items())
+                lines.append(f"  {label}: {pname}: {cells}")
+    return lines
 
 
 # --- integrity (seed 001): per-epoch classes of the paper's Table 1 --------------------------------

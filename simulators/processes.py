@@ -136,15 +136,14 @@ def query_status(
 
 
 def wait_idle(port: int, vehicle: str = "v1", timeout_s: float = 120.0) -> dict | None:
-    """Wait until nothing is waiting for ``vehicle`` (the service's intake and the vehicle's queue
-    are empty) and its sensor time and received count stop moving."""
+    """Wait until the vehicle's queue is empty and its sensor time and received count stop moving."""
     deadline = time.monotonic() + timeout_s
     last = None
     while time.monotonic() < deadline:
         st = query_status(port, vehicle)
         h = (st or {}).get("health")
         now = (h["t"], h["received"]) if h else None
-        idle = h and h["queue_depth"] == 0 and st.get("intake_backlog", 0) == 0 and h["t"] is not None
+        idle = h and h["queue_depth"] == 0 and h["t"] is not None
         if idle and now == last:
             return st
         last = now

@@ -12,6 +12,7 @@ Layout (see ``simulators/scenarios/*.toml``)::
     [gnss]             GnssSpec (optional)
     [star]             StarSpec (optional)
     [gnss_raw]         GnssRawScenarioSpec (optional): raw pseudoranges/range rates (seed 001)
+    [usbl], [dvl]      UsblSpec, DvlSpec (optional): underwater acoustic aiding (seed 004)
     [initial_errors]   mode, pos_enu_m, vel_enu_mps, rpy_arcsec
     [[faults]]         sensor, kind, start_s, duration_s, channels, per-channel parameters
     [fault_schedule]   FaultScheduleSpec (optional): random faults expanded into [[faults]] at load
@@ -41,6 +42,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from service.validation_errors import format_errors, suggest
+from simulators.acoustic import DVL_CHANNELS, DVL_SENSOR, USBL_CHANNELS, USBL_SENSOR, DvlSpec, UsblSpec
 from simulators.faults import FaultSpec
 from simulators.gnss.orbits import resolve_sat_id
 from simulators.gnss.raw_sensor import GnssRawSpec
@@ -247,6 +249,8 @@ class Scenario(BaseModel):
     fault_schedule: FaultScheduleSpec | None = Field(
         default=None, description="Random raw-GNSS faults expanded into faults at load (optional)"
     )
+    usbl: UsblSpec | None = Field(default=None, description="USBL vectors to a transponder (optional)")
+    dvl: DvlSpec | None = Field(default=None, description="DVL body velocities (optional)")
     initial_errors: InitialErrorsSpec = Field(
         default_factory=InitialErrorsSpec, description="Initial-state errors"
     )
@@ -306,6 +310,8 @@ class Scenario(BaseModel):
             ("gnss.rate_hz", self.gnss.rate_hz if self.gnss else None),
             ("star.rate_hz", self.star.rate_hz if self.star else None),
             ("gnss_raw.rate_hz", self.gnss_raw.rate_hz if self.gnss_raw else None),
+            ("usbl.rate_hz", self.usbl.rate_hz if self.usbl else None),
+            ("dvl.rate_hz", self.dvl.rate_hz if self.dvl else None),
         ):
             if r is not None:
                 epoch_step(rate, r, what)
@@ -314,6 +320,10 @@ class Scenario(BaseModel):
             channels[GNSS_SENSOR] = GNSS_CHANNELS
         if self.star is not None:
             channels[STAR_SENSOR] = STAR_CHANNELS
+        if self.usbl is not None:
+            channels[USBL_SENSOR] = USBL_CHANNELS
+        if self.dvl is not None:
+            channels[DVL_SENSOR] = DVL_CHANNELS
         raw = self.gnss_raw
         if raw is not None:
             channels[GNSS_RAW_SENSOR] = None  # "<sat>.pseudorange" / "<sat>.range_rate", checked below

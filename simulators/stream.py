@@ -2,9 +2,9 @@
 
 Order: ``InitialNav`` and ``Truth`` at ``t0``; then for every IMU sample ``k >= 1`` at ``t_k``:
 ``Truth`` (at the truth rate, listing the active faults), the aiding measurements of that instant
-(``GnssFix``, ``GnssRaw``, then ``StarAttitude``, faults applied), and last the ``ImuSample``
-ending at ``t_k`` (the engine holds aiding until the INS reaches its time, so solutions at ``t_k``
-are post-update).
+(``GnssFix``, ``GnssRaw``, ``StarAttitude``, ``UsblFix``, then ``DvlVelocity``, faults applied),
+and last the ``ImuSample`` ending at ``t_k`` (the engine holds aiding until the INS reaches its
+time, so solutions at ``t_k`` are post-update).
 
 Raw GNSS (``scenario.gnss_raw``): a :class:`~simulators.gnss.raw_sensor.GnssRawSensor` measured at
 every ``imu_rate / gnss_raw.rate_hz``-th IMU sample (from one period after the start) with the
@@ -29,6 +29,7 @@ import numpy as np
 
 from service import earth, keys
 from service.messages import MAX_RATE_RPS, MAX_SPECIFIC_FORCE_MPS2, ImuSample, InitialNav, Truth, WireModel
+from simulators.acoustic import draw_dvl_errors, simulate_dvl, simulate_usbl
 from simulators.faults import FaultSet
 from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawTruth
 from simulators.imu import ImuErrorTruth, apply_imu_errors
@@ -60,6 +61,8 @@ class SimulationTruth:
     initial_vel_error_enu_mps: np.ndarray
     initial_rpy_error_rad: np.ndarray
     gnss_raw: list[GnssRawTruth] = field(default_factory=list)
+    dvl_offset_mps: np.ndarray | None = None  # (3,) DVL offset of the run (None without DVL)
+    dvl_scale: np.ndarray | None = None  # (3,) DVL scale-factor error of the run
 
 
 def _deg_msg(llh: np.ndarray, rpy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -104,8 +107,9 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             raise ValueError("trajectory does not match the scenario (rate, duration or t0 differ)")
         self.scenario = sc
         self.vehicle = vehicle
-        rng_imu, rng_gnss, rng_star, rng_init, rng_faults, rng_raw = (
-            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
+        # children 7 and 8 (USBL, DVL) leave the first six streams as they were
+        rng_imu, rng_gnss, rng_star, rng_init, rng_faults, rng_raw, rng_usbl, rng_dvl = (
+            np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(8)
         )
         self._dth, self._dv, imu_truth = apply_imu_errors(sc.imu, traj.dtheta_rad, traj.dvel_mps, rng_imu)
         # ImuSample messages are built without per-message validation (see _messages): check the
@@ -121,6 +125,12 @@ class Simulation(Iterator[tuple[str, WireModel]]):
         self._gnss = simulate_gnss_fixes(sc.gnss, traj, rng_gnss, self.faults) if sc.gnss else []
         self._star = simulate_star(sc.star, traj, rng_star, self.faults) if sc.star else []
         self._raw, raw_truth = simulate_gnss_raw(sc, traj, rng_raw, self.faults) if sc.gnss_raw else ([], [])
+        self._usbl = simulate_usbl(sc.usbl, traj, rng_usbl, self.faults) if sc.usbl else []
+        dvl_offset = dvl_scale = None
+        self._dvl = []
+        if sc.dvl:
+            dvl_offset, dvl_scale = draw_dvl_errors(sc.dvl, rng_dvl)
+            self._dvl = simulate_dvl(sc.dvl, traj, rng_dvl, dvl_offset, dvl_scale, self.faults)
 
         ie = sc.initial_errors
         if ie.mode == "random":
@@ -131,7 +141,7 @@ class Simulation(Iterator[tuple[str, WireModel]]):
         else:
             dp, dv = np.asarray(ie.pos_enu_m, float), np.asarray(ie.vel_enu_mps, float)
             da = np.asarray(ie.rpy_arcsec, float) * earth.ARCSEC
-        self.truth = SimulationTruth(seed, traj, imu_truth, dp, dv, da, raw_truth)
+        self.truth = SimulationTruth(seed, traj, imu_truth, dp, dv, da, raw_truth, dvl_offset, dvl_scale)
 
         def floor(v) -> tuple[float, float, float]:
             return tuple(float(abs(x)) if x != 0.0 else ZERO_SIGMA_FLOOR for x in v)
@@ -157,6 +167,8 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             "gnss": keys.sensor(vehicle, "gnss_fix", sc.gnss.id, prefix) if sc.gnss else "",
             "star": keys.sensor(vehicle, "star", sc.star.id, prefix) if sc.star else "",
             "gnss_raw": keys.sensor(vehicle, "gnss_raw", sc.gnss_raw.id, prefix) if sc.gnss_raw else "",
+            "usbl": keys.sensor(vehicle, "usbl", sc.usbl.id, prefix) if sc.usbl else "",
+            "dvl": keys.sensor(vehicle, "dvl", sc.dvl.id, prefix) if sc.dvl else "",
             "init": keys.init(vehicle, prefix),
             "truth": keys.truth(vehicle, prefix),
         }
@@ -197,8 +209,8 @@ class Simulation(Iterator[tuple[str, WireModel]]):
         yield k_truth, truth_msg(0)
         dt = 1.0 / traj.imu_rate_hz
         dth, dv = self._dth.tolist(), self._dv.tolist()
-        gnss, star, raw = self._gnss, self._star, self._raw
-        ig = istar = iraw = 0
+        gnss, star, raw, usbl, dvl = self._gnss, self._star, self._raw, self._usbl, self._dvl
+        ig = istar = iraw = iusbl = idvl = 0
         for k in range(1, traj.t_s.size):
             # Truth and aiding of instant t_k come before the IMU sample ending at t_k: the engine
             # queues aiding until the INS reaches t_k, so the solution at t_k is post-update.
@@ -213,6 +225,12 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             if istar < len(star) and star[istar][0] == k:
                 yield self._keys["star"], star[istar][1]
                 istar += 1
+            if iusbl < len(usbl) and usbl[iusbl][0] == k:
+                yield self._keys["usbl"], usbl[iusbl][1]
+                iusbl += 1
+            if idvl < len(dvl) and dvl[idvl][0] == k:
+                yield self._keys["dvl"], dvl[idvl][1]
+                idvl += 1
             # constructed without re-validation: the values come from the validated scenario and
             # finite arrays (checked once in __init__); receivers validate what they get anyway
             yield (

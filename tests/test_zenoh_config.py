@@ -224,3 +224,27 @@ def test_output_guard_unless_the_file_sets_access_control(tmp_path):
         ]
         is False
     )
+
+
+def test_arrival_time_is_the_ingress_timestamp():
+    """Health's latency starts at the sample's ingress timestamp (queue time included); without a
+    timestamp, or with an implausible one, at its reading."""
+    import time
+    from datetime import UTC, datetime, timedelta
+    from types import SimpleNamespace
+
+    from service.transport.zenoh_io import Intake, make_config
+
+    class Ts:
+        def __init__(self, age_s):
+            self.t = datetime.now(UTC) - timedelta(seconds=age_s)
+
+        def get_time(self):
+            return self.t
+
+    now = time.monotonic()
+    assert abs((now - Intake.arrival(SimpleNamespace(timestamp=Ts(0.25)))) - 0.25) < 0.05
+    assert abs(Intake.arrival(SimpleNamespace(timestamp=None)) - time.monotonic()) < 0.05
+    assert abs(Intake.arrival(SimpleNamespace(timestamp=Ts(-5.0))) - time.monotonic()) < 0.05  # clock ahead
+    cfg = make_config(outputs_prefix="fednav")  # the service's session stamps samples at ingress
+    assert json.loads(cfg.get_json("timestamping/enabled")) == {"router": True, "peer": True, "client": True}

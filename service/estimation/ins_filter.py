@@ -134,13 +134,23 @@ class InsFilterBank:
     # --- feedback -----------------------------------------------------------------------------
     def feedback(self, dx: np.ndarray) -> None:
         """Feed ``dx`` back: the 15 INS error states into the INS, each private block into its
-        reference; every member shifts by the fed-back amount."""
+        reference; every member shifts by the fed-back amount. A ``dx`` of the 15 INS states
+        only (the federated master's common correction) leaves the private blocks alone
+        (``feedback_private`` feeds them)."""
         dx = np.asarray(dx, dtype=float)
         self.ins.correct(dx[em.POS], dx[em.VEL], dx[em.ATT], dx[em.GYRO], dx[em.ACC])
         self.x[:, :15] -= dx[:15]
+        if dx.shape[0] > em.N_STATES:
+            self.feedback_private(dx[em.N_STATES :])
+
+    def feedback_private(self, dx_private: np.ndarray) -> None:
+        """Feed the private states' correction (n - 15,) into their references; every member
+        shifts by it (a federated local owning a private block feeds its estimate back)."""
+        dx = np.asarray(dx_private, dtype=float)
         for name, cols in self.columns.items():
-            self.reference[name] = self.reference[name] - dx[cols]
-            self.x[:, cols] -= dx[cols]
+            d = dx[cols.start - em.N_STATES : cols.stop - em.N_STATES]
+            self.reference[name] = self.reference[name] - d
+            self.x[:, cols] -= d
 
     # --- outputs --------------------------------------------------------------------------------
     def nav(self) -> NavState:
@@ -148,4 +158,4 @@ class InsFilterBank:
 
     def context(self, dt_late_s: float = 0.0) -> ModelContext:
         """Where a measurement model's rows go in this bank (the hook's context)."""
-        return ModelContext(self.n, dt_late_s, self.columns, self.reference)
+        return ModelContext(self.n, dt_late_s, self.columns, self.reference, self.ins.last_wib_b_rps)

@@ -19,6 +19,7 @@ _KINDS: dict[str, str] = {
     "centralized": "service.pipelines.federated:Centralized",
     "tightly_coupled": "service.pipelines.tightly_coupled:TightlyCoupled",
     "transfer_alignment": "service.pipelines.transfer_alignment:TransferAlignment",
+    "underwater": "service.pipelines.underwater:Underwater",
 }
 
 

@@ -166,6 +166,21 @@ def faults(
     return p
 
 
+def reconfiguration(vehicle: str, pipeline: str) -> str:
+    """``.../faults/reconfiguration``: text events "excluded: <subsystem>" / "rejoined: <subsystem>"."""
+    return f"{pipeline_root(vehicle, pipeline)}/faults/reconfiguration"
+
+
+def filter_state(vehicle: str, pipeline: str, name: str | None = None, leaf: str | None = None) -> str:
+    """``.../states[/{name}[/{value|std}]]``: private filter states (DVL offset, scale factor)."""
+    p = f"{pipeline_root(vehicle, pipeline)}/states"
+    if name is not None:
+        p = f"{p}/{part(name)}"
+        if leaf is not None:
+            p = f"{p}/{part(leaf)}"
+    return p
+
+
 def sharing(vehicle: str, pipeline: str, local: str | None = None, state: int | str | None = None) -> str:
     p = f"{pipeline_root(vehicle, pipeline)}/sharing"
     if local is not None:

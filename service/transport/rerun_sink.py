@@ -406,6 +406,18 @@ class RerunSink:
             for local, coeffs in faults.sharing.items():
                 for i, c in enumerate(coeffs):
                     self._add(paths.sharing(vehicle, p, local, i), "scalar", tn, c)
+            for ev in faults.reconfiguration:  # seed 004: a local leaving or rejoining the fusion
+                stat = f"statistic {ev.statistic:.1f}, threshold {ev.threshold:.1f}"
+                text = f"{ev.action}: {ev.subsystem} ({stat})"
+                self._add(
+                    paths.reconfiguration(vehicle, p),
+                    "text",
+                    tn,
+                    (text, "WARN" if ev.action == "excluded" else "INFO"),
+                )
+            for st in faults.states:
+                self._add(paths.filter_state(vehicle, p, st.name, "value"), "scalar", tn, st.value)
+                self._add(paths.filter_state(vehicle, p, st.name, "std"), "scalar", tn, st.std)
             self._maybe_flush()
 
     def log_integrity(

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import re
 import threading
 import time
@@ -130,6 +129,10 @@ def make_config(
             c.insert_json5(key, safe[key])
     if outputs_prefix is not None and not (path and _explicit(content, c, "access_control")):
         c.insert_json5("access_control", json.dumps(outputs_guard(outputs_prefix)))
+    if outputs_prefix is not None and not (path and _explicit(content, c, "timestamping")):
+        # the service's runtime stamps every sample that arrives without a timestamp, at ingress
+        # (before any queue): Health's latency starts there (``Intake``)
+        c.insert_json5("timestamping/enabled", "{ router: true, peer: true, client: true }")
     if listen is not None:
         c.insert_json5("listen/endpoints", json.dumps(listen))
     if connect is not None:
@@ -175,10 +178,12 @@ class Publishers:
 class Intake:
     """Subscribes to input keys and hands (arrival time, key, payload) to ``deliver`` from a thread.
 
-    The Zenoh callback only stamps the arrival (monotonic seconds: the start of the latency the
-    service reports) and enqueues; a full queue back-pressures the Zenoh thread, as a FIFO
-    channel would (reliable, blocking publishers then slow down instead of losing data), except
-    after ``stop`` when arrivals are counted in ``dropped_at_stop``.
+    Samples wait in bounded Zenoh FIFO channels (filled by Zenoh's own threads, without Python's
+    lock: a full channel back-pressures reliable, blocking publishers instead of dropping) and are
+    read by our thread. The arrival time (monotonic seconds, the start of the latency the service
+    reports) is the sample's Zenoh timestamp, which the service's runtime puts on each sample at
+    ingress (``timestamping`` in :func:`make_config`); a sample without one (a user's config that
+    turns timestamping off) or with an implausible one (a remote clock) counts from its reading.
     """
 
     def __init__(
@@ -188,54 +193,54 @@ class Intake:
         deliver: Callable[[float, str, bytes], None],
         capacity: int = 4096,
     ):
-        self._q: queue.Queue = queue.Queue(maxsize=capacity)
-        self._deliver = deliver
-        self._stop = threading.Event()
-        self.dropped_at_stop = 0
         self._subs = [
-            session.declare_subscriber(k, self._on_sample, allowed_origin=zenoh.Locality.REMOTE)
+            session.declare_subscriber(
+                k, zenoh.handlers.FifoChannel(capacity), allowed_origin=zenoh.Locality.REMOTE
+            )
             for k in key_exprs
         ]
+        self._deliver = deliver
+        self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
         self._thread.start()
 
-    def backlog(self) -> int:
-        """Messages arrived but not yet routed to a vehicle."""
-        return self._q.qsize()
+    @staticmethod
+    def arrival(sample: zenoh.Sample) -> float:
+        """Monotonic time of the sample's arrival in the process (see the class docstring)."""
+        now = time.monotonic()
+        ts = sample.timestamp
+        if ts is None:
+            return now
+        age = time.time() - ts.get_time().timestamp()
+        return now - age if 0.0 <= age < 60.0 else now
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        item = (time.monotonic(), str(sample.key_expr), sample.payload.to_bytes())
-        while True:
-            try:
-                self._q.put(item, timeout=0.1)
-                return
-            except queue.Full:
-                if self._stop.is_set():
-                    self.dropped_at_stop += 1
-                    return
+    def _drain(self) -> bool:
+        got = False
+        for s in self._subs:
+            sample = s.try_recv()
+            while sample is not None:
+                got = True
+                try:
+                    self._deliver(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
+                except Exception:  # routing must survive any one message
+                    log.exception("intake: delivery of %s failed", str(sample.key_expr)[:200])
+                sample = s.try_recv()
+        return got
 
     def _run(self) -> None:
-        while True:
-            try:
-                item = self._q.get(timeout=0.05)
-            except queue.Empty:
-                if self._stop.is_set():
-                    return
-                continue
-            try:
-                self._deliver(*item)
-            except Exception:  # routing must survive any one message
-                log.exception("intake: delivery of %s failed", item[1][:200])
+        while not self._stop.is_set():
+            if not self._drain():
+                self._stop.wait(0.0005)
+        self._drain()  # what already arrived
 
     def stop(self) -> None:
-        """Undeclare the subscribers, then deliver what already arrived."""
+        self._stop.set()
+        self._thread.join(timeout=5.0)
         for s in self._subs:
             try:
                 s.undeclare()
             except zenoh.ZError:
                 pass
-        self._stop.set()
-        self._thread.join(timeout=5.0)
 
 
 #: one reply: (concrete key, payload, encoding)

@@ -47,7 +47,6 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
 from service.estimation import kalman
 from service.estimation.federated.fault_tests import FaultDecision, FaultTest
@@ -338,8 +337,12 @@ class FederatedCore:
         if P.shape[1] > c:  # private states: keep p | c, follow the new common marginal
             Pcc_old = Pm[:, :c, :c]
             Pcp = Pm[:, :c, c:]
-            Lc = kalman.cholesky(Pcc_old, "local common covariance")
-            At = solve_triangular(np.swapaxes(Lc, 1, 2), solve_triangular(Lc, Pcp, lower=True), lower=False)
+            kalman.cholesky(Pcc_old, "local common covariance")  # positive-definite check
+            # A' = P_cc^-1 P_cp after the diagonal scaling D = diag(P_cc)^1/2 (INS covariances are
+            # badly scaled); numpy's batched solve (scipy's batched solve_triangular costs ~10 ms)
+            d = np.sqrt(np.diagonal(Pcc_old, axis1=1, axis2=2))
+            Cs = Pcc_old / (d[:, :, None] * d[:, None, :])
+            At = np.linalg.solve(Cs, Pcp / d[:, :, None]) / d[:, :, None]
             A = np.swapaxes(At, 1, 2)  # A = P_pc P_cc^-1   (members, p, c)
             xm[:, c:] += np.einsum("bpc,bc->bp", A, x_g[None] - xm[:, :c])
             Pm[:, c:, :c] = A @ Pcc_new

@@ -17,15 +17,19 @@ from service.estimation.measurements.base import (
     private_layout,
     private_transition,
 )
+from service.estimation.measurements.dvl import DvlModel
 from service.estimation.measurements.gnss_fix import GnssFixModel
 from service.estimation.measurements.gnss_raw import GnssRawModel
 from service.estimation.measurements.star import StarAttitudeModel
+from service.estimation.measurements.usbl import UsblModel
 
 #: sensor kind -> model factory (keyword options from the pipeline's configuration)
 REGISTRY: dict[str, Callable[..., MeasurementModel]] = {
     "gnss_fix": GnssFixModel,
     "star": StarAttitudeModel,
     "gnss_raw": GnssRawModel,
+    "usbl": UsblModel,
+    "dvl": DvlModel,
 }
 
 

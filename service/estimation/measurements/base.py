@@ -78,12 +78,14 @@ class ModelContext:
     """Where the model's rows go: filter size, its private blocks' columns and references.
 
     dt_late_s > 0: the message is older than the INS time (late aiding inside the tolerance).
+    wib_b_rps: the INS's last body angular rate (lever-arm velocities, e.g. a DVL's).
     """
 
     n_states: int = em.N_STATES
     dt_late_s: float = 0.0
     columns: Mapping[str, slice] = field(default_factory=dict)
     reference: Mapping[str, np.ndarray] = field(default_factory=dict)
+    wib_b_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 class MeasurementModel(Protocol):
