@@ -27,6 +27,7 @@ from service.messages import (
     SENSOR_MESSAGES,
     Faults,
     Health,
+    ImmModels,
     Integrity,
     PipelineHealth,
     Solution,
@@ -117,11 +118,15 @@ class OutputSink:
 
     def on_output(self, vehicle: str, msg: WireModel, err9=None) -> None:
         what = "faults" if isinstance(msg, Faults) else "integrity" if isinstance(msg, Integrity) else None
+        if isinstance(msg, ImmModels):
+            what = "models"
         if what is None:
             return
         self.pubs.publish(keys.nav(vehicle, msg.pipeline, what, self.prefix), msg)
         if self.rr is not None:
-            if what == "faults":
+            if what == "models":
+                self.rr.log_imm(vehicle, msg)
+            elif what == "faults":
                 self.rr.log_faults(vehicle, msg)
             else:
                 h_err = float(np.hypot(err9[0], err9[1])) if err9 is not None else None

@@ -72,7 +72,9 @@ def build_pipeline(cfg, config: ServiceConfig) -> Pipeline:
         from service.pipelines.tightly_coupled import TightlyCoupled
 
         return TightlyCoupled(cfg, config.imu, config.major_interval_s)
-    raise ValueError(f"unknown pipeline kind {cfg.kind!r}")  # unreachable: config validates kinds
+    from service.pipelines import build_pipeline as from_registry  # every other registered kind
+
+    return from_registry(cfg, config)
 
 
 class VehicleEngine:

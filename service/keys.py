@@ -11,6 +11,7 @@
 {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
 {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
 {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
+{prefix}/{vehicle}/nav/{pipeline}/models      ImmModels
 {prefix}/{vehicle}/service/health             Health
 {prefix}/{vehicle}/service/status             queryable (and .../service/config)
 """
@@ -51,7 +52,7 @@ def truth(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
 
 
 def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
-    if what not in ("solution", "faults", "integrity"):
+    if what not in ("solution", "faults", "integrity", "models"):
         raise ValueError(f"unknown nav output {what!r}")
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/nav/{_chunk(pipeline, 'pipeline')}/{what}"
 

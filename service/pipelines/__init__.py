@@ -18,6 +18,7 @@ _KINDS: dict[str, str] = {
     "federated": "service.pipelines.federated:Federated",
     "centralized": "service.pipelines.federated:Centralized",
     "tightly_coupled": "service.pipelines.tightly_coupled:TightlyCoupled",
+    "imm_tightly_coupled": "service.pipelines.imm_tightly_coupled:ImmTightlyCoupled",
 }
 
 
