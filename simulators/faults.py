@@ -13,9 +13,11 @@ Kinds (``tau = t - start_s``, per channel ``c``)::
     random_walk  x + w_c(t),  w_c(start) = 0, w_c(t2) - w_c(t1) ~ N(0, sigma[c]^2 (t2 - t1))
     oscillation  x + amplitude[c] * sin(2 pi freq_hz[c] tau + phase_rad[c])
     scale        x * factor[c]
-    outliers     isolated outliers (He, Nie, Wu 2011, section 5): at each sensor epoch in the
-                 window, with probability ``epoch_fraction``, ``per_epoch`` of the published
-                 channels matching ``channels`` (fnmatch patterns, e.g. ``"*.pseudorange"``) get
+    outliers     isolated outliers (He, Nie, Wu 2011, section 5) on the published channels
+                 matching ``channels`` (fnmatch patterns, e.g. ``"*.pseudorange"``):
+                 ``per = "epoch"``: at each sensor epoch in the window, with probability
+                 ``fraction``, ``per_epoch`` of them drawn uniformly; ``per = "channel"``: each
+                 of them independently with probability ``fraction``. A hit channel gets
                  sign * k * sigma, k drawn uniformly from ``multiples``, random sign. The hit
                  channels are listed by :meth:`FaultSet.active` at exactly those epochs.
 
@@ -115,8 +117,13 @@ class OutlierFault(_FaultBase):
     multiples: list[Annotated[float, Field(gt=0.0)]] = Field(
         min_length=1, description="Outlier sizes in sigmas, drawn uniformly per outlier (e.g. [3, 5, 8])"
     )
-    epoch_fraction: float = Field(gt=0.0, le=1.0, description="Probability that an epoch carries outliers")
-    per_epoch: int = Field(1, ge=1, description="Channels hit at an outlier epoch")
+    fraction: float = Field(
+        gt=0.0, le=1.0, description="Probability of an outlier per epoch or per channel (see per)"
+    )
+    per: Literal["epoch", "channel"] = Field(
+        "epoch", description="'epoch': fraction of epochs carry per_epoch outliers; 'channel': of channels"
+    )
+    per_epoch: int = Field(1, ge=1, description="Channels hit at an outlier epoch (per = 'epoch')")
 
 
 FaultSpec = Annotated[
@@ -206,12 +213,15 @@ class FaultSet:
 
     def _outliers(self, i: int, f: OutlierFault, t_rel_s: float, out: dict[str, float], published) -> None:
         rng = self._rngs[i]
-        if rng.random() >= f.epoch_fraction:
-            return
         cands = sorted(c for c in published if c in out and any(fnmatchcase(c, p) for p in f.channels))
-        if not cands:
+        if f.per == "channel":
+            pick = np.flatnonzero(rng.random(len(cands)) < f.fraction)
+        else:
+            if rng.random() >= f.fraction or not cands:
+                return
+            pick = rng.choice(len(cands), size=min(f.per_epoch, len(cands)), replace=False)
+        if not len(pick):
             return
-        pick = rng.choice(len(cands), size=min(f.per_epoch, len(cands)), replace=False)
         hit = []
         for j in sorted(int(k) for k in pick):
             k_sigma = f.multiples[int(rng.integers(len(f.multiples)))]
