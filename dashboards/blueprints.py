@@ -226,11 +226,16 @@ def _imm_tab(v: str, p: str) -> rrb.Grid:
     return rrb.Grid(
         _ts(f"{p}: model probabilities", f"{imm}/prob/**"),
         _ts(f"{p}: position error (m)", [paths.error(v, p, n) for n in paths.POSITION_ERRORS]),
-        _ts(f"{p}: down-weighted rows per model / gate rejections", [f"{imm}/downweighted/**", f"{imm}/rejected_rows"]),
+        _ts(
+            f"{p}: down-weighted rows per model / gate rejections",
+            [f"{imm}/downweighted/**", f"{imm}/rejected_rows"],
+        ),
         rrb.Vertical(
             _ts("injected fault channels (truth)", [paths.truth(v, "fault_channels")]),
             rrb.TextLogView(
-                name="injected faults (truth)", origin=paths.vehicle_root(v), contents=[paths.truth(v, "faults")]
+                name="injected faults (truth)",
+                origin=paths.vehicle_root(v),
+                contents=[paths.truth(v, "faults")],
             ),
         ),
         grid_columns=2,

@@ -179,12 +179,15 @@ class ImmTightlyCoupledConfig(Model):
         "models, [[1]] for one model)",
     )
     initial_probabilities: list[Annotated[float, Field(gt=0, le=1)]] | None = Field(
-        None, description="mu0, sums to 1 (None: the paper's [9, 3, 3, 1]/16 for its four models, else uniform)"
+        None,
+        description="mu0, sums to 1 (None: the paper's [9, 3, 3, 1]/16 for its four models, else uniform)",
     )
     likelihood: Literal["paper", "gaussian"] = Field(
         "paper", description="'paper': Lambda = 1/(V' P^-1 V) (eq 11); 'gaussian': N(r; 0, S) in log space"
     )
-    h_percent: float = Field(100.0, gt=0, le=100, description="p of eq (14): H-row scale of suspected rows, %")
+    h_percent: float = Field(
+        100.0, gt=0, le=100, description="p of eq (14): H-row scale of suspected rows, %"
+    )
     c: float = Field(1.5, gt=0, description="c of eq (16): standardised-residual threshold")
     big: float = Field(100.0, ge=1, description="C of eq (16): R multiplier of a row with |v| > c")
     gate_p_fa: float | None = Field(
@@ -227,7 +230,10 @@ class ImmTightlyCoupledConfig(Model):
 
 
 PipelineConfig = Annotated[
-    LooselyCoupledConfig | FederatedConfig | CentralizedConfig | TightlyCoupledConfig
+    LooselyCoupledConfig
+    | FederatedConfig
+    | CentralizedConfig
+    | TightlyCoupledConfig
     | ImmTightlyCoupledConfig,
     Field(discriminator="kind"),
 ]

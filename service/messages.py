@@ -316,10 +316,13 @@ class ImmModels(WireModel):
     probabilities: list[float] = Field(description="mu_j after the update, one per model (sum 1)")
     rows: list[str] = Field(description="Row labels, e.g. 'G05.pr', 'C03.rr'")
     standardised_residual: list[float] = Field(
-        description="v_i of each row (normal rows), averaged over the models with their predicted probabilities"
+        description="v_i of each row (normal rows), averaged over the models with their predicted "
+        "probabilities"
     )
     h_scale: list[list[float]] = Field(description="Per model, per row: H-row factor (eq 14; 1 = untouched)")
-    r_scale: list[list[float]] = Field(description="Per model, per row: R_ii factor C0 (eq 15-16; 1 = untouched)")
+    r_scale: list[list[float]] = Field(
+        description="Per model, per row: R_ii factor C0 (eq 15-16; 1 = untouched)"
+    )
     rejected: list[str] = Field(default_factory=list, description="Rows rejected by the innovation gate")
 
     @model_validator(mode="after")

@@ -248,9 +248,7 @@ def simulate_gnss_raw(
         out = faults.apply(GNSS_RAW_SENSOR, t_rel["now"], full, published=values.keys())
         return {c: out[c] for c in values}
 
-    sensor = GnssRawSensor(
-        spec, rng, fault_fn=fault_fn if raw_faults else None, t0_gps_s=float(traj.t_s[0])
-    )
+    sensor = GnssRawSensor(spec, rng, fault_fn=fault_fn if raw_faults else None, t0_gps_s=float(traj.t_s[0]))
     lat, lon = traj.llh[ks, 0], traj.llh[ks, 1]
     pos = earth.llh_to_ecef(traj.llh[ks])
     sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)

@@ -84,8 +84,9 @@ def test_one_model_equals_the_plain_kalman_filter():
         assert st.mu.tolist() == [1.0]
 
 
-def _loop_reference(x, P, mu, z, H, r_var, likelihood, w=DownWeighting()):
+def _loop_reference(x, P, mu, z, H, r_var, likelihood):
     """The same cycle with one separate filter per model (no batching)."""
+    w = DownWeighting()
     M, m = x.shape[0], z.shape[0]
     c = np.array([sum(PI[i, j] * mu[i] for i in range(M)) for j in range(M)])
     xs, Ps, logl = [], [], []

@@ -40,9 +40,14 @@ def short_outliers(tmp_path: Path) -> Path:
         "[service]\n",
         1,
     )
-    text = re.sub(r"(?s)pipelines = \[.*?\n\]", "pipelines = [\n"
+    text = re.sub(
+        r"(?s)pipelines = \[.*?\n\]",
+        "pipelines = [\n"
         '  { name = "tc", kind = "tightly_coupled", integrity = false, elevation_mask_deg = 5.0 },\n'
-        '  { name = "tc_imm", kind = "imm_tightly_coupled", likelihood = "paper" },\n]', text, count=1)
+        '  { name = "tc_imm", kind = "imm_tightly_coupled", likelihood = "paper" },\n]',
+        text,
+        count=1,
+    )
     text = text.replace('name = "seed003_outliers"', 'name = "seed003_outliers_short"')
     p = tmp_path / "seed003_outliers_short.toml"
     p.write_text(text)

@@ -28,8 +28,8 @@ from service.config import ImmTightlyCoupledConfig, ImuModel
 from service.estimation import kalman, measurements
 from service.estimation.imm import core
 from service.estimation.imm.models import DownWeighting
-from service.estimation.ins_filter import InsFilterBank
 from service.estimation.innovation_gate import gate_rows
+from service.estimation.ins_filter import InsFilterBank
 from service.estimation.kalman import NotPositiveDefinite
 from service.estimation.measurements.gnss_raw import GnssRawModel
 from service.ins.mechanisation import NavState
@@ -74,9 +74,7 @@ class ImmTightlyCoupled(Pipeline):
         P0[:15, :15] = initial_covariance(std, self.imu)
         P0[15:, 15:] = np.diag(np.square(np.concatenate([b.initial_std for b in private])))
         self._P0 = P0
-        self.bank = InsFilterBank(
-            nav, P0, self.imu.noise(), len(self.models), self.major_interval_s, private
-        )
+        self.bank = InsFilterBank(nav, P0, self.imu.noise(), len(self.models), self.major_interval_s, private)
         self.mu = self.mu0.copy()
         self.clock_initialised = False
         self.last = None

@@ -489,7 +489,9 @@ class RerunSink:
             tn = self._time(vehicle, msg.t)
             for m, pr, rs in zip(msg.models, msg.probabilities, msg.r_scale, strict=True):
                 self._add(f"{base}/prob/{paths.part(m)}", "scalar", tn, float(pr))
-                self._add(f"{base}/downweighted/{paths.part(m)}", "scalar", tn, float(sum(r > 1.0 for r in rs)))
+                self._add(
+                    f"{base}/downweighted/{paths.part(m)}", "scalar", tn, float(sum(r > 1.0 for r in rs))
+                )
             self._add(f"{base}/rejected_rows", "scalar", tn, float(len(msg.rejected)))
             self._maybe_flush()
 

@@ -122,12 +122,14 @@ def step(
     H: np.ndarray,
     r_var: np.ndarray,
     models: tuple[str, ...],
-    weighting: DownWeighting = DownWeighting(),
+    weighting: DownWeighting | None = None,
     likelihood: str = "paper",
     mask: np.ndarray | None = None,
 ) -> ImmStep:
     """One IMM cycle (module docstring) on members ``x`` (M, n), ``P`` (M, n, n) with the normal
-    rows z (m,), H (m, n), R = diag(r_var); ``mask`` (m,) bool drops rows for every model."""
+    rows z (m,), H (m, n), R = diag(r_var); ``mask`` (m,) bool drops rows for every model;
+    ``weighting`` the eq (14)-(16) parameters (default: the paper's)."""
+    weighting = weighting or DownWeighting()
     if likelihood not in LIKELIHOODS:
         raise ValueError(f"likelihood {likelihood!r}: choose from {LIKELIHOODS}")
     M, m = x.shape[0], z.shape[0]
