@@ -34,7 +34,11 @@ log = logging.getLogger(__name__)
 
 FAMILIES = ("loosely_coupled", "federated", "integrity", "imm", "transfer_alignment", "underwater")
 #: Pipeline kinds of the service configuration that map onto a family's dashboard.
-FAMILY_ALIASES = {"centralized": "loosely_coupled", "tightly_coupled": "integrity"}
+FAMILY_ALIASES = {
+    "centralized": "loosely_coupled",
+    "tightly_coupled": "integrity",
+    "imm_tightly_coupled": "imm",
+}
 
 _AXES = {
     "Position error": (paths.POSITION_ERRORS, ("east (m)", "north (m)", "up (m)")),
@@ -240,6 +244,30 @@ def _underwater_tab(v: str, p: str) -> rrb.Grid:
     )
 
 
+def _imm_tab(v: str, p: str) -> rrb.Grid:
+    """IMM (He, Nie, Wu 2011): model probabilities beside the position error and the injected
+    faults (truth), and the rows each model down-weights."""
+    imm = paths.group(v, p, "imm")
+    return rrb.Grid(
+        _ts(f"{p}: model probabilities", f"{imm}/prob/**"),
+        _ts(f"{p}: position error (m)", [paths.error(v, p, n) for n in paths.POSITION_ERRORS]),
+        _ts(
+            f"{p}: down-weighted rows per model / gate rejections",
+            [f"{imm}/downweighted/**", f"{imm}/rejected_rows"],
+        ),
+        rrb.Vertical(
+            _ts("injected fault channels (truth)", [paths.truth(v, "fault_channels")]),
+            rrb.TextLogView(
+                name="injected faults (truth)",
+                origin=paths.vehicle_root(v),
+                contents=[paths.truth(v, "faults")],
+            ),
+        ),
+        grid_columns=2,
+        name=f"{p}: IMM",
+    )
+
+
 def _group_tab(v: str, p: str, family: str) -> rrb.TimeSeriesView:
     group, title = _GROUP_OF_FAMILY[family]
     return _ts(f"{p}: {title}", f"{paths.group(v, p, group)}/**")
@@ -288,6 +316,8 @@ def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
             tabs.append(_alignment_tab(vehicle, p))
         elif family == "underwater":
             tabs.append(_underwater_tab(vehicle, p))
+        elif family == "imm":
+            tabs.append(_imm_tab(vehicle, p))
         else:
             tabs.append(_group_tab(vehicle, p, family))
     tabs.append(_health_tab(vehicle))

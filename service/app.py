@@ -29,6 +29,7 @@ from service.messages import (
     Alignment,
     Faults,
     Health,
+    ImmModels,
     Integrity,
     PipelineHealth,
     Solution,
@@ -150,11 +151,15 @@ class OutputSink:
                     self.rr.log_scalars(vehicle, msg.pipeline, msg.t, group, values)
             return
         what = "faults" if isinstance(msg, Faults) else "integrity" if isinstance(msg, Integrity) else None
+        if isinstance(msg, ImmModels):
+            what = "models"
         if what is None:
             return
         self.pubs.publish(keys.nav(vehicle, msg.pipeline, what, self.prefix), msg)
         if self.rr is not None:
-            if what == "faults":
+            if what == "models":
+                self.rr.log_imm(vehicle, msg)
+            elif what == "faults":
                 self.rr.log_faults(vehicle, msg)
             else:
                 h_err = float(np.hypot(err9[0], err9[1])) if err9 is not None else None

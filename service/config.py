@@ -10,7 +10,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from service import earth
 from service.ins.error_model import ImuNoise
@@ -273,13 +273,97 @@ class UnderwaterConfig(Model):
     dvl: DvlModelConfig = DvlModelConfig()
 
 
+#: He, Nie, Wu 2011, section 5: the model set, the Markov transition matrix and initial probabilities
+IMM_PAPER_MODELS = ("normal", "largest", "two_largest", "above_c")
+IMM_PAPER_TRANSITION = (
+    (0.95, 0.02, 0.02, 0.01),
+    (0.045, 0.9, 0.045, 0.01),
+    (0.045, 0.045, 0.9, 0.01),
+    (0.05, 0.025, 0.025, 0.9),
+)
+IMM_PAPER_MU0 = (9 / 16, 3 / 16, 3 / 16, 1 / 16)
+
+
+class ImmTightlyCoupledConfig(Model):
+    """Tightly coupled INS/GNSS (17 states) as an IMM bank of outlier models (He, Nie, Wu 2011).
+
+    ``models = ["normal"]`` is the plain tightly coupled KF; with ``gate_p_fa`` a chi-square
+    innovation gate rejects rows before the update (the comparator of docs/seed003.md)."""
+
+    kind: Literal["imm_tightly_coupled"] = "imm_tightly_coupled"
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    clock: ClockModel = ClockModel()
+    use_range_rate: bool = True
+    elevation_mask_deg: float = Field(5.0, ge=0, lt=90)
+    models: list[Literal["normal", "largest", "two_largest", "above_c"]] = Field(
+        default_factory=lambda: list(IMM_PAPER_MODELS),
+        min_length=1,
+        description="Model set (service/estimation/imm/models.py); the paper's four by default",
+    )
+    transition: list[list[Annotated[float, Field(ge=0, le=1)]]] | None = Field(
+        None,
+        description="Markov matrix Pi[i][j] = P(j | i), rows sum to 1 (None: the paper's for its four "
+        "models, [[1]] for one model)",
+    )
+    initial_probabilities: list[Annotated[float, Field(gt=0, le=1)]] | None = Field(
+        None,
+        description="mu0, sums to 1 (None: the paper's [9, 3, 3, 1]/16 for its four models, else uniform)",
+    )
+    likelihood: Literal["paper", "gaussian"] = Field(
+        "paper", description="'paper': Lambda = 1/(V' P^-1 V) (eq 11); 'gaussian': N(r; 0, S) in log space"
+    )
+    h_percent: float = Field(
+        100.0, gt=0, le=100, description="p of eq (14): H-row scale of suspected rows, %"
+    )
+    c: float = Field(1.5, gt=0, description="c of eq (16): standardised-residual threshold")
+    big: float = Field(100.0, ge=1, description="C of eq (16): R multiplier of a row with |v| > c")
+    gate_p_fa: float | None = Field(
+        None, gt=0, lt=0.5, description="Chi-square innovation gate with row rejection (None: off)"
+    )
+
+    @model_validator(mode="after")
+    def _markov(self):
+        M = len(self.models)
+        if len(set(self.models)) != M:
+            raise ValueError(f"models has duplicates: {self.models}")
+        Pi = self.resolved_transition()
+        if Pi is None:
+            raise ValueError("transition: required for a model set other than the paper's four")
+        if len(Pi) != M or any(len(row) != M for row in Pi):
+            raise ValueError(f"transition: must be {M}x{M} (one row and column per model)")
+        for i, row in enumerate(Pi):
+            if abs(sum(row) - 1.0) > 1e-9:
+                raise ValueError(f"transition row {i} sums to {sum(row)}, not 1")
+        mu0 = self.resolved_mu0()
+        if len(mu0) != M or abs(sum(mu0) - 1.0) > 1e-9:
+            raise ValueError(f"initial_probabilities: need {M} values summing to 1")
+        return self
+
+    def resolved_transition(self) -> list[list[float]] | None:
+        if self.transition is not None:
+            return [list(r) for r in self.transition]
+        if tuple(self.models) == IMM_PAPER_MODELS:
+            return [list(r) for r in IMM_PAPER_TRANSITION]
+        if len(self.models) == 1:
+            return [[1.0]]
+        return None
+
+    def resolved_mu0(self) -> list[float]:
+        if self.initial_probabilities is not None:
+            return list(self.initial_probabilities)
+        if tuple(self.models) == IMM_PAPER_MODELS:
+            return list(IMM_PAPER_MU0)
+        return [1.0 / len(self.models)] * len(self.models)
+
+
 PipelineConfig = Annotated[
     LooselyCoupledConfig
     | FederatedConfig
     | CentralizedConfig
     | TightlyCoupledConfig
     | TransferAlignmentConfig
-    | UnderwaterConfig,
+    | UnderwaterConfig
+    | ImmTightlyCoupledConfig,
     Field(discriminator="kind"),
 ]
 

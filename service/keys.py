@@ -13,6 +13,7 @@
 {prefix}/{vehicle}/nav/{pipeline}/faults      Faults
 {prefix}/{vehicle}/nav/{pipeline}/integrity   Integrity
 {prefix}/{vehicle}/nav/{pipeline}/alignment/{node}  Alignment (transfer alignment, seed 002)
+{prefix}/{vehicle}/nav/{pipeline}/models      ImmModels
 {prefix}/{vehicle}/service/health             Health
 {prefix}/{vehicle}/service/status             queryable (and .../service/config)
 {prefix}/{vehicle}/nav/{pipeline}/solution    also a queryable: the latest Solution
@@ -68,7 +69,7 @@ def alignment_truth(vehicle: str, node: str, prefix: str = DEFAULT_PREFIX) -> st
 
 
 def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
-    if what not in ("solution", "faults", "integrity"):
+    if what not in ("solution", "faults", "integrity", "models"):
         raise ValueError(f"unknown nav output {what!r}")
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/nav/{_chunk(pipeline, 'pipeline')}/{what}"
 

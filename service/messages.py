@@ -237,7 +237,7 @@ class ActiveFault(WireModel):
 
     sensor: str
     """Faulted sensor kind (gnss, gnss_raw, star, ...)"""
-    kind: Literal["step", "ramp", "noise", "random_walk", "oscillation", "scale"]
+    kind: Literal["step", "ramp", "noise", "random_walk", "oscillation", "scale", "outliers"]
     """Fault type"""
     channels: list[str]
     """Faulted channels (e.g. pos_e, C03.pseudorange)"""
@@ -465,6 +465,38 @@ class AlignmentTruth(WireModel):
     """True lever arm, master body axes, m"""
 
 
+class ImmModels(WireModel):
+    """Outlier IMM (He, Nie, Wu 2011) of one pipeline at one GNSS epoch: model probabilities after
+    the update and each row's down-weighting per model (eq 14-16)."""
+
+    t: Time
+    pipeline: str
+    """Pipeline name"""
+    likelihood: Literal["paper", "gaussian"]
+    """Model likelihood in use: the paper's 1/(V' Sigma^-1 V) (eq 11) or the Gaussian (log space)"""
+    models: list[str] = Field(description="Model names, in bank order")
+    probabilities: list[float] = Field(description="mu_j after the update, one per model (sum 1)")
+    rows: list[str] = Field(description="Row labels, e.g. 'G05.pr', 'C03.rr'")
+    standardised_residual: list[float] = Field(
+        description="v_i of each row (normal rows), averaged over the models with their predicted "
+        "probabilities"
+    )
+    h_scale: list[list[float]] = Field(description="Per model, per row: H-row factor (eq 14; 1 = untouched)")
+    r_scale: list[list[float]] = Field(
+        description="Per model, per row: R_ii factor C0 (eq 15-16; 1 = untouched)"
+    )
+    rejected: list[str] = Field(default_factory=list, description="Rows rejected by the innovation gate")
+
+    @model_validator(mode="after")
+    def _shapes(self):
+        M, m = len(self.models), len(self.rows)
+        if len(self.probabilities) != M or len(self.h_scale) != M or len(self.r_scale) != M:
+            raise ValueError("probabilities, h_scale and r_scale need one entry per model")
+        if len(self.standardised_residual) != m or any(len(r) != m for r in self.h_scale + self.r_scale):
+            raise ValueError("standardised_residual and every h_scale/r_scale row need one value per row")
+        return self
+
+
 class PipelineHealth(WireModel):
     status: NavStatus
     """initialising, unaided, aided, coasting, degraded or failed"""
@@ -535,6 +567,7 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Solution,
     Faults,
     Integrity,
+    ImmModels,
     Health,
     Alignment,
     AlignmentTruth,

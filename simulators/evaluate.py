@@ -156,6 +156,7 @@ def evaluate(
             "max": mx,
             "epochs": len(err),
             "h_rms_m": float(math.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
+            "pos_rms_m": float(math.sqrt(np.mean(np.sum(err[:, 0:3] ** 2, axis=1)))),
             "nees": {"mean": float(np.nanmean(nees_arr)), "dof": 9},
         }
         entry.update(end_errors(p["end"]))
@@ -230,6 +231,7 @@ def format_table(result: dict) -> str:
             cells = "  ".join(f"{k} {v:.3f} (ours {ours.get(k, float('nan')):.3f})" for k, v in vals.items())
             lines.append(f"  {name:<20}{cells}")
     lines += format_end_errors(result)
+    lines += format_seed003(result)
     for name, e in result["pipelines"].items():
         if "fault_windows_max_vel_err_mps" in e:
             lines.append(
@@ -282,6 +284,26 @@ def format_end_errors(result: dict) -> list[str]:
             for pname, vals in ref[key].items():
                 cells = ", ".join(f"{k} {v:g}" for k, v in vals.items())
                 lines.append(f"  {label}: {pname}: {cells}")
+    return lines
+
+
+def format_seed003(result: dict) -> list[str]:
+    """Seed 003: the paper's four position RMS figures (Table 1) beside ours (3-D position RMS)."""
+    ref = reference(result["scenario"])
+    table = ref.get("seed003_table1")
+    if not table:
+        return []
+    lines = ["paper (He, Nie, Wu 2011, Table 1), position RMS (m):"]
+    schemes = ref.get("seed003_schemes", {})
+    ours = {scheme: name for name, scheme in schemes.items()}
+    for scheme, vals in table.items():
+        name = ours.get(scheme)
+        e = result["pipelines"].get(name, {}) if name else {}
+        mine = f"ours ({name}) {e['pos_rms_m']:.3f}" if e else "ours: other scenario"
+        lines.append(f"  {scheme:<14}{vals['pos_m']:8.3f}   {mine}")
+    for name, e in result["pipelines"].items():
+        if "pos_rms_m" in e:
+            lines.append(f"  {name:<22}position RMS {e['pos_rms_m']:.3f} m, NEES/9 {e['nees']['mean']:.2f}")
     return lines
 
 

@@ -13,6 +13,13 @@ Kinds (``tau = t - start_s``, per channel ``c``)::
     random_walk  x + w_c(t),  w_c(start) = 0, w_c(t2) - w_c(t1) ~ N(0, sigma[c]^2 (t2 - t1))
     oscillation  x + amplitude[c] * sin(2 pi freq_hz[c] tau + phase_rad[c])
     scale        x * factor[c]
+    outliers     isolated outliers (He, Nie, Wu 2011, section 5) on the published channels
+                 matching ``channels`` (fnmatch patterns, e.g. ``"*.pseudorange"``):
+                 ``per = "epoch"``: at each sensor epoch in the window, with probability
+                 ``fraction``, ``per_epoch`` of them drawn uniformly; ``per = "channel"``: each
+                 of them independently with probability ``fraction``. A hit channel gets
+                 sign * k * sigma, k drawn uniformly from ``multiples``, random sign. The hit
+                 channels are listed by :meth:`FaultSet.active` at exactly those epochs.
 
 Faults apply in the order they are listed. Each fault owns a child generator spawned from the
 ``rng`` given to :class:`FaultSet`, so its draws do not depend on the other faults.
@@ -21,6 +28,7 @@ Faults apply in the order they are listed. Each fault owns a child generator spa
 from __future__ import annotations
 
 import math
+from fnmatch import fnmatchcase
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
@@ -103,8 +111,23 @@ class ScaleFault(_FaultBase):
     _params: ClassVar[tuple[str, ...]] = ("factor",)
 
 
+class OutlierFault(_FaultBase):
+    kind: Literal["outliers"]
+    sigma: float = Field(gt=0.0, description="1 sigma of the channels, channel units (outlier = k sigma)")
+    multiples: list[Annotated[float, Field(gt=0.0)]] = Field(
+        min_length=1, description="Outlier sizes in sigmas, drawn uniformly per outlier (e.g. [3, 5, 8])"
+    )
+    fraction: float = Field(
+        gt=0.0, le=1.0, description="Probability of an outlier per epoch or per channel (see per)"
+    )
+    per: Literal["epoch", "channel"] = Field(
+        "epoch", description="'epoch': fraction of epochs carry per_epoch outliers; 'channel': of channels"
+    )
+    per_epoch: int = Field(1, ge=1, description="Channels hit at an outlier epoch (per = 'epoch')")
+
+
 FaultSpec = Annotated[
-    StepFault | RampFault | NoiseFault | RandomWalkFault | OscillationFault | ScaleFault,
+    StepFault | RampFault | NoiseFault | RandomWalkFault | OscillationFault | ScaleFault | OutlierFault,
     Field(discriminator="kind"),
 ]
 _FAULT_LIST = TypeAdapter(list[FaultSpec])
@@ -130,18 +153,27 @@ class FaultSet:
         self._rngs = rng.spawn(len(self.specs)) if self.specs else []
         # random-walk state per fault: (last time, values per channel)
         self._rw: dict[int, tuple[float, np.ndarray]] = {}
+        # outlier hits per fault: rounded time -> channels hit (for ``active``)
+        self._hits: dict[int, dict[float, list[str]]] = {}
 
     def for_sensor(self, sensor: str) -> list:
         return [s for s in self.specs if s.sensor == sensor]
 
-    def apply(self, sensor: str, t_rel_s: float, values: dict[str, float]) -> dict[str, float]:
+    def apply(
+        self, sensor: str, t_rel_s: float, values: dict[str, float], published=None
+    ) -> dict[str, float]:
         """Return ``values`` (channel -> value) with the faults of ``sensor`` active at ``t_rel_s`` applied.
 
         Calls for one sensor must come in non-decreasing time (random walks advance with time).
+        ``published``: the channels the sensor really publishes now (outlier candidates; default
+        every channel of ``values``).
         """
         out = dict(values)
         for i, f in enumerate(self.specs):
             if f.sensor != sensor or not f.is_active(t_rel_s):
+                continue
+            if f.kind == "outliers":
+                self._outliers(i, f, t_rel_s, out, values if published is None else published)
                 continue
             missing = [c for c in f.channels if c not in out]
             if missing:
@@ -179,10 +211,36 @@ class FaultSet:
                 out[c] = out[c] + a
         return out
 
+    def _outliers(self, i: int, f: OutlierFault, t_rel_s: float, out: dict[str, float], published) -> None:
+        rng = self._rngs[i]
+        cands = sorted(c for c in published if c in out and any(fnmatchcase(c, p) for p in f.channels))
+        if f.per == "channel":
+            pick = np.flatnonzero(rng.random(len(cands)) < f.fraction)
+        else:
+            if rng.random() >= f.fraction or not cands:
+                return
+            pick = rng.choice(len(cands), size=min(f.per_epoch, len(cands)), replace=False)
+        if not len(pick):
+            return
+        hit = []
+        for j in sorted(int(k) for k in pick):
+            k_sigma = f.multiples[int(rng.integers(len(f.multiples)))]
+            sign = 1.0 if rng.random() < 0.5 else -1.0
+            out[cands[j]] = out[cands[j]] + sign * k_sigma * f.sigma
+            hit.append(cands[j])
+        self._hits.setdefault(i, {})[round(t_rel_s, 6)] = hit
+
     def active(self, t_rel_s: float) -> list[ActiveFault]:
-        """Faults active at ``t_rel_s`` as wire models (for Truth messages)."""
-        return [
-            ActiveFault(sensor=f.sensor, kind=f.kind, channels=list(f.channels))
-            for f in self.specs
-            if f.is_active(t_rel_s)
-        ]
+        """Faults active at ``t_rel_s`` as wire models (for Truth messages). An outlier fault is
+        listed only at the epochs it hit, with the channels it hit."""
+        out = []
+        for i, f in enumerate(self.specs):
+            if not f.is_active(t_rel_s):
+                continue
+            if f.kind == "outliers":
+                hit = self._hits.get(i, {}).get(round(t_rel_s, 6))
+                if hit:
+                    out.append(ActiveFault(sensor=f.sensor, kind=f.kind, channels=list(hit)))
+                continue
+            out.append(ActiveFault(sensor=f.sensor, kind=f.kind, channels=list(f.channels)))
+        return out

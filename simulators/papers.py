@@ -84,14 +84,28 @@ SEED004_TABLE3 = {
         "end_pos_m_within": 80.0,
     },
 }
+# seed 003 (He, Nie, Wu 2011), Table 1: RMS of the position error (m) of the four schemes; X/Y/Z
+# are the paper's coordinate components (frame not stated), "position" their root sum square.
+SEED003_TABLE1 = {
+    "kf_clean": {"x_m": 2.298, "y_m": 4.122, "z_m": 2.839, "pos_m": 5.507},
+    "imm_clean": {"x_m": 2.285, "y_m": 4.080, "z_m": 2.852, "pos_m": 5.477},
+    "kf_outliers": {"x_m": 2.620, "y_m": 4.580, "z_m": 2.862, "pos_m": 6.003},
+    "imm_outliers": {"x_m": 2.280, "y_m": 4.063, "z_m": 2.853, "pos_m": 5.463},
+}
+#: our pipeline of each scheme, per scenario (scenario -> {pipeline: scheme})
+SEED003_SCHEMES = {
+    "seed003_clean": {"tc": "kf_clean", "tc_imm": "imm_clean"},
+    "seed003_outliers": {"tc": "kf_outliers", "tc_imm": "imm_outliers"},
+    "seed003_outliers_obs": {"tc": "kf_outliers", "tc_imm": "imm_outliers"},
+}
 
 
 def reference(scenario_name: str) -> dict:
     """The reported numbers of a reproduced paper's scenario, else {}.
 
     seed000*: {"table1": {...}, "table2": {...}} (RMS tables); seed004*: {"nominal": ...} or
-    {"usbl_fault": SEED004_TABLE3}; seed001*: {"integrity_table1":
-    SEED001_TABLE1, "ramp": SEED001_RAMP}.
+    {"usbl_fault": SEED004_TABLE3}; seed001*: {"integrity_table1": SEED001_TABLE1, "ramp":
+    SEED001_RAMP}; seed003*: {"seed003_table1": SEED003_TABLE1, "seed003_schemes": {pipeline: scheme}}.
     """
     if scenario_name.startswith("seed000"):
         return {"table1": SEED000_TABLE1_RMS, "table2": SEED000_TABLE2_RMS}
@@ -105,6 +119,9 @@ def reference(scenario_name: str) -> dict:
             "table3_heading_deg": SEED002_TABLE3_HEADING_DEG,
             "improvement_pct": SEED002_IMPROVEMENT_PCT,
         }
+    if scenario_name.startswith("seed003"):
+        schemes = SEED003_SCHEMES.get(scenario_name, {})
+        return {"seed003_table1": SEED003_TABLE1, "seed003_schemes": schemes}
     return {}
 
 

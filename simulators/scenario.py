@@ -64,6 +64,8 @@ Vec3 = tuple[float, float, float]
 
 GNSS_RAW_SENSOR = "gnss_raw"
 GNSS_RAW_CHANNEL = re.compile(r"^([GCERJ]\d{2})\.(pseudorange|range_rate)$")
+#: outlier faults (He, Nie, Wu 2011) pick among published satellites: '*' stands for any
+GNSS_RAW_PATTERN = re.compile(r"^(\*|[GCERJ]\d{2})\.(pseudorange|range_rate)$")
 FAULT_KINDS = ("step", "ramp", "noise", "random_walk", "oscillation")
 Range = tuple[float, float]
 
@@ -328,7 +330,14 @@ class Scenario(BaseModel):
         if raw is not None:
             channels[GNSS_RAW_SENSOR] = None  # "<sat>.pseudorange" / "<sat>.range_rate", checked below
         for i, f in enumerate(self.faults):
-            if f.sensor == GNSS_RAW_SENSOR and raw is not None:
+            if f.sensor == GNSS_RAW_SENSOR and raw is not None and f.kind == "outliers":
+                bad = [c for c in f.channels if not GNSS_RAW_PATTERN.match(c)]
+                if bad:
+                    raise ValueError(
+                        f"faults[{i}].channels: {bad} are not raw GNSS channel patterns "
+                        "('*.pseudorange', '*.range_rate' or '<sat>.<quantity>')"
+                    )
+            elif f.sensor == GNSS_RAW_SENSOR and raw is not None:
                 bad = [c for c in f.channels if not GNSS_RAW_CHANNEL.match(c)]
                 if bad:
                     raise ValueError(

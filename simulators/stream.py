@@ -256,20 +256,17 @@ def simulate_gnss_raw(
     spec = scenario.gnss_raw
     step = epoch_step(traj.imu_rate_hz, spec.rate_hz, "gnss_raw.rate_hz")
     ks = np.arange(step, traj.t_s.size, step)
-    fault_channels = sorted(
-        {c for f in (faults.for_sensor(GNSS_RAW_SENSOR) if faults else []) for c in f.channels}
-    )
+    raw_faults = faults.for_sensor(GNSS_RAW_SENSOR) if faults else []
+    fault_channels = sorted({c for f in raw_faults if f.kind != "outliers" for c in f.channels})
     t_rel = {"now": 0.0}
 
     def fault_fn(_t_rel_sensor: float, values: dict[str, float]) -> dict[str, float]:
         full = {c: 0.0 for c in fault_channels}
         full.update(values)
-        out = faults.apply(GNSS_RAW_SENSOR, t_rel["now"], full)
+        out = faults.apply(GNSS_RAW_SENSOR, t_rel["now"], full, published=values.keys())
         return {c: out[c] for c in values}
 
-    sensor = GnssRawSensor(
-        spec, rng, fault_fn=fault_fn if fault_channels else None, t0_gps_s=float(traj.t_s[0])
-    )
+    sensor = GnssRawSensor(spec, rng, fault_fn=fault_fn if raw_faults else None, t0_gps_s=float(traj.t_s[0]))
     lat, lon = traj.llh[ks, 0], traj.llh[ks, 1]
     pos = earth.llh_to_ecef(traj.llh[ks])
     sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)

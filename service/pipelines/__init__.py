@@ -20,6 +20,7 @@ _KINDS: dict[str, str] = {
     "tightly_coupled": "service.pipelines.tightly_coupled:TightlyCoupled",
     "transfer_alignment": "service.pipelines.transfer_alignment:TransferAlignment",
     "underwater": "service.pipelines.underwater:Underwater",
+    "imm_tightly_coupled": "service.pipelines.imm_tightly_coupled:ImmTightlyCoupled",
 }
 
 

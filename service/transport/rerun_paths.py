@@ -8,6 +8,7 @@ share one definition. Paths mirror the Zenoh keys of ``service/keys.py`` without
     /{vehicle}/truth/track                                  GeoLineStrings (decimated track, ~10 s)
     /{vehicle}/truth/{lat_deg, ..., heading_deg}            Scalars (SOLUTION_SCALARS)
     /{vehicle}/truth/faults                                 TextLog (injected faults, on change)
+    /{vehicle}/truth/fault_channels                         Scalars (channels under an injected fault)
     /{vehicle}/{pipeline}/solution/position, /track         GeoPoints, GeoLineStrings
     /{vehicle}/{pipeline}/solution/{lat_deg, ...}           Scalars (SOLUTION_SCALARS)
     /{vehicle}/{pipeline}/solution/std/{pos_e_m, ...}       Scalars, 1 sigma (STD_SCALARS)
@@ -27,6 +28,7 @@ share one definition. Paths mirror the Zenoh keys of ``service/keys.py`` without
     /{vehicle}/{pipeline}/integrity/events                  TextLog (detection, alarm, exclusion, ...)
     /{vehicle}/{pipeline}/integrity/stanford/{h, v}         Points2D (x = error, y = -PL), /frame static
     /{vehicle}/{pipeline}/{group}/{name}                    Scalars from ``log_scalars`` (GROUPS)
+    /{vehicle}/{pipeline}/imm/{prob, downweighted}/{model}, /rejected_rows     Scalars (IMM)
     /{vehicle}/service/health/{queue_depth, ...}            Scalars (HEALTH_SCALARS)
 
 Timeline ``sensor_time``: a duration timeline holding ``t`` (seconds of GPS time) in nanoseconds.

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from service.messages import Faults, Health, Integrity, Solution, Truth
+from service.messages import Faults, Health, ImmModels, Integrity, Solution, Truth
 from service.transport import rerun_paths as paths
 
 log = logging.getLogger(__name__)
@@ -326,6 +326,8 @@ class RerunSink:
                 self._truth_faults[vehicle] = desc
                 level = "WARN" if truth.faults else "INFO"
                 self._add(paths.truth(vehicle, "faults"), "text", tn, (desc, level))
+            n_ch = float(sum(len(f.channels) for f in truth.faults))
+            self._add(paths.truth(vehicle, "fault_channels"), "scalar", tn, n_ch)
             self._track(paths.truth(vehicle, "track"), truth.t, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
             self._maybe_flush()
 
@@ -501,6 +503,25 @@ class RerunSink:
             for name, v in values.items():
                 if v is not None:
                     self._add(paths.health(vehicle, name), "scalar", tn, float(v))
+            self._maybe_flush()
+
+    def log_imm(self, vehicle: str, msg: ImmModels) -> None:
+        """IMM model probabilities (``imm/prob/{model}``), the number of down-weighted rows per
+        model (``imm/downweighted/{model}``: R_ii factor above 1) and gate rejections
+        (``imm/rejected_rows``)."""
+        if self._closed:
+            return
+        base = paths.group(vehicle, msg.pipeline, "imm")
+        with self._lock:
+            if self._closed:
+                return
+            tn = self._time(vehicle, msg.t)
+            for m, pr, rs in zip(msg.models, msg.probabilities, msg.r_scale, strict=True):
+                self._add(f"{base}/prob/{paths.part(m)}", "scalar", tn, float(pr))
+                self._add(
+                    f"{base}/downweighted/{paths.part(m)}", "scalar", tn, float(sum(r > 1.0 for r in rs))
+                )
+            self._add(f"{base}/rejected_rows", "scalar", tn, float(len(msg.rejected)))
             self._maybe_flush()
 
     def log_scalars(

@@ -1,0 +1,166 @@
+"""Interacting multiple model (IMM) cycle on a batched bank (He, Nie, Wu 2011, section 3).
+
+The bank holds one filter per model: ``x`` (M, n), ``P`` (M, n, n), model probabilities ``mu``
+(M,) and the Markov transition matrix ``Pi`` (M, M) with ``Pi[i, j] = P(model j at k | model i
+at k-1)`` (rows sum to one). One cycle at a measurement epoch:
+
+1. Mixing, eq (4)-(6):  c_j = sum_i Pi_ij mu_i,  mu_{i|j} = Pi_ij mu_i / c_j,
+       x0_j = sum_i mu_{i|j} x_i,
+       P0_j = sum_i mu_{i|j} (P_i + (x_i - x0_j)(x_i - x0_j)')        (spread-of-means term).
+   All members share the transition matrix and process noise, so mixing the predicted members
+   at the epoch equals mixing before the prediction (the prediction is linear and sum mu = 1).
+2. Per-model update: the rows of model j (its H and R, :mod:`.models`) in ONE batched masked
+   update of the bank (:func:`service.estimation.kalman.update`).
+3. Probability update, eq (7): mu_j = Lambda_j c_j / sum_i Lambda_i c_i, computed in log space
+   (log-sum-exp) with either likelihood:
+     ``"paper"``:    Lambda_j = 1 / (V' P0_j^-1 V),  V = x_pred - x_upd  (eq 11, the paper's form;
+                     V = K r, so V' P0^-1 V = a' (S - R) a with a = S^-1 r: no P inverse)
+     ``"gaussian"``: Lambda_j = N(r_j; 0, S_j)  (eq 8), as log N = -(NIS + log|S| + m log 2 pi) / 2,
+                     which never underflows (the reason the paper gives for eq 11).
+4. Combined output, eq (12)-(13): x = sum_j mu_j x_j, P = sum_j mu_j (P_j + (x_j - x)(x_j - x)').
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.estimation import kalman
+from service.estimation.imm.models import DownWeighting, suspects
+
+LIKELIHOODS = ("paper", "gaussian")
+_TINY = np.finfo(float).tiny
+
+
+def mix(
+    x: np.ndarray, P: np.ndarray, mu: np.ndarray, Pi: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mixing step, eq (4)-(6). Returns (x0 (M, n), P0 (M, n, n), c (M,) predicted probabilities)."""
+    c = mu @ Pi  # c_j = sum_i Pi_ij mu_i
+    W = Pi * mu[:, None] / np.maximum(c, _TINY)[None, :]  # W[i, j] = mu_{i|j}
+    x0 = W.T @ x  # (M, n)
+    d = x[None, :, :] - x0[:, None, :]  # d[j, i] = x_i - x0_j
+    P0 = np.einsum("ij,ikl->jkl", W, P) + np.einsum("ij,jik,jil->jkl", W, d, d)
+    return x0, kalman.symmetrise(P0), c
+
+
+def combine(x: np.ndarray, P: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Combined output, eq (12)-(13)."""
+    xc = mu @ x
+    d = x - xc
+    Pc = np.einsum("j,jkl->kl", mu, P) + np.einsum("j,jk,jl->kl", mu, d, d)
+    return xc, kalman.symmetrise(Pc)
+
+
+def log_likelihood_gaussian(res: kalman.UpdateResult) -> np.ndarray:
+    """(M,) log N(r; 0, S) of each member's innovation (eq 8 in log space)."""
+    _, logdet = np.linalg.slogdet(res.S)
+    return -0.5 * (res.nis + logdet + res.dof * math.log(2.0 * math.pi))
+
+
+def log_likelihood_paper(res: kalman.UpdateResult, R: np.ndarray) -> np.ndarray:
+    """(M,) log Lambda_j of eq (11): -log(V' P0^-1 V), V = K r the state correction.
+
+    V' P0^-1 V = r' S^-1 H P0 H' S^-1 r = a' (S - R) a with a = S^-1 r (exact; R as used)."""
+    a = np.linalg.solve(res.S, res.innovation[:, :, None])[:, :, 0]
+    q = np.einsum("bi,bij,bj->b", a, res.S - R, a)
+    return -np.log(np.maximum(q, _TINY))
+
+
+def probabilities(log_lik: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """eq (7) in log space: mu_j proportional to Lambda_j c_j (falls back to c if nothing is finite)."""
+    lg = log_lik + np.log(np.maximum(c, _TINY))
+    ok = np.isfinite(lg)
+    if not ok.any():
+        return c / c.sum()
+    lg = np.where(ok, lg, -np.inf)
+    w = np.exp(lg - lg.max())
+    return w / w.sum()
+
+
+@dataclass(frozen=True)
+class ImmStep:
+    """One IMM cycle's results.
+
+    x, P: updated members; mu (M,); c (M,) predicted probabilities; log_lik (M,);
+    x_comb (n,), P_comb (n, n): combined output; v (M, m) standardised predicted residuals of each
+    model's mixed prior with the normal rows; h_scale, r_scale (M, m): the rows' eq (14)-(16)
+    factors; result: the bank's innovation statistics.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    mu: np.ndarray
+    c: np.ndarray
+    log_lik: np.ndarray
+    x_comb: np.ndarray
+    P_comb: np.ndarray
+    v: np.ndarray
+    h_scale: np.ndarray
+    r_scale: np.ndarray
+    result: kalman.UpdateResult
+
+
+def standardised_residuals(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, mask: np.ndarray | None
+) -> np.ndarray:
+    """(B, m) v_i = r_i / sqrt(S_ii) for each member (zero on masked rows)."""
+    r = z[None, :] - x @ H.T
+    s = np.einsum("ij,bjk,ik->bi", H, P, H) + r_var[None, :]
+    v = r / np.sqrt(s)
+    return v if mask is None else np.where(mask, v, 0.0)
+
+
+def step(
+    x: np.ndarray,
+    P: np.ndarray,
+    mu: np.ndarray,
+    Pi: np.ndarray,
+    z: np.ndarray,
+    H: np.ndarray,
+    r_var: np.ndarray,
+    models: tuple[str, ...],
+    weighting: DownWeighting | None = None,
+    likelihood: str = "paper",
+    mask: np.ndarray | None = None,
+) -> ImmStep:
+    """One IMM cycle (module docstring) on members ``x`` (M, n), ``P`` (M, n, n) with the normal
+    rows z (m,), H (m, n), R = diag(r_var); ``mask`` (m,) bool drops rows for every model;
+    ``weighting`` the eq (14)-(16) parameters (default: the paper's)."""
+    weighting = weighting or DownWeighting()
+    if likelihood not in LIKELIHOODS:
+        raise ValueError(f"likelihood {likelihood!r}: choose from {LIKELIHOODS}")
+    M, m = x.shape[0], z.shape[0]
+    x0, P0, c = mix(x, P, mu, Pi)
+    keep = None if mask is None else np.broadcast_to(np.asarray(mask, dtype=bool), (M, m))
+    v = standardised_residuals(x0, P0, z, H, r_var, keep)
+    sus = suspects(models, v, weighting.c)
+    if keep is not None:
+        sus &= keep
+    h_scale, r_scale = weighting.factors(v, sus)
+    Hb = H[None, :, :] * h_scale[:, :, None]
+    Rb = (r_var[None, :] * r_scale)[:, :, None] * np.eye(m)
+    xu, Pu, res = kalman.update(x0, P0, z, Hb, Rb, keep)
+    if likelihood == "paper":
+        R_used = Rb if keep is None else Rb * (keep[:, :, None] & keep[:, None, :])
+        log_lik = log_likelihood_paper(res, R_used)
+    else:
+        log_lik = log_likelihood_gaussian(res)
+    new_mu = probabilities(log_lik, c) if M > 1 else np.ones(1)
+    xc, Pc = combine(xu, Pu, new_mu)
+    return ImmStep(xu, Pu, new_mu, c, log_lik, xc, Pc, v, h_scale, r_scale, res)
+
+
+__all__ = [
+    "ImmStep",
+    "LIKELIHOODS",
+    "combine",
+    "log_likelihood_gaussian",
+    "log_likelihood_paper",
+    "mix",
+    "probabilities",
+    "standardised_residuals",
+    "step",
+]

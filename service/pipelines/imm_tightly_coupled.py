@@ -1,0 +1,169 @@
+"""Tightly coupled INS/GNSS as an IMM bank of outlier models (He, Nie, Wu 2011).
+
+Filter: the 17-state closed-loop error-state EKF of :mod:`service.pipelines.tightly_coupled`
+(15 INS error states + receiver clock bias/drift, the private states of
+:class:`~service.estimation.measurements.gnss_raw.GnssRawModel`), here as an
+:class:`~service.estimation.ins_filter.InsFilterBank` of one member per model. All members share
+the INS and the clock reference (their linearisation point), the transition matrix and the
+process noise. At each GNSS epoch the rows come from the measurement hook and
+:func:`service.estimation.imm.core.step` runs one IMM cycle (mixing, the models' down-weighted
+rows in one batched update, model probabilities, combined output, eq (4)-(16)); the combined
+correction is fed back to the INS and the clock, and every member shifts by it (closed loop:
+mixing and combining only use differences of members, which the shift leaves unchanged).
+
+Options: ``models = ["normal"]`` is the plain tightly coupled KF (one member, mu = 1);
+``gate_p_fa`` puts a chi-square innovation gate with row rejection in front of the update
+(:mod:`service.estimation.innovation_gate`, against the combined prior), the simple standard the
+IMM is compared with in docs/seed003.md.
+
+Each epoch publishes an :class:`~service.messages.ImmModels` message (probabilities, per-row
+factors, gate rejections) on ``fednav/{vehicle}/nav/{pipeline}/models``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.config import ImmTightlyCoupledConfig, ImuModel
+from service.estimation import kalman, measurements
+from service.estimation.imm import core
+from service.estimation.imm.models import DownWeighting
+from service.estimation.innovation_gate import gate_rows
+from service.estimation.ins_filter import InsFilterBank
+from service.estimation.kalman import NotPositiveDefinite
+from service.estimation.measurements.gnss_raw import GnssRawModel
+from service.ins.mechanisation import NavState
+from service.messages import GnssRaw, ImmModels, WireModel
+from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+
+
+class ImmTightlyCoupled(Pipeline):
+    @classmethod
+    def sensor_kinds(cls) -> frozenset[str]:
+        return frozenset({"gnss_raw"})
+
+    def __init__(self, cfg: ImmTightlyCoupledConfig, imu: ImuModel, major_interval_s: float):
+        super().__init__(cfg.name, imu, major_interval_s)
+        self.cfg = cfg
+        c = cfg.clock
+        self.model: GnssRawModel = measurements.make(
+            "gnss_raw",
+            correlation_time_s=c.correlation_time_s,
+            bias_psd_m2ps=c.bias_psd_m2ps,
+            drift_psd_m2ps3=c.drift_psd_m2ps3,
+            init_bias_std_m=c.init_bias_std_m,
+            init_drift_std_mps=c.init_drift_std_mps,
+            elevation_mask_deg=cfg.elevation_mask_deg,
+            use_range_rate=cfg.use_range_rate,
+        )
+        self.models = tuple(cfg.models)
+        self.Pi = np.array(cfg.resolved_transition(), dtype=float)
+        self.mu0 = np.array(cfg.resolved_mu0(), dtype=float)
+        self.weighting = DownWeighting(cfg.h_percent, cfg.c, cfg.big)
+        self.bank: InsFilterBank | None = None
+        self.mu = self.mu0.copy()
+        self.clock_initialised = False
+        self.last: core.ImmStep | None = None
+        self.rejected_rows = 0
+
+    # --- pipeline interface ------------------------------------------------------------------------
+    def initialise(self, nav: NavState, std: InitStd) -> None:
+        private = self.model.private_states
+        n = 15 + sum(b.size for b in private)
+        P0 = np.zeros((n, n))
+        P0[:15, :15] = initial_covariance(std, self.imu)
+        P0[15:, 15:] = np.diag(np.square(np.concatenate([b.initial_std for b in private])))
+        self._P0 = P0
+        self.bank = InsFilterBank(nav, P0, self.imu.noise(), len(self.models), self.major_interval_s, private)
+        self.mu = self.mu0.copy()
+        self.clock_initialised = False
+        self.last = None
+
+    def recover_covariance(self) -> None:
+        """Lost positive definiteness: keep the INS and the clock reference; restart every member
+        from the initial covariance (states zero) and the probabilities from mu0."""
+        self.bank.x = np.zeros_like(self.bank.x)
+        self.bank.P = np.broadcast_to(self._P0, self.bank.P.shape).copy()
+        self.mu = self.mu0.copy()
+        self.restarted()
+
+    def combined(self) -> tuple[np.ndarray, np.ndarray]:
+        """Combined state and covariance of the bank now (eq 12-13)."""
+        return core.combine(self.bank.x, self.bank.P, self.mu)
+
+    def estimate(self) -> Estimate:
+        _, P = self.combined()
+        return Estimate(self.bank.nav(), P[:9, :9])
+
+    def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
+        if kind != "gnss_raw" or not isinstance(msg, GnssRaw):
+            return []
+        bank = self.bank
+        bank.sync()
+        nav = bank.nav()
+        if not self.clock_initialised:
+            ref = self.model.initial_clock(nav, msg, dt_late_s)
+            if ref is None:
+                return []
+            bank.reference["clock"] = ref
+            self.clock_initialised = True
+        meas = self.model(nav, msg, bank.context(dt_late_s))
+        m = meas.z.shape[0]
+        if m == 0 or not (np.all(np.isfinite(meas.z)) and np.all(np.isfinite(meas.H))):
+            return []
+        r_var = meas.r_var
+        mask = None
+        rejected: list[str] = []
+        if self.cfg.gate_p_fa is not None:
+            xc, Pc = self.combined()
+            keep = gate_rows(xc, Pc, meas.z, meas.H, r_var, self.cfg.gate_p_fa)
+            if not keep.all():
+                mask = keep
+                rejected = [lab for lab, k in zip(meas.labels, keep, strict=True) if not k]
+                self.rejected_rows += len(rejected)
+                self.mark_screened(nav.t, "innovation_gate", len(rejected))
+        try:
+            st = core.step(
+                bank.x,
+                bank.P,
+                self.mu,
+                self.Pi,
+                meas.z,
+                meas.H,
+                r_var,
+                self.models,
+                self.weighting,
+                self.cfg.likelihood,
+                mask,
+            )
+            if not kalman.is_positive_definite(st.P).all():
+                raise NotPositiveDefinite("IMM member covariance after the update")
+        except NotPositiveDefinite:
+            self.recover_covariance()
+            return []
+        bank.x, bank.P, self.mu, self.last = st.x, st.P, st.mu, st
+        bank.feedback(st.x_comb.copy())
+        self.mark_aided(nav.t)
+        xc_prior = self.mu_prior_residual(st)
+        return [
+            ImmModels(
+                t=msg.t,
+                pipeline=self.name,
+                likelihood=self.cfg.likelihood,
+                models=list(self.models),
+                probabilities=[float(p) for p in st.mu],
+                rows=list(meas.labels),
+                standardised_residual=[float(v) for v in xc_prior],
+                h_scale=st.h_scale.tolist(),
+                r_scale=st.r_scale.tolist(),
+                rejected=rejected,
+            )
+        ]
+
+    @staticmethod
+    def mu_prior_residual(st: core.ImmStep) -> np.ndarray:
+        """Standardised residuals of the rows weighted over the predicted probabilities c."""
+        return st.c @ st.v
+
+
+__all__ = ["ImmTightlyCoupled"]

@@ -1,0 +1,233 @@
+"""IMM core (He, Nie, Wu 2011): mixing, fault models, likelihoods, batched bank vs separate
+filters, one model = plain Kalman filter, the chi-square row gate, and the configuration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_normal
+
+from service.config import IMM_PAPER_MU0, IMM_PAPER_TRANSITION, ConfigError, from_dict
+from service.estimation import kalman
+from service.estimation.imm import core
+from service.estimation.imm.models import DownWeighting, suspects
+from service.estimation.innovation_gate import gate_rows
+
+MODELS = ("normal", "largest", "two_largest", "above_c")
+PI = np.array(IMM_PAPER_TRANSITION)
+MU0 = np.array(IMM_PAPER_MU0)
+
+
+def random_spd(rng, n, scale=1.0):
+    A = rng.standard_normal((n, n))
+    return scale * (A @ A.T + n * np.eye(n))
+
+
+def random_bank(rng, M=4, n=7):
+    x = rng.standard_normal((M, n))
+    P = np.stack([random_spd(rng, n) for _ in range(M)])
+    return x, P
+
+
+def rows(rng, m=6, n=7, outlier=None):
+    H = rng.standard_normal((m, n))
+    r_var = rng.uniform(0.5, 2.0, m)
+    z = rng.standard_normal(m) * np.sqrt(r_var)
+    if outlier is not None:
+        z[outlier] += 40.0
+    return z, H, r_var
+
+
+def test_mixing_keeps_probabilities_summing_to_one_and_covariances_positive_definite():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        x, P = random_bank(rng)
+        mu = rng.dirichlet(np.ones(4))
+        x0, P0, c = core.mix(x, P, mu, PI)
+        assert abs(c.sum() - 1.0) < 1e-12
+        W = PI * mu[:, None] / c[None, :]
+        np.testing.assert_allclose(W.sum(axis=0), 1.0, atol=1e-12)  # mu_{i|j} sums to 1 over i
+        assert kalman.is_positive_definite(P0).all()
+        # eq (5) written out for one model
+        j = 2
+        ref = sum(W[i, j] * (P[i] + np.outer(x[i] - x0[j], x[i] - x0[j])) for i in range(4))
+        np.testing.assert_allclose(P0[j], ref, rtol=1e-12, atol=1e-12)
+        st = core.step(x, P, mu, PI, *rows(rng), MODELS)
+        assert abs(st.mu.sum() - 1.0) < 1e-12 and np.all(st.mu >= 0.0)
+        assert kalman.is_positive_definite(st.P).all()
+        assert kalman.is_positive_definite(st.P_comb[None]).all()
+
+
+def test_combined_output_is_eq_12_13():
+    rng = np.random.default_rng(4)
+    x, P = random_bank(rng)
+    mu = rng.dirichlet(np.ones(4))
+    xc, Pc = core.combine(x, P, mu)
+    np.testing.assert_allclose(xc, sum(mu[j] * x[j] for j in range(4)), atol=1e-12)
+    ref = sum(mu[j] * (P[j] + np.outer(x[j] - xc, x[j] - xc)) for j in range(4))
+    np.testing.assert_allclose(Pc, ref, atol=1e-12)
+
+
+def test_one_model_equals_the_plain_kalman_filter():
+    rng = np.random.default_rng(5)
+    for likelihood in ("paper", "gaussian"):
+        x, P = random_bank(rng, M=1)
+        z, H, r_var = rows(rng, outlier=2)
+        st = core.step(x, P, np.ones(1), np.ones((1, 1)), z, H, r_var, ("normal",), likelihood=likelihood)
+        xk, Pk, _ = kalman.update(x, P, z, H, r_var)
+        np.testing.assert_allclose(st.x, xk, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(st.P, Pk, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(st.x_comb, xk[0], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(st.P_comb, Pk[0], rtol=0, atol=1e-10)
+        assert st.mu.tolist() == [1.0]
+
+
+def _loop_reference(x, P, mu, z, H, r_var, likelihood):
+    """The same cycle with one separate filter per model (no batching)."""
+    w = DownWeighting()
+    M, m = x.shape[0], z.shape[0]
+    c = np.array([sum(PI[i, j] * mu[i] for i in range(M)) for j in range(M)])
+    xs, Ps, logl = [], [], []
+    for j, name in enumerate(MODELS):
+        wij = np.array([PI[i, j] * mu[i] / c[j] for i in range(M)])
+        x0 = sum(wij[i] * x[i] for i in range(M))
+        P0 = sum(wij[i] * (P[i] + np.outer(x[i] - x0, x[i] - x0)) for i in range(M))
+        S = H @ P0 @ H.T + np.diag(r_var)
+        v = (z - H @ x0) / np.sqrt(np.diag(S))
+        sus = suspects((name,), v[None], w.c)[0]
+        hs, rs = w.factors(v, sus)
+        Hj, Rj = H * hs[:, None], np.diag(r_var * rs)
+        Sj = Hj @ P0 @ Hj.T + Rj
+        K = P0 @ Hj.T @ np.linalg.inv(Sj)
+        r = z - Hj @ x0
+        xj = x0 + K @ r
+        IKH = np.eye(len(x0)) - K @ Hj
+        Pj = IKH @ P0 @ IKH.T + K @ Rj @ K.T
+        if likelihood == "paper":
+            V = x0 - xj
+            logl.append(-math.log(V @ np.linalg.inv(P0) @ V))
+        else:
+            logl.append(multivariate_normal(np.zeros(m), Sj).logpdf(r))
+        xs.append(xj)
+        Ps.append(Pj)
+    lam = np.exp(np.array(logl) - max(logl)) * c
+    return np.array(xs), np.array(Ps), lam / lam.sum()
+
+
+@pytest.mark.parametrize("likelihood", ["paper", "gaussian"])
+def test_batched_bank_equals_a_loop_of_separate_filters(likelihood):
+    rng = np.random.default_rng(6)
+    for trial in range(10):
+        x, P = random_bank(rng)
+        mu = rng.dirichlet(np.ones(4))
+        z, H, r_var = rows(rng, outlier=trial % 6)
+        st = core.step(x, P, mu, PI, z, H, r_var, MODELS, likelihood=likelihood)
+        xs, Ps, mus = _loop_reference(x, P, mu, z, H, r_var, likelihood)
+        np.testing.assert_allclose(st.x, xs, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(st.P, Ps, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(st.mu, mus, rtol=1e-9, atol=1e-12)
+
+
+def test_down_weighting_eq_14_16_and_the_suspected_rows():
+    w = DownWeighting(h_percent=80.0, c=1.5, big=100.0)
+    v = np.array([[0.0, 1.0, -1.5, 2.0, -4.0, 0.5]])
+    hs, rs = w.factors(v, np.ones_like(v, dtype=bool))
+    np.testing.assert_allclose(rs[0, :3], [math.exp(-1.0), math.exp((1 / 1.5) ** 2 - 1.0), 1.0])
+    np.testing.assert_allclose(rs[0, 3:5], [100.0, 100.0])
+    np.testing.assert_allclose(hs, 0.8)
+    sus = suspects(MODELS, np.repeat(v, 4, axis=0), 1.5)
+    assert sus[0].tolist() == [False] * 6
+    assert np.flatnonzero(sus[1]).tolist() == [4]
+    assert np.flatnonzero(sus[2]).tolist() == [3, 4]
+    assert np.flatnonzero(sus[3]).tolist() == [3, 4]  # |v| > c (1.5 itself is not above c)
+    hs, rs = w.factors(v, sus[1:2])
+    assert rs[0].tolist() == [1, 1, 1, 1, 100.0, 1] and hs[0].tolist() == [1, 1, 1, 1, 0.8, 1]
+
+
+def test_paper_likelihood_closed_form_and_gaussian_log_space():
+    rng = np.random.default_rng(7)
+    x, P = random_bank(rng, M=3)
+    z, H, r_var = rows(rng)
+    R = np.broadcast_to(np.diag(r_var), (3, 6, 6))
+    xu, _, res = kalman.update(x, P, z, H, r_var)
+    lp = core.log_likelihood_paper(res, R)
+    for b in range(3):
+        V = x[b] - xu[b]
+        assert abs(lp[b] + math.log(V @ np.linalg.solve(P[b], V))) < 1e-9
+    lg = core.log_likelihood_gaussian(res)
+    for b in range(3):
+        ref = multivariate_normal(np.zeros(6), res.S[b]).logpdf(res.innovation[b])
+        assert abs(lg[b] - ref) < 1e-9
+    # far beyond the exponent's range: the log-space form still ranks the models
+    huge = core.probabilities(np.array([-2000.0, -1000.0, -3000.0]), np.full(3, 1 / 3))
+    assert huge.argmax() == 1 and abs(huge.sum() - 1.0) < 1e-15
+
+
+def test_fault_models_win_on_an_outlier_and_the_normal_model_on_clean_rows():
+    """Gaussian likelihood, one 40-sigma outlier: the normal model's probability collapses."""
+    rng = np.random.default_rng(8)
+    x = np.zeros((4, 7))
+    P = np.broadcast_to(np.eye(7) * 0.01, (4, 7, 7)).copy()
+    H = rng.standard_normal((8, 7))
+    r_var = np.ones(8)
+    z = H @ np.zeros(7) + rng.standard_normal(8) * 0.3
+    clean = core.step(x, P, MU0, PI, z, H, r_var, MODELS, likelihood="gaussian")
+    z[3] += 40.0
+    bad = core.step(x, P, MU0, PI, z, H, r_var, MODELS, likelihood="gaussian")
+    assert bad.mu[0] < 1e-6 < bad.mu[1:].sum()
+    assert bad.r_scale[1, 3] == 100.0
+    assert clean.mu[0] > bad.mu[0]
+    # the combined estimate ignores the outlier (state stays near the truth, zero)
+    assert np.linalg.norm(bad.x_comb) < 0.5
+
+
+def test_masked_rows_take_no_part():
+    rng = np.random.default_rng(9)
+    x, P = random_bank(rng)
+    z, H, r_var = rows(rng, outlier=1)
+    mask = np.ones(6, dtype=bool)
+    mask[1] = False
+    for likelihood in ("paper", "gaussian"):
+        st = core.step(x, P, MU0, PI, z, H, r_var, MODELS, likelihood=likelihood, mask=mask)
+        keep = np.flatnonzero(mask)
+        ref = core.step(x, P, MU0, PI, z[keep], H[keep], r_var[keep], MODELS, likelihood=likelihood)
+        np.testing.assert_allclose(st.x, ref.x, atol=1e-9)
+        np.testing.assert_allclose(st.mu, ref.mu, atol=1e-9)
+
+
+def test_chi_square_gate_rejects_the_outlier_row_only():
+    rng = np.random.default_rng(10)
+    rejected_clean = 0
+    for trial in range(200):
+        x = np.zeros(7)
+        P = np.eye(7) * 0.01
+        z, H, r_var = rows(rng, m=10, outlier=None)
+        keep = gate_rows(x, P, z, H, r_var, 1e-3)
+        rejected_clean += int((~keep).sum())
+        z2 = z.copy()
+        z2[trial % 10] += 30.0 * math.sqrt(r_var[trial % 10])
+        keep2 = gate_rows(x, P, z2, H, r_var, 1e-3)
+        assert not keep2[trial % 10]
+        assert keep2.sum() >= 8
+    assert rejected_clean <= 3  # 1e-3 false alarms per epoch on 200 clean epochs
+
+
+def test_imm_config_validation():
+    base = {"pipelines": [{"name": "imm", "kind": "imm_tightly_coupled"}]}
+    cfg = from_dict(base)
+    p = cfg.pipelines[0]
+    assert p.resolved_transition() == [list(r) for r in IMM_PAPER_TRANSITION]
+    assert p.likelihood == "paper" and p.models == list(MODELS)
+    one = from_dict({"pipelines": [{"name": "kf", "kind": "imm_tightly_coupled", "models": ["normal"]}]})
+    assert one.pipelines[0].resolved_transition() == [[1.0]]
+    for bad, field in (
+        ({"transition": [[0.5, 0.5, 0, 0]] * 3 + [[0.4, 0.4, 0.1, 0.0]]}, "sums to"),
+        ({"models": ["normal", "largest"]}, "transition: required"),
+        ({"models": ["normal", "largest"], "transition": [[1.0]]}, "2x2"),
+        ({"initial_probabilities": [0.5, 0.5, 0.5, 0.5]}, "initial_probabilities"),
+        ({"likelihood": "bayes"}, "likelihood"),
+    ):
+        with pytest.raises(ConfigError, match=field):
+            from_dict({"pipelines": [{"name": "imm", "kind": "imm_tightly_coupled", **bad}]})
