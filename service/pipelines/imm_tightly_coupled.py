@@ -25,16 +25,16 @@ from __future__ import annotations
 import numpy as np
 
 from service.config import ImmTightlyCoupledConfig, ImuModel
-from service.estimation import kalman, measurements
+from service.estimation import kalman
 from service.estimation.imm import core
 from service.estimation.imm.models import DownWeighting
 from service.estimation.innovation_gate import gate_rows
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.kalman import NotPositiveDefinite
-from service.estimation.measurements.gnss_raw import GnssRawModel
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, ImmModels, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from service.pipelines.tightly_coupled import raw_gnss_model
 
 
 class ImmTightlyCoupled(Pipeline):
@@ -45,17 +45,7 @@ class ImmTightlyCoupled(Pipeline):
     def __init__(self, cfg: ImmTightlyCoupledConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(cfg.name, imu, major_interval_s)
         self.cfg = cfg
-        c = cfg.clock
-        self.model: GnssRawModel = measurements.make(
-            "gnss_raw",
-            correlation_time_s=c.correlation_time_s,
-            bias_psd_m2ps=c.bias_psd_m2ps,
-            drift_psd_m2ps3=c.drift_psd_m2ps3,
-            init_bias_std_m=c.init_bias_std_m,
-            init_drift_std_mps=c.init_drift_std_mps,
-            elevation_mask_deg=cfg.elevation_mask_deg,
-            use_range_rate=cfg.use_range_rate,
-        )
+        self.model = raw_gnss_model(cfg)
         self.models = tuple(cfg.models)
         self.Pi = np.array(cfg.resolved_transition(), dtype=float)
         self.mu0 = np.array(cfg.resolved_mu0(), dtype=float)

@@ -43,6 +43,22 @@ from service.messages import GnssRaw, Integrity, SatelliteTest, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
+def raw_gnss_model(cfg) -> GnssRawModel:
+    """The raw-GNSS measurement model of a tightly coupled configuration (its receiver clock model,
+    elevation mask and range-rate option): the tightly coupled families share it."""
+    c = cfg.clock
+    return measurements.make(
+        "gnss_raw",
+        correlation_time_s=c.correlation_time_s,
+        bias_psd_m2ps=c.bias_psd_m2ps,
+        drift_psd_m2ps3=c.drift_psd_m2ps3,
+        init_bias_std_m=c.init_bias_std_m,
+        init_drift_std_mps=c.init_drift_std_mps,
+        elevation_mask_deg=cfg.elevation_mask_deg,
+        use_range_rate=cfg.use_range_rate,
+    )
+
+
 class TightlyCoupled(Pipeline):
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
@@ -55,17 +71,7 @@ class TightlyCoupled(Pipeline):
         super().__init__(cfg.name, imu, major_interval_s)
         self.cfg = cfg
         self.depth = 0 if not cfg.integrity else (2 if cfg.sub_sub_filters else 1)
-        c = cfg.clock
-        self.model: GnssRawModel = measurements.make(
-            "gnss_raw",
-            correlation_time_s=c.correlation_time_s,
-            bias_psd_m2ps=c.bias_psd_m2ps,
-            drift_psd_m2ps3=c.drift_psd_m2ps3,
-            init_bias_std_m=c.init_bias_std_m,
-            init_drift_std_mps=c.init_drift_std_mps,
-            elevation_mask_deg=cfg.elevation_mask_deg,
-            use_range_rate=cfg.use_range_rate,
-        )
+        self.model = raw_gnss_model(cfg)
         self.monitor = MhssMonitor(
             MonitorSettings(
                 phase=cfg.phase,
