@@ -30,6 +30,25 @@ def shortened(name: str, duration_s: float, **overrides):
     return parse_scenario(data, f"{name} shortened to {duration_s} s")
 
 
+def cut_to(data: dict, duration_s: float) -> dict:
+    """A scenario mapping cut to ``duration_s``: the segments that fit, faults starting before the
+    end and clipped to it."""
+    d = dict(data, duration_s=duration_s)
+    segs, total = [], 0.0
+    for s in d["segments"]:
+        if total + s["duration_s"] > duration_s:
+            break
+        segs.append(s)
+        total += s["duration_s"]
+    d["segments"] = segs
+    d["faults"] = [
+        {**f, "duration_s": min(f["duration_s"], duration_s - f["start_s"])}
+        for f in d["faults"]
+        if f["start_s"] < duration_s
+    ]
+    return d
+
+
 def initial_nav_message(t: float, nav, pos_std_enu_m, vel_std_enu_mps, rpy_std_deg):
     """The InitialNav wire message for a NavState-like ``nav`` (lat_rad, lon_rad, h_m, vel_enu_mps,
     rpy_rad) and the given 1-sigma uncertainties."""

@@ -23,6 +23,8 @@ from simulators.papers import SEED001_TABLE1, reference
 from simulators.scenario import ScenarioError, load_scenario, parse_scenario
 from simulators.stream import Simulation
 
+from .scenario_utils import cut_to
+
 ONSET_S, RAMP_MPS = 11.0, 0.63
 LATENCY_BOUND_S = 2.0  # the paper's 13 s flag of the 11 s onset
 
@@ -31,19 +33,7 @@ def variant(name: str = "seed001_ramp", duration_s: float | None = None, **chang
     """A validated copy of a shipped scenario: shorter (segments that fit, faults clipped) and/or changed."""
     d = load_scenario(name).model_dump()
     if duration_s is not None:
-        d["duration_s"] = duration_s
-        segs, total = [], 0.0
-        for s in d["segments"]:
-            if total + s["duration_s"] > duration_s:
-                break
-            segs.append(s)
-            total += s["duration_s"]
-        d["segments"] = segs
-        d["faults"] = [
-            {**f, "duration_s": min(f["duration_s"], duration_s - f["start_s"])}
-            for f in d["faults"]
-            if f["start_s"] < duration_s
-        ]
+        d = cut_to(d, duration_s)
     for k, v in changes.items():
         if isinstance(v, dict) and isinstance(d.get(k), dict):
             d[k] = {**d[k], **v}

@@ -26,6 +26,8 @@ from simulators.papers import reference
 from simulators.scenario import load_scenario, parse_scenario
 from simulators.stream import Simulation
 
+from .scenario_utils import cut_to
+
 T0 = 1_300_000_000.0
 LAT, LON = math.radians(45.7816), math.radians(126.6725)
 TRANSPONDER = (45.7977948, 126.6956459, -300.0)
@@ -196,19 +198,7 @@ def variant(name: str, duration_s: float | None = None, pipelines: list[str] | N
     """A validated copy of a shipped seed-004 scenario: shorter, fewer pipelines, other fields."""
     d = load_scenario(name).model_dump()
     if duration_s is not None:
-        d["duration_s"] = duration_s
-        segs, total = [], 0.0
-        for s in d["segments"]:
-            if total + s["duration_s"] > duration_s:
-                break
-            segs.append(s)
-            total += s["duration_s"]
-        d["segments"] = segs
-        d["faults"] = [
-            {**f, "duration_s": min(f["duration_s"], duration_s - f["start_s"])}
-            for f in d["faults"]
-            if f["start_s"] < duration_s
-        ]
+        d = cut_to(d, duration_s)
     if pipelines is not None:
         have = {p["name"]: p for p in d["service"]["pipelines"]}
         d["service"] = {**d["service"], "pipelines": [have[p] for p in pipelines]}

@@ -37,7 +37,9 @@ from service.ins.mechanisation import NavState
 from service.messages import Solution, WireModel
 
 
-def initial_covariance(std: InitStd, imu: ImuModel) -> np.ndarray:
+def initial_covariance(std: InitStd, imu: ImuModel, private=()) -> np.ndarray:
+    """Diagonal prior of the 15 INS error states (initial sigmas, the IMU's bias sigmas), then of
+    each private-state block of ``private`` (its ``initial_std``), in bank column order."""
     sg, sa = imu.bias_sigmas()
     d = np.concatenate(
         [
@@ -46,6 +48,7 @@ def initial_covariance(std: InitStd, imu: ImuModel) -> np.ndarray:
             std.att_rad,
             np.full(3, max(sg, 1e-12)),
             np.full(3, max(sa, 1e-12)),
+            *[np.asarray(b.initial_std, dtype=float) for b in private],
         ]
     )
     return np.diag(np.square(d))

@@ -112,15 +112,22 @@ class _CorePipeline(Pipeline):
         self._fused_view: tuple[np.ndarray, np.ndarray] | None = None
 
     # --- Pipeline interface ---------------------------------------------------------------------
+    def private_states(self) -> tuple:
+        """Private-state blocks every member carries after the 15 common states (never fused;
+        a family whose local owns some, like the DVL's, overrides this)."""
+        return ()
+
     def initialise(self, nav: NavState, std: InitStd) -> None:
         n_locals = len(self.local_names)
-        self._P0 = initial_covariance(std, self.imu)
+        private = self.private_states()
+        self._P0 = initial_covariance(std, self.imu, private)
         self.bank = InsFilterBank(
             nav,
             self._P0,
             self.imu.noise(),
             bank_size=FederatedCore.bank_size(n_locals, self.master_share),
             major_interval_s=self.major_interval_s,
+            private=private,
         )
         self.core = FederatedCore(
             self.bank,

@@ -31,6 +31,7 @@ from service.estimation.imm.models import DownWeighting
 from service.estimation.innovation_gate import gate_rows
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.kalman import NotPositiveDefinite
+from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, ImmModels, WireModel
 from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
@@ -59,11 +60,7 @@ class ImmTightlyCoupled(Pipeline):
     # --- pipeline interface ------------------------------------------------------------------------
     def initialise(self, nav: NavState, std: InitStd) -> None:
         private = self.model.private_states
-        n = 15 + sum(b.size for b in private)
-        P0 = np.zeros((n, n))
-        P0[:15, :15] = initial_covariance(std, self.imu)
-        P0[15:, 15:] = np.diag(np.square(np.concatenate([b.initial_std for b in private])))
-        self._P0 = P0
+        self._P0 = P0 = initial_covariance(std, self.imu, private)
         self.bank = InsFilterBank(nav, P0, self.imu.noise(), len(self.models), self.major_interval_s, private)
         self.mu = self.mu0.copy()
         self.clock_initialised = False
@@ -83,7 +80,7 @@ class ImmTightlyCoupled(Pipeline):
 
     def estimate(self) -> Estimate:
         _, P = self.combined()
-        return Estimate(self.bank.nav(), P[:9, :9])
+        return Estimate(self.bank.nav(), P[em.NAV, em.NAV])
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         if kind != "gnss_raw" or not isinstance(msg, GnssRaw):

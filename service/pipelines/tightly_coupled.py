@@ -91,11 +91,7 @@ class TightlyCoupled(Pipeline):
     # --- pipeline interface ------------------------------------------------------------------------
     def initialise(self, nav: NavState, std: InitStd) -> None:
         private = self.model.private_states
-        n = 15 + sum(b.size for b in private)
-        P0 = np.zeros((n, n))
-        P0[:15, :15] = initial_covariance(std, self.imu)
-        P0[15:, 15:] = np.diag(np.square(np.concatenate([b.initial_std for b in private])))
-        self._P0 = P0
+        self._P0 = P0 = initial_covariance(std, self.imu, private)
         self.bank = MhssInsBank(nav, P0, self.imu.noise(), self.major_interval_s, private, self.depth)
         self.monitor.reset()
         self.clock_initialised = False

@@ -35,16 +35,12 @@ import math
 import numpy as np
 
 from service.config import ImuModel, UnderwaterConfig
-from service.estimation.federated.core import FederatedCore
 from service.estimation.federated.fault_tests import make_fault_test
-from service.estimation.ins_filter import InsFilterBank
 from service.estimation.measurements.dvl import BLOCK as DVL_BLOCK
 from service.estimation.measurements.dvl import DvlModel
 from service.estimation.measurements.usbl import UsblModel
 from service.ins import error_model as em
-from service.ins.mechanisation import NavState
 from service.messages import Faults, Reconfiguration, StateEstimate, WireModel
-from service.pipelines.base import InitStd, initial_covariance
 from service.pipelines.federated import _CorePipeline
 
 USBL_LOCAL, DVL_LOCAL = "INS/USBL", "INS/DVL"
@@ -108,36 +104,8 @@ class Underwater(_CorePipeline):
         self.events: list[tuple[float, str, str]] = []
 
     # --- filter ------------------------------------------------------------------------------------
-    def initialise(self, nav: NavState, std: InitStd) -> None:
-        block = self.channels["dvl"].model.private_states
-        n = em.N_STATES + sum(b.size for b in block)
-        P0 = np.zeros((n, n))
-        P0[: em.N_STATES, : em.N_STATES] = initial_covariance(std, self.imu)
-        P0[em.N_STATES :, em.N_STATES :] = np.diag(np.square(np.concatenate([b.initial_std for b in block])))
-        self._P0 = P0
-        n_locals = len(self.local_names)
-        self.bank = InsFilterBank(
-            nav,
-            P0,
-            self.imu.noise(),
-            bank_size=FederatedCore.bank_size(n_locals, self.master_share),
-            major_interval_s=self.major_interval_s,
-            private=block,
-        )
-        self.core = FederatedCore(
-            self.bank,
-            n_locals,
-            self.strategy,
-            reset=self.reset_mode,
-            master_share=self.master_share,
-            floor_share=self.floor_share,
-            n_common=em.N_STATES,
-        )
-        self.core.start()
-        self._epoch_t = None
-        for ch in self.channels.values():
-            ch.test.reset()
-        self._version += 1
+    def private_states(self) -> tuple:
+        return self.channels["dvl"].model.private_states  # the INS/DVL local's offset and scale
 
     def _end_epoch(self) -> None:
         """Fusion, reset and common feedback (the core), then the DVL local's private estimate
