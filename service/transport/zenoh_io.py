@@ -165,6 +165,17 @@ class Publishers:
     def publish(self, key: str, msg: WireModel) -> None:
         self.publisher(key, type(msg)).put(msg.to_json())
 
+    def put_bytes(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        """Publish bytes of another encoding (the ROS 2 bridge's CDR) with an optional attachment."""
+        with self._lock:
+            pub = self._pubs.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key, congestion_control=self.cc, reliability=zenoh.Reliability.RELIABLE
+                )
+                self._pubs[key] = pub
+        pub.put(payload, attachment=attachment)
+
     def undeclare_all(self) -> None:
         with self._lock:
             for p in self._pubs.values():
