@@ -45,6 +45,8 @@ FLU_TO_RFU = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 NED_TO_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 #: twist.angular is not estimated: its variance in Odometry says so
 UNKNOWN_VARIANCE = 1.0e6
+#: NavSatFix / Twist messages kept per sensor while waiting for their partner
+PAIR_BUFFER = 16
 #: rmw_zenoh's GID storage (RMW_GID_STORAGE_SIZE since Jazzy)
 GID_SIZE = 16
 
@@ -204,8 +206,8 @@ class RosInput:
     cfg: Ros2Config
     _by_key: dict[str, Ros2Input] = field(default_factory=dict)
     _imu: dict[str, _ImuState] = field(default_factory=dict)
-    _fix: dict[str, dict] = field(default_factory=dict)
-    _twist: dict[str, dict] = field(default_factory=dict)
+    _fix: dict[str, list[dict]] = field(default_factory=dict)  # waiting for their Twist, per sensor
+    _twist: dict[str, list[dict]] = field(default_factory=dict)  # waiting for their NavSatFix
 
     def __post_init__(self):
         self.store = typestore(self.cfg.distro)
@@ -284,12 +286,7 @@ class RosInput:
             "pos_std_enu_m": std,
             "constellation": _SERVICE_CONSTELLATION.get(int(msg.status.service), "MULTI"),
         }
-        tw = self._twist.get(inp.sensor_id)
-        if tw is not None and abs(tw["t"] - fix["t"]) < self.cfg.pair_tolerance_s:
-            del self._twist[inp.sensor_id]
-            return self._emit(inp.sensor_id, fix, tw)
-        self._fix[inp.sensor_id] = fix
-        return []
+        return self._pair(inp.sensor_id, fix, self._fix, self._twist, fix_first=True)
 
     def _twist_in(self, inp: Ros2Input, msg) -> list[tuple[str, str, bytes]]:
         lin = msg.twist.twist.linear
@@ -299,11 +296,20 @@ class RosInput:
             v = NED_TO_ENU @ v
             std = [std[1], std[0], std[2]]
         tw = {"t": self._t(msg.header), "vel_enu_mps": [float(x) for x in v], "vel_std_enu_mps": std}
-        fix = self._fix.get(inp.sensor_id)
-        if fix is not None and abs(fix["t"] - tw["t"]) < self.cfg.pair_tolerance_s:
-            del self._fix[inp.sensor_id]
-            return self._emit(inp.sensor_id, fix, tw)
-        self._twist[inp.sensor_id] = tw
+        return self._pair(inp.sensor_id, tw, self._twist, self._fix, fix_first=False)
+
+    def _pair(self, sid: str, item: dict, mine: dict, theirs: dict, fix_first: bool):
+        """Pair ``item`` with the waiting partner closest in time (within pair_tolerance_s), else
+        keep it waiting (at most PAIR_BUFFER per sensor; the oldest unpaired one is dropped)."""
+        waiting = theirs.get(sid, [])
+        best = min(waiting, key=lambda o: abs(o["t"] - item["t"]), default=None)
+        if best is not None and abs(best["t"] - item["t"]) < self.cfg.pair_tolerance_s:
+            waiting.remove(best)
+            fix, tw = (item, best) if fix_first else (best, item)
+            return self._emit(sid, fix, tw)
+        q = mine.setdefault(sid, [])
+        q.append(item)
+        del q[:-PAIR_BUFFER]
         return []
 
     def _emit(self, sensor_id: str, fix: dict, twist: dict) -> list[tuple[str, str, bytes]]:
