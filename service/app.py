@@ -380,6 +380,7 @@ class Service:
             )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
+        self.liveliness = zenoh_io.Liveliness(self.session)
         self.ros_in = None
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
         self.sink = OutputSink(cfg.prefix, self.pubs, self.rr, extra)
@@ -390,11 +391,14 @@ class Service:
         self.intake = zenoh_io.Intake(self.session, exprs, self._deliver)
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
-            self.ros_intake = zenoh_io.Intake(self.session, self.ros_in.key_exprs(), self._deliver_ros)
+            from service.transport.ros2 import header_stamp_s
+
+            self.ros_intake = zenoh_io.Intake(
+                self.session, self.ros_in.key_exprs(), self._deliver_ros, order_key=header_stamp_s
+            )
         # one queryable per vehicle selector: status, config and each pipeline's latest solution
         qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
-        self.liveliness = zenoh_io.Liveliness(self.session)
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
         for v in [] if sel else cfg.vehicles:
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
@@ -415,6 +419,10 @@ class Service:
         self.ros_in = ros2.RosInput(cfg)
         gid = hashlib.md5(str(self.session.zid()).encode()).digest()  # 16 bytes, stable per session
         sink = ros2.RosSink(cfg, [p.name for p in self.config.pipelines], self.pubs.put_bytes, gid)
+        if cfg.carrier == "rmw_zenoh" and cfg.liveliness:
+            subs = [(i.topic, i.type) for i in cfg.inputs]
+            for token in ros2.graph_tokens(cfg, str(self.session.zid()), sink.topics(), subs):
+                self.liveliness.declare(token)
         log.info("ROS 2 bridge (%s): inputs %s", cfg.carrier, self.ros_in.key_exprs())
         return sink
 

@@ -154,13 +154,27 @@ class Ros2Config(_Model):
     vel_std_mps: float = Field(
         0.5, gt=0.0, description="1-sigma velocity used when a Twist reports no covariance (zeros)"
     )
-    attachment: bool = Field(
-        True,
-        description="rmw_zenoh carrier: put rmw_zenoh's attachment (sequence number, source timestamp, "
-        "GID) on published samples",
+    attachment: Literal["rmw_zenoh", "rmw_zenoh_keyed", "none"] = Field(
+        "rmw_zenoh",
+        description="rmw_zenoh carrier: the attachment on published samples: rmw_zenoh (int64 sequence "
+        "number, int64 source timestamp ns, 16-byte GID, Zenoh's serializer: rmw_zenoh since its zenoh-cpp "
+        "port), rmw_zenoh_keyed (the earlier layout, a key string before each value) or none",
     )
+    liveliness: bool = Field(
+        True,
+        description="rmw_zenoh carrier: declare rmw_zenoh graph tokens (a node, its publishers and "
+        "subscriptions) so ros2 node/topic list and matched counts see the bridge",
+    )
+    node_name: str = Field("fednav", description="ROS 2 node name of the bridge in the graph tokens")
     inputs: list[Ros2Input] = Field(default_factory=list, description="ROS 2 topics read")
     outputs: Ros2Outputs = Field(default_factory=Ros2Outputs, description="ROS 2 topics written")
+
+    @field_validator("node_name")
+    @classmethod
+    def _node(cls, v: str) -> str:
+        if not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", v):
+            raise ValueError(f"{v!r} is not a ROS 2 node name (letters, digits, '_')")
+        return v
 
     @field_validator("namespace")
     @classmethod

@@ -143,6 +143,8 @@ def navsat_by_hand() -> bytes:
 
 def test_hand_laid_navsatfix_equals_rosbags_bytes_and_decodes_to_the_fields():
     by_hand = navsat_by_hand()
+    assert ros2.header_stamp_s(by_hand) == T0_UNIX + 0.25  # the intake's ordering key
+    assert ros2.header_stamp_s(by_hand[:8]) == 0.0
     msg = navsat_msg(T0_UNIX + 0.25, 40.5, 118.25, 123.5, cov=[4.0, 0, 0, 0, 9.0, 0, 0, 0, 16.0])
     assert cdr(msg) == by_hand
     d = STORE.deserialize_cdr(by_hand, "sensor_msgs/msg/NavSatFix")
@@ -384,12 +386,42 @@ def test_odometry_navsatfix_tf_and_diagnostics_roundtrip_through_cdr():
 
 def test_rmw_zenoh_attachment_layout():
     gid = bytes(range(16))
+    # rmw_zenoh (zenoh-cpp serializer): int64 seq, int64 timestamp, std::array<uint8_t,16> as a sequence
     a = ros2.rmw_attachment(7, 1_700_000_000_123_456_789, gid)
-    assert a[0] == 15 and a[1:16] == b"sequence_number"
-    assert struct.unpack_from("<q", a, 16)[0] == 7
-    assert a[24] == 16 and a[25:41] == b"source_timestamp"
-    assert struct.unpack_from("<q", a, 41)[0] == 1_700_000_000_123_456_789
-    assert a[49] == 10 and a[50:60] == b"source_gid" and a[60] == 16 and a[61:] == gid
+    assert len(a) == 8 + 8 + 1 + 16
+    assert struct.unpack_from("<qq", a) == (7, 1_700_000_000_123_456_789)
+    assert a[16] == 16 and a[17:] == gid
+    # the earlier keyed layout
+    k = ros2.rmw_attachment(7, 1_700_000_000_123_456_789, gid, keyed=True)
+    assert k[0] == 15 and k[1:16] == b"sequence_number"
+    assert struct.unpack_from("<q", k, 16)[0] == 7
+    assert k[24] == 16 and k[25:41] == b"source_timestamp"
+    assert struct.unpack_from("<q", k, 41)[0] == 1_700_000_000_123_456_789
+    assert k[49] == 10 and k[50:60] == b"source_gid" and k[60] == 16 and k[61:] == gid
+
+
+def test_rmw_zenoh_graph_tokens():
+    c = cfg(node_name="nav")
+    h = ros2.type_hash("nav_msgs/msg/Odometry")
+    toks = ros2.graph_tokens(
+        c,
+        "abc123",
+        [("/fednav/lc/odometry", "nav_msgs/msg/Odometry")],
+        [("/imu/data", "sensor_msgs/msg/Imu")],
+    )
+    assert toks[0] == "@ros2_lv/0/abc123/0/0/NN/%/%/nav"
+    assert (
+        toks[1] == "@ros2_lv/0/abc123/0/1/MP/%/%/nav/%fednav%lc%odometry/nav_msgs::msg::dds_::Odometry_/"
+        f"{h}/::,:,:,:,,"
+    )
+    assert toks[2].startswith(
+        "@ros2_lv/0/abc123/0/2/MS/%/%/nav/%imu%data/sensor_msgs::msg::dds_::Imu_/RIHS01_"
+    )
+    for t in toks:  # valid Zenoh key expressions, 9 chunks for the node and 13 for the topics
+        import zenoh
+
+        zenoh.KeyExpr(t)
+        assert len(t.split("/")) in (9, 13)
 
 
 # --- configuration ------------------------------------------------------------------------------------------

@@ -101,6 +101,9 @@ def ros_run(tmp_path_factory):
         assert status is not None, "service did not become idle"
         time.sleep(1.5)  # one more health period: DiagnosticArray with the final counts
         status = query_status(port)
+        tokens = [
+            str(r.ok.key_expr) for r in sub_session.liveliness().get("@ros2_lv/0/**", timeout=5.0) if r.ok
+        ]
     finally:
         svc.signal(signal.SIGTERM)
         rc = svc.wait(timeout=60)
@@ -119,6 +122,7 @@ def ros_run(tmp_path_factory):
         "truth": truth,
         "rrd": rrd,
         "samples": samples,
+        "tokens": tokens,
     }
 
 
@@ -137,7 +141,8 @@ def test_service_takes_ros_input_through_the_intake(ros_run):
     # every Imu but the first (it opens the interval), every fix paired with its Twist, 2 bad samples
     assert h["received"] == (n_imu - 1) + n_fix + 2, h
     assert h["rejected"].get("bad_cdr") == 2, h["rejected"]
-    assert h["accepted"] >= (n_imu - 1) + n_fix - 2, h
+    # everything else accepted: the intake delivers the three topics in header.stamp order
+    assert h["accepted"] == (n_imu - 1) + n_fix, h["rejected"]
     assert h["pipelines"]["lc"]["status"] == "aided" and h["pipelines"]["lc"]["updates"] >= 30
 
 
@@ -163,8 +168,8 @@ def test_odometry_in_cdr_with_frames_covariance_and_rmw_attachment(ros_run):
             ]
         )
         assert abs(np.linalg.norm(q) - 1.0) < 1e-9
-        assert att is not None and att[1:16] == b"sequence_number"
-        seqs.append(int.from_bytes(att[16:24], "little", signed=True))
+        assert att is not None and len(att) == 33 and att[16] == 16  # seq, timestamp, GID
+        seqs.append(int.from_bytes(att[:8], "little", signed=True))
     assert seqs == list(range(1, len(seqs) + 1))
     last = odo[-1][1]
     # straight flight at heading 45 deg, 120 m/s. The in-motion alignment takes the heading of the
@@ -220,3 +225,20 @@ def test_recording_reads_back(ros_run):
 
     _, data = read_series(ros_run["rrd"])
     assert any(p.startswith("/v1/lc/solution") for p in data), sorted(data)[:20]
+
+
+def test_rmw_zenoh_graph_tokens_declared(ros_run):
+    toks = ros_run["tokens"]
+    kinds = sorted(t.split("/")[5] for t in toks)
+    # one node; publishers: odometry, fix, tf, diagnostics; subscriptions: the three inputs
+    assert kinds == ["MP"] * 4 + ["MS"] * 3 + ["NN"], toks
+    topics = {t.split("/")[9] for t in toks if t.split("/")[5] != "NN"}
+    assert topics == {
+        "%fednav%lc%odometry",
+        "%fednav%lc%fix",
+        "%tf",
+        "%diagnostics",
+        "%imu%data",
+        "%gnss%fix",
+        "%gnss%vel",
+    }

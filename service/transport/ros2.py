@@ -138,21 +138,54 @@ def _zstr(s: str) -> bytes:
     return _leb128(len(b)) + b
 
 
-def rmw_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:
-    """rmw_zenoh's sample attachment as its attachment_helpers serialise it with Zenoh's serializer
-    (strings and byte buffers length-prefixed with LEB128, int64 little-endian): "sequence_number",
-    int64, "source_timestamp", int64 (ns), "source_gid", 16 bytes."""
+def rmw_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes, keyed: bool = False) -> bytes:
+    """rmw_zenoh's sample attachment, serialised like Zenoh's serializer does (int64 little-endian;
+    strings and sequences prefixed with their LEB128 length; a std::array is a sequence):
+    sequence number, source timestamp (ns), GID (16 bytes). ``keyed``: the earlier rmw_zenoh layout
+    with the strings "sequence_number", "source_timestamp", "source_gid" before the values."""
     if len(gid) != GID_SIZE:
         raise ValueError(f"gid must be {GID_SIZE} bytes")
-    return (
-        _zstr("sequence_number")
-        + struct.pack("<q", sequence_number)
-        + _zstr("source_timestamp")
-        + struct.pack("<q", source_timestamp_ns)
-        + _zstr("source_gid")
-        + _leb128(GID_SIZE)
-        + gid
-    )
+    seq, ts = struct.pack("<q", sequence_number), struct.pack("<q", source_timestamp_ns)
+    g = _leb128(GID_SIZE) + gid
+    if keyed:
+        return _zstr("sequence_number") + seq + _zstr("source_timestamp") + ts + _zstr("source_gid") + g
+    return seq + ts + g
+
+
+# --- rmw_zenoh graph (liveliness) tokens -----------------------------------------------------------------
+#: QoS chunk of a token for rmw_zenoh's default profile (reliable, volatile, keep last 10): every
+#: field equal to the default is left empty
+DEFAULT_QOS_CHUNK = "::,:,:,:,,"
+
+
+def _mangle(name: str) -> str:
+    return name.replace("/", "%")
+
+
+def graph_tokens(cfg: Ros2Config, zid: str, publishers, subscriptions) -> list[str]:
+    """rmw_zenoh liveliness tokens of the bridge: one node (NN), one per publisher (MP) and per
+    subscription (MS), ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/
+    <node>[/<topic>/<type>/<type hash>/<qos>]`` with '/' inside names written '%' (rmw_zenoh's
+    liveliness_utils). ``publishers``/``subscriptions``: (topic, message type) pairs."""
+    base = f"@ros2_lv/{cfg.domain_id}/{zid}/0"
+    node = f"%/%/{cfg.node_name}"
+    out = [f"{base}/0/NN/{node}"]
+    entities = [("MP", t, m) for t, m in publishers] + [("MS", t, m) for t, m in subscriptions]
+    for n, (kind, topic, msgtype) in enumerate(entities, start=1):
+        t = "/" + topic.lstrip("/")
+        h = type_hash(msgtype, cfg.distro)
+        out.append(f"{base}/{n}/{kind}/{node}/{_mangle(t)}/{dds_type_name(msgtype)}/{h}/{DEFAULT_QOS_CHUNK}")
+    return out
+
+
+def header_stamp_s(payload: bytes) -> float:
+    """header.stamp (s) of a CDR message whose first field is a std_msgs/Header (Imu, NavSatFix,
+    TwistWithCovarianceStamped): int32 sec and uint32 nanosec after the 4-byte encapsulation header,
+    in the byte order it names. 0 when the payload is too short (it is refused later)."""
+    if len(payload) < 12:
+        return 0.0
+    sec, ns = struct.unpack_from("<iI" if payload[1] & 1 else ">iI", payload, 4)
+    return sec + ns * 1e-9
 
 
 # --- conversions in ------------------------------------------------------------------------------------
@@ -544,10 +577,22 @@ class RosSink:
             return
         key = topic_key(self.cfg, topic, msg.__msgtype__)
         att = None
-        if self.cfg.carrier == "rmw_zenoh" and self.cfg.attachment:
+        if self.cfg.carrier == "rmw_zenoh" and self.cfg.attachment != "none":
             n = self.seq[key] = self.seq.get(key, 0) + 1
-            att = rmw_attachment(n, time.time_ns(), self.gid)
+            att = rmw_attachment(n, time.time_ns(), self.gid, keyed=self.cfg.attachment == "rmw_zenoh_keyed")
         self.put(key, self.enc.cdr(msg), att)
+
+    def topics(self) -> list[tuple[str, str]]:
+        """(topic, message type) of every output this sink can publish."""
+        o, v = self.cfg.outputs, self.cfg.vehicle
+        out = []
+        for p in self.pipelines:
+            out += [(output_topic(o.odometry_topic, v, p), TYPES_OUT["odometry"])]
+            out += [(output_topic(o.navsatfix_topic, v, p), TYPES_OUT["navsatfix"])]
+        if o.tf and self.tf_pipeline:
+            out.append((output_topic(o.tf_topic, v, self.tf_pipeline), TYPES_OUT["tf"]))
+        out.append((output_topic(o.diagnostics_topic, v), TYPES_OUT["diagnostics"]))
+        return [(t, m) for t, m in dict.fromkeys(out) if t]
 
     def on_estimate(self, vehicle: str, out) -> None:
         if vehicle != self.cfg.vehicle or out.name not in self.pipelines:
