@@ -416,6 +416,10 @@ class Service:
         from service.transport import ros2
 
         cfg = self.config.ros2
+        if "*" not in self.config.vehicles and cfg.vehicle not in self.config.vehicles:
+            log.warning(
+                "[ros2] vehicle %r is not among the served vehicles %s", cfg.vehicle, self.config.vehicles
+            )
         self.ros_in = ros2.RosInput(cfg)
         gid = hashlib.md5(str(self.session.zid()).encode()).digest()  # 16 bytes, stable per session
         sink = ros2.RosSink(cfg, [p.name for p in self.config.pipelines], self.pubs.put_bytes, gid)

@@ -458,3 +458,21 @@ def test_config_errors_name_the_field():
         config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"carrier": "dds"}})
     with pytest.raises(config_mod.ConfigError, match="not a configured pipeline"):
         config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"outputs": {"pipelines": ["nope"]}}})
+
+
+def test_example_config_loads_and_missing_rosbags_is_one_line(monkeypatch, capsys):
+    from pathlib import Path
+
+    from service import __main__ as service_main
+
+    example = Path(__file__).resolve().parents[1] / "service" / "configs" / "ros2.toml"
+    c = config_mod.load(example)
+    assert c.ros2.vehicle == "robot1" and c.ros2.outputs.tf and len(c.ros2.inputs) == 3
+
+    def missing(distro="jazzy"):
+        raise ros2.RosUnavailable(ros2.INSTALL_HINT)
+
+    monkeypatch.setattr(ros2, "typestore", missing)
+    assert service_main.main(["--config", str(example), "--no-record"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "install fednav[ros]" in err[0]
