@@ -186,6 +186,15 @@ def test_imu_rates_in_flu_become_increments_in_rfu_over_the_stamp_interval():
     # FLU (forward, left, up) -> RFU (right, forward, up): right = -left
     np.testing.assert_allclose(s.dtheta_rad, np.array([-w[1], w[0], w[2]]) * 0.01, atol=1e-12)
     np.testing.assert_allclose(s.dvel_mps, np.array([-a[1], a[0], a[2]]) * 0.01, atol=1e-9)
+    # a repeated stamp is a counted duplicate; a stamp going back reopens the interval (counted)
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
+    assert e.value.reason == "duplicate"
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 5.0, w0, a0)))
+    assert e.value.reason == "time_backwards"
+    [(_, _, payload)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 4.99, w1, a1)))
+    assert ImuSample.model_validate_json(payload).dt_s == pytest.approx(0.01, abs=1e-9)
     rect = ros2.RosInput(cfg(imu_integration="rectangle"))
     rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, w0, a0)))
     [(_, _, payload)] = rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))

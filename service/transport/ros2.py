@@ -291,11 +291,15 @@ class RosInput:
             [msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z], dtype=float
         )
         prev = self._imu.get(inp.sensor_id)
-        if prev is not None and stamp_ns <= prev.stamp_ns:  # out of order / duplicate: reopen
-            prev = None
+        if prev is not None and stamp_ns == prev.stamp_ns:
+            raise RosDecodeError("duplicate", f"{inp.topic}: Imu stamp repeated")
         self._imu[inp.sensor_id] = _ImuState(stamp_ns, w, a)
         if prev is None:
             return []
+        if stamp_ns < prev.stamp_ns:
+            # the interval reopens at this sample: a sensor restart or clock step backwards goes
+            # on to the intake on its new time base (its rules recognise a time jump)
+            raise RosDecodeError("time_backwards", f"{inp.topic}: Imu stamp went back; interval reopened")
         dt_s = (stamp_ns - prev.stamp_ns) * 1e-9  # exact from the integer stamps
         sample = imu_sample_from_rates(
             t, dt_s, w, a, prev.rate_flu_rps, prev.accel_flu_mps2, self.cfg.imu_integration
