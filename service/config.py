@@ -457,11 +457,18 @@ class ServiceConfig(Model):
         if self.ros2 is not None and "*" not in self.vehicles and self.ros2.vehicle not in self.vehicles:
             raise ValueError(f"ros2.vehicle {self.ros2.vehicle!r} is not a served vehicle {self.vehicles}")
         names = {p.name for p in self.pipelines}
-        for name in self.ros2.outputs.pipelines if self.ros2 is not None else []:
+        out = self.ros2.outputs if self.ros2 is not None else None
+        for name in out.pipelines if out is not None else []:
             if name not in names:
                 raise ValueError(
                     f"ros2.outputs.pipelines: {name!r} is not a configured pipeline {sorted(names)}"
                 )
+        if (
+            out is not None
+            and out.tf_pipeline is not None
+            and out.tf_pipeline not in (out.pipelines or names)
+        ):
+            raise ValueError(f"ros2.outputs.tf_pipeline: {out.tf_pipeline!r} is not a republished pipeline")
         return self
 
 

@@ -465,6 +465,8 @@ def test_config_errors_name_the_field():
         )
     with pytest.raises(config_mod.ConfigError, match=r"ros2\.carrier"):
         config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"carrier": "dds"}})
+    with pytest.raises(config_mod.ConfigError, match="ros2.outputs.tf_pipeline"):
+        config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"outputs": {"tf": True, "tf_pipeline": "x"}}})
     with pytest.raises(config_mod.ConfigError, match="not a configured pipeline"):
         config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"outputs": {"pipelines": ["nope"]}}})
 

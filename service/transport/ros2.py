@@ -102,6 +102,7 @@ def dds_type_name(msgtype: str) -> str:
     return f"{pkg}::{kind}::dds_::{name}_"
 
 
+@functools.cache
 def type_hash(msgtype: str, distro: str = "jazzy") -> str:
     """The type-hash chunk of rmw_zenoh keys: ``RIHS01_<sha256 hex>`` (REP 2011), Humble has none."""
     if distro == "humble":
