@@ -101,6 +101,14 @@ def main(argv: list[str] | None = None) -> int:
     except config_mod.ConfigError as exc:
         print(f"fednav-service: {exc}", file=sys.stderr)
         return 2
+    if cfg.ros2 is not None:
+        from service.transport.ros2 import RosUnavailable, typestore
+
+        try:
+            typestore(cfg.ros2.distro)
+        except RosUnavailable as exc:
+            print(f"fednav-service: [ros2] is configured but {exc}", file=sys.stderr)
+            return 2
     from service.app import Service
 
     listen = args.listen

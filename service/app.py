@@ -127,11 +127,23 @@ class _RateLimitedLog:
 class OutputSink:
     """Engine sink of the service: publish on Zenoh, record to Rerun."""
 
-    def __init__(self, prefix: str, publishers, rerun_sink):
+    def __init__(self, prefix: str, publishers, rerun_sink, extra=()):
         self.prefix = prefix
         self.pubs = publishers
         self.rr = rerun_sink
+        self.extra = list(extra)  # more sinks (the ROS 2 bridge); their failures are logged, not raised
         self.last_solution: dict[tuple[str, str], Solution] = {}
+        self._rlog = _RateLimitedLog()
+
+    def _forward(self, method: str, *args) -> None:
+        for s in self.extra:
+            try:
+                getattr(s, method)(*args)
+            except Exception as exc:
+                self._rlog.warn("output_sink_error", f"{type(s).__name__}.{method}: {exc!r}")
+
+    def on_health(self, vehicle: str, health: Health) -> None:
+        self._forward("on_health", vehicle, health)
 
     def on_estimate(self, vehicle: str, out: EstimateOutput) -> None:
         sol = out.solution()
@@ -142,8 +154,10 @@ class OutputSink:
             if out.err9 is not None:
                 errors, bounds = recording_errors(out.err9, out.P9)
                 self.rr.log_errors(vehicle, sol.pipeline, sol.t, errors, bounds)
+        self._forward("on_estimate", vehicle, out)
 
     def on_output(self, vehicle: str, msg: WireModel, err9=None) -> None:
+        self._forward("on_output", vehicle, msg, err9)
         if isinstance(msg, Alignment):  # transfer alignment (seed 002); err9: the node's truth
             self.pubs.publish(keys.alignment(vehicle, msg.pipeline, msg.node, self.prefix), msg)
             if self.rr is not None:
@@ -204,6 +218,11 @@ class VehicleWorker:
             except queue.Full:
                 self.dropped += 1
 
+    def submit_rejection(self, wall: float, reason: str, text: str) -> None:
+        """A message refused before it became a wire message (e.g. ROS 2 CDR that does not decode):
+        counted by the worker like every other rejection."""
+        self.submit(wall, None, reason, text.encode())
+
     def reject(self, reason: str, text: str = "") -> None:
         self.counters[reason] += 1
         self._rlog.warn(reason, f"{self.vehicle}: {text}")
@@ -211,6 +230,9 @@ class VehicleWorker:
     def _process(self, item) -> None:
         wall, kind, sensor_id, payload = item
         self.received += 1
+        if kind is None:  # submit_rejection: sensor_id is the reason
+            self.reject(sensor_id, payload.decode())
+            return
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.reject("oversize", f"{kind} payload of {len(payload)} bytes")
             return
@@ -287,6 +309,7 @@ class VehicleWorker:
     def publish_health(self) -> None:
         h = self.health()
         self.pubs.publish(keys.service(self.vehicle, "health", self.config.prefix), h)
+        self.sink.on_health(self.vehicle, h)
         if self.rr is not None:
             self.rr.log_health(self.vehicle, h)
 
@@ -357,16 +380,25 @@ class Service:
             )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
-        self.sink = OutputSink(cfg.prefix, self.pubs, self.rr)
+        self.liveliness = zenoh_io.Liveliness(self.session)
+        self.ros_in = None
+        extra = [self._start_ros2()] if cfg.ros2 is not None else []
+        self.sink = OutputSink(cfg.prefix, self.pubs, self.rr, extra)
         sel = "*" if "*" in cfg.vehicles else None
         exprs = []
         for v in [sel] if sel else cfg.vehicles:
             exprs += keys.inputs_selector(v, cfg.prefix)
         self.intake = zenoh_io.Intake(self.session, exprs, self._deliver)
+        self.ros_intake = None
+        if self.ros_in is not None and self.ros_in.key_exprs():
+            from service.transport.ros2 import header_stamp_s
+
+            self.ros_intake = zenoh_io.Intake(
+                self.session, self.ros_in.key_exprs(), self._deliver_ros, order_key=header_stamp_s
+            )
         # one queryable per vehicle selector: status, config and each pipeline's latest solution
         qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
-        self.liveliness = zenoh_io.Liveliness(self.session)
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
         for v in [] if sel else cfg.vehicles:
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
@@ -376,6 +408,41 @@ class Service:
             [p.name for p in cfg.pipelines],
             self.rrd_path if self.record else None,
         )
+
+    def _start_ros2(self):
+        """The ROS 2 bridge (docs/ros2.md): its input decoder and its output sink."""
+        import hashlib
+
+        from service.transport import ros2
+
+        cfg = self.config.ros2
+        if "*" not in self.config.vehicles and cfg.vehicle not in self.config.vehicles:
+            log.warning(
+                "[ros2] vehicle %r is not among the served vehicles %s", cfg.vehicle, self.config.vehicles
+            )
+        self.ros_in = ros2.RosInput(cfg)
+        gid = hashlib.md5(str(self.session.zid()).encode()).digest()  # 16 bytes, stable per session
+        sink = ros2.RosSink(cfg, [p.name for p in self.config.pipelines], self.pubs.put_bytes, gid)
+        if cfg.carrier == "rmw_zenoh" and cfg.liveliness:
+            subs = [(i.topic, i.type) for i in cfg.inputs]
+            for token in ros2.graph_tokens(cfg, str(self.session.zid()), sink.topics(), subs):
+                self.liveliness.declare(token)
+        log.info("ROS 2 bridge (%s): inputs %s", cfg.carrier, self.ros_in.key_exprs())
+        return sink
+
+    def _deliver_ros(self, wall: float, key: str, payload: bytes) -> None:
+        """A ROS 2 sample: decoded into fednav wire messages and handed to the same intake path."""
+        from service.transport.ros2 import RosDecodeError
+
+        w = self._worker(self.config.ros2.vehicle)
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            return w.submit_rejection(wall, "oversize", f"ROS 2 payload of {len(payload)} bytes")
+        try:
+            items = self.ros_in.decode(key, payload)
+        except RosDecodeError as exc:
+            return w.submit_rejection(wall, exc.reason, str(exc))
+        for kind, sensor_id, data in items:
+            w.submit(wall, kind, sensor_id, data)
 
     def _worker(self, vehicle: str) -> VehicleWorker:
         w = self.workers.get(vehicle)
@@ -458,6 +525,8 @@ class Service:
         if self.session is None:
             return
         self.intake.stop()
+        if self.ros_intake is not None:
+            self.ros_intake.stop()
         workers = list(self.workers.values())
         for w in workers:
             w.request_stop()

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from service import earth
 from service.ins.error_model import ImuNoise
+from service.ros2_config import Ros2Config
 
 
 class Model(BaseModel):
@@ -449,6 +450,26 @@ class ServiceConfig(Model):
         "Each send is one chunk per entity: shorter means a bigger file and more memory for its footer",
     )
     viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
+    ros2: Ros2Config | None = Field(None, description="ROS 2 bridge over Zenoh (docs/ros2.md); None: off")
+
+    @model_validator(mode="after")
+    def _ros2_vehicle(self):
+        if self.ros2 is not None and "*" not in self.vehicles and self.ros2.vehicle not in self.vehicles:
+            raise ValueError(f"ros2.vehicle {self.ros2.vehicle!r} is not a served vehicle {self.vehicles}")
+        names = {p.name for p in self.pipelines}
+        out = self.ros2.outputs if self.ros2 is not None else None
+        for name in out.pipelines if out is not None else []:
+            if name not in names:
+                raise ValueError(
+                    f"ros2.outputs.pipelines: {name!r} is not a configured pipeline {sorted(names)}"
+                )
+        if (
+            out is not None
+            and out.tf_pipeline is not None
+            and out.tf_pipeline not in (out.pipelines or names)
+        ):
+            raise ValueError(f"ros2.outputs.tf_pipeline: {out.tf_pipeline!r} is not a republished pipeline")
+        return self
 
 
 class ConfigError(ValueError):

@@ -165,6 +165,17 @@ class Publishers:
     def publish(self, key: str, msg: WireModel) -> None:
         self.publisher(key, type(msg)).put(msg.to_json())
 
+    def put_bytes(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        """Publish bytes of another encoding (the ROS 2 bridge's CDR) with an optional attachment."""
+        with self._lock:
+            pub = self._pubs.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key, congestion_control=self.cc, reliability=zenoh.Reliability.RELIABLE
+                )
+                self._pubs[key] = pub
+        pub.put(payload, attachment=attachment)
+
     def undeclare_all(self) -> None:
         with self._lock:
             for p in self._pubs.values():
@@ -192,6 +203,7 @@ class Intake:
         key_exprs: list[str],
         deliver: Callable[[float, str, bytes], None],
         capacity: int = 4096,
+        order_key: Callable[[bytes], float] | None = None,
     ):
         self._subs = [
             session.declare_subscriber(
@@ -200,6 +212,7 @@ class Intake:
             for k in key_exprs
         ]
         self._deliver = deliver
+        self._order_key = order_key
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
         self._thread.start()
@@ -215,17 +228,40 @@ class Intake:
         return now - age if 0.0 <= age < 60.0 else now
 
     def _drain(self) -> bool:
+        if self._order_key is not None:
+            return self._drain_ordered()
         got = False
         for s in self._subs:
             sample = s.try_recv()
             while sample is not None:
                 got = True
-                try:
-                    self._deliver(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
-                except Exception:  # routing must survive any one message
-                    log.exception("intake: delivery of %s failed", str(sample.key_expr)[:200])
+                self._deliver_one(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
                 sample = s.try_recv()
         return got
+
+    def _deliver_one(self, wall: float, key: str, payload: bytes) -> None:
+        try:
+            self._deliver(wall, key, payload)
+        except Exception:  # routing must survive any one message
+            log.exception("intake: delivery of %s failed", key[:200])
+
+    def _drain_ordered(self) -> bool:
+        """Everything waiting in every subscription, delivered in ``order_key`` (sensor time) order.
+
+        Separate subscriptions (one per ROS 2 topic) lose the order across topics; samples of one
+        publisher reach the FIFOs in publication order, so whatever one drain finds is complete up
+        to its newest sample per topic, and sorting it restores the time order across topics."""
+        batch = []
+        for s in self._subs:
+            sample = s.try_recv()
+            while sample is not None:
+                batch.append((self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes()))
+                sample = s.try_recv()
+        if len(self._subs) > 1:
+            batch.sort(key=lambda item: self._order_key(item[2]))
+        for item in batch:
+            self._deliver_one(*item)
+        return bool(batch)
 
     def _run(self) -> None:
         while not self._stop.is_set():

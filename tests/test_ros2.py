@@ -1,0 +1,489 @@
+"""ROS 2 bridge (service/transport/ros2.py): CDR in and out, key formats, time, axes and covariance
+conventions, configuration errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+
+import numpy as np
+import pytest
+
+from service import config as config_mod
+from service import earth
+from service.messages import GnssFix, Health, ImuSample, PipelineHealth
+from service.ros2_config import Ros2Config
+from service.transport import ros2
+
+pytest.importorskip("rosbags")
+
+STORE = ros2.typestore("jazzy")
+T = STORE.types
+T0_UNIX = 1_700_000_000
+
+
+def cfg(**kw) -> Ros2Config:
+    base = {
+        "vehicle": "v1",
+        "inputs": [
+            {"topic": "/imu/data", "type": "sensor_msgs/msg/Imu", "sensor_id": "main"},
+            {"topic": "/gnss/fix", "type": "sensor_msgs/msg/NavSatFix", "sensor_id": "rx"},
+            {"topic": "/gnss/vel", "type": "geometry_msgs/msg/TwistWithCovarianceStamped", "sensor_id": "rx"},
+        ],
+    }
+    return Ros2Config.model_validate(base | kw)
+
+
+def header(unix_s: float, frame: str = "base_link"):
+    """Stamp of ``unix_s`` (T0_UNIX + a fraction: the fraction is taken apart from the seconds)."""
+    sec = math.floor(unix_s)
+    frac = round(unix_s - T0_UNIX, 6) - (sec - T0_UNIX)
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round(frac * 1e9)), frame_id=frame
+    )
+
+
+def imu_msg(unix_s, w, a):
+    v3 = T["geometry_msgs/msg/Vector3"]
+    return T["sensor_msgs/msg/Imu"](
+        header=header(unix_s),
+        orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.r_[-1.0, np.zeros(8)],
+        angular_velocity=v3(x=w[0], y=w[1], z=w[2]),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=v3(x=a[0], y=a[1], z=a[2]),
+        linear_acceleration_covariance=np.zeros(9),
+    )
+
+
+def navsat_msg(unix_s, lat, lon, alt, cov=None, status=0, cov_type=2):
+    return T["sensor_msgs/msg/NavSatFix"](
+        header=header(unix_s, "gnss"),
+        status=T["sensor_msgs/msg/NavSatStatus"](status=status, service=1),
+        latitude=lat,
+        longitude=lon,
+        altitude=alt,
+        position_covariance=np.zeros(9) if cov is None else np.asarray(cov, dtype=float),
+        position_covariance_type=cov_type,
+    )
+
+
+def twist_msg(unix_s, v, var=(0.01, 0.04, 0.09)):
+    cov = np.zeros(36)
+    cov[0], cov[7], cov[14] = var
+    v3 = T["geometry_msgs/msg/Vector3"]
+    return T["geometry_msgs/msg/TwistWithCovarianceStamped"](
+        header=header(unix_s, "gnss"),
+        twist=T["geometry_msgs/msg/TwistWithCovariance"](
+            twist=T["geometry_msgs/msg/Twist"](
+                linear=v3(x=v[0], y=v[1], z=v[2]), angular=v3(x=0.0, y=0.0, z=0.0)
+            ),
+            covariance=cov,
+        ),
+    )
+
+
+def cdr(msg) -> bytes:
+    return bytes(STORE.serialize_cdr(msg, msg.__msgtype__))
+
+
+# --- time and keys ---------------------------------------------------------------------------------------
+def test_ros_time_is_utc_and_converts_to_gps_seconds_with_leap_seconds():
+    # 2017-01-01T00:00:00 UTC = unix 1483228800; GPS was 18 s ahead of UTC from then on
+    assert ros2.stamp_to_t(1_483_228_800, 0) == 1_483_228_800 - 315_964_800 + 18
+    assert ros2.stamp_to_t(100, 500_000_000, base="gps") == 100.5
+    assert ros2.stamp_to_t(1_483_228_800, 0, leap_seconds=17) == 1_483_228_800 - 315_964_800 + 17
+    for t in (1_300_000_000.0, 1_300_000_000.123456789, 1_400_000_000.999999999):
+        sec, ns = ros2.t_to_stamp(t)
+        assert 0 <= ns < 1_000_000_000
+        assert abs(ros2.stamp_to_t(sec, ns) - t) < 1e-6
+
+
+def test_key_formats_of_both_carriers():
+    c = cfg()
+    key = ros2.topic_key(c, "/imu/data", "sensor_msgs/msg/Imu")
+    assert key.startswith("0/imu/data/sensor_msgs::msg::dds_::Imu_/RIHS01_")
+    assert len(key.rsplit("/", 1)[1]) == len("RIHS01_") + 64
+    assert ros2.topic_key(c, "/imu/data", "sensor_msgs/msg/Imu", any_hash=True) == (
+        "0/imu/data/sensor_msgs::msg::dds_::Imu_/*"
+    )
+    humble = cfg(distro="humble", domain_id=7)
+    assert ros2.topic_key(humble, "/fix", "sensor_msgs/msg/NavSatFix") == (
+        "7/fix/sensor_msgs::msg::dds_::NavSatFix_/TypeHashNotSupported"
+    )
+    dds = cfg(carrier="ros2dds")
+    assert ros2.topic_key(dds, "/imu/data", "sensor_msgs/msg/Imu") == "imu/data"
+    assert (
+        ros2.topic_key(cfg(carrier="ros2dds", namespace="/robot1"), "/imu/data", "x/msg/Y")
+        == "robot1/imu/data"
+    )
+    # the decoder finds the input whatever the publisher's type hash (Humble or Jazzy)
+    rin = ros2.RosInput(c)
+    assert rin.input_of("0/imu/data/sensor_msgs::msg::dds_::Imu_/TypeHashNotSupported").sensor_id == "main"
+    assert rin.input_of(key).sensor_id == "main"
+    assert rin.input_of("1/imu/data/sensor_msgs::msg::dds_::Imu_/x") is None
+
+
+# --- a NavSatFix laid out by hand -------------------------------------------------------------------------
+def navsat_by_hand() -> bytes:
+    """NavSatFix in CDR little-endian, built from the layout: 4-byte encapsulation header, then each
+    field aligned to its size counted from the end of that header."""
+    b = bytearray(b"\x00\x01\x00\x00")  # CDR_LE, options 0
+    b += struct.pack("<iI", T0_UNIX, 250_000_000)  # stamp: int32 sec, uint32 nanosec   @0
+    b += struct.pack("<I", 5) + b"gnss\x00"  # frame_id: uint32 length incl. NUL, bytes      @8
+    b += struct.pack("<b", 0)  # status.status int8 (STATUS_FIX)                               @17
+    b += struct.pack("<H", 1)  # status.service uint16 (GPS), aligned to 2                     @18
+    b += b"\x00" * 4  # pad to 8                                                              @20
+    b += struct.pack("<3d", 40.5, 118.25, 123.5)  # latitude, longitude, altitude              @24
+    b += struct.pack("<9d", 4.0, 0, 0, 0, 9.0, 0, 0, 0, 16.0)  # position_covariance            @48
+    b += struct.pack("<B", 2)  # position_covariance_type: DIAGONAL_KNOWN                     @120
+    return bytes(b)
+
+
+def test_hand_laid_navsatfix_equals_rosbags_bytes_and_decodes_to_the_fields():
+    by_hand = navsat_by_hand()
+    assert ros2.header_stamp_s(by_hand) == T0_UNIX + 0.25  # the intake's ordering key
+    assert ros2.header_stamp_s(by_hand[:8]) == 0.0
+    msg = navsat_msg(T0_UNIX + 0.25, 40.5, 118.25, 123.5, cov=[4.0, 0, 0, 0, 9.0, 0, 0, 0, 16.0])
+    assert cdr(msg) == by_hand
+    d = STORE.deserialize_cdr(by_hand, "sensor_msgs/msg/NavSatFix")
+    assert (d.header.stamp.sec, d.header.stamp.nanosec, d.header.frame_id) == (T0_UNIX, 250_000_000, "gnss")
+    assert (d.latitude, d.longitude, d.altitude, d.position_covariance_type) == (40.5, 118.25, 123.5, 2)
+    # through the bridge (paired with its Twist) into a GnssFix: sigmas are the covariance diagonal
+    rin = ros2.RosInput(cfg())
+    assert rin.decode("0/gnss/fix/sensor_msgs::msg::dds_::NavSatFix_/h", by_hand) == []
+    out = rin.decode(
+        "0/gnss/vel/geometry_msgs::msg::dds_::TwistWithCovarianceStamped_/h",
+        cdr(twist_msg(T0_UNIX + 0.25, (1.0, 2.0, 0.5))),
+    )
+    [(kind, sid, payload)] = out
+    fix = GnssFix.model_validate_json(payload)
+    assert (kind, sid) == ("gnss_fix", "rx")
+    assert fix.t == pytest.approx(T0_UNIX + 0.25 - 315_964_800 + 18, abs=1e-6)
+    assert (fix.lat_deg, fix.lon_deg, fix.height_m) == (40.5, 118.25, 123.5)
+    assert fix.pos_std_enu_m == (2.0, 3.0, 4.0)
+    assert fix.vel_enu_mps == (1.0, 2.0, 0.5)
+    assert fix.vel_std_enu_mps == pytest.approx((0.1, 0.2, 0.3))
+
+
+# --- inputs -----------------------------------------------------------------------------------------------
+IMU_KEY = "0/imu/data/sensor_msgs::msg::dds_::Imu_/h"
+FIX_KEY = "0/gnss/fix/sensor_msgs::msg::dds_::NavSatFix_/h"
+VEL_KEY = "0/gnss/vel/geometry_msgs::msg::dds_::TwistWithCovarianceStamped_/h"
+
+
+def test_imu_rates_in_flu_become_increments_in_rfu_over_the_stamp_interval():
+    rin = ros2.RosInput(cfg())
+    w0, a0 = (0.1, 0.2, 0.3), (1.0, -2.0, 9.8)
+    w1, a1 = (0.3, 0.0, 0.1), (3.0, 0.0, 9.6)
+    assert rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, w0, a0))) == []  # the first opens the interval
+    [(kind, sid, payload)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
+    s = ImuSample.model_validate_json(payload)
+    assert (kind, sid) == ("imu", "main")
+    assert s.dt_s == pytest.approx(0.01, abs=1e-9)
+    w, a = 0.5 * (np.array(w0) + w1), 0.5 * (np.array(a0) + a1)  # trapezoid
+    # FLU (forward, left, up) -> RFU (right, forward, up): right = -left
+    np.testing.assert_allclose(s.dtheta_rad, np.array([-w[1], w[0], w[2]]) * 0.01, atol=1e-12)
+    np.testing.assert_allclose(s.dvel_mps, np.array([-a[1], a[0], a[2]]) * 0.01, atol=1e-9)
+    # a repeated stamp is a counted duplicate; a stamp going back reopens the interval (counted)
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
+    assert e.value.reason == "duplicate"
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 5.0, w0, a0)))
+    assert e.value.reason == "time_backwards"
+    [(_, _, payload)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 4.99, w1, a1)))
+    assert ImuSample.model_validate_json(payload).dt_s == pytest.approx(0.01, abs=1e-9)
+    rect = ros2.RosInput(cfg(imu_integration="rectangle"))
+    rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, w0, a0)))
+    [(_, _, payload)] = rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
+    np.testing.assert_allclose(json.loads(payload)["dtheta_rad"], np.array([-w1[1], w1[0], w1[2]]) * 0.01)
+
+
+def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
+    rin = ros2.RosInput(cfg())
+    fix = cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov_type=0))
+    assert rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 1.0, (0.0, 10.0, 0.0)))) == []
+    [(_, _, p)] = rin.decode(FIX_KEY, fix)
+    g = GnssFix.model_validate_json(p)
+    assert g.pos_std_enu_m == (10.0, 10.0, 10.0)  # covariance UNKNOWN -> fix_std_m
+    # a Twist 0.5 s away is another epoch: no pair
+    assert rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 2.0, 40.0, 118.0, 50.0))) == []
+    assert rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 2.5, (0.0, 10.0, 0.0)))) == []
+    # NED velocity frame
+    ned = ros2.RosInput(
+        cfg(
+            inputs=[
+                {"topic": "/fix", "type": "sensor_msgs/msg/NavSatFix", "sensor_id": "rx"},
+                {
+                    "topic": "/vel",
+                    "type": "geometry_msgs/msg/TwistWithCovarianceStamped",
+                    "sensor_id": "rx",
+                    "velocity_frame": "ned",
+                },
+            ]
+        )
+    )
+    ned.decode("0/fix/sensor_msgs::msg::dds_::NavSatFix_/h", fix)
+    [(_, _, p)] = ned.decode(
+        "0/vel/geometry_msgs::msg::dds_::TwistWithCovarianceStamped_/h",
+        cdr(twist_msg(T0_UNIX + 1.0, (3.0, 4.0, 1.0))),
+    )
+    g = GnssFix.model_validate_json(p)
+    assert g.vel_enu_mps == (4.0, 3.0, -1.0)
+    assert g.vel_std_enu_mps == pytest.approx((0.2, 0.1, 0.3))
+
+
+def test_bad_cdr_and_no_fix_are_counted_rejections_not_exceptions():
+    rin = ros2.RosInput(cfg())
+    good = cdr(imu_msg(T0_UNIX, (0, 0, 0), (0, 0, 9.8)))
+    for bad in (b"", b"\x00\x01\x00\x00", good[: len(good) // 2], b"\xff" * 40):
+        with pytest.raises(ros2.RosDecodeError) as e:
+            rin.decode(IMU_KEY, bad)
+        assert e.value.reason == "bad_cdr"
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX, 40.0, 118.0, 50.0, status=-1)))
+    assert e.value.reason == "ros_no_fix"
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode("0/other/x::msg::dds_::Y_/h", good)
+    assert e.value.reason == "unknown_key"
+    # a non-finite rate passes the bridge and is refused by the wire model like JSON input
+    rin.decode(IMU_KEY, good)
+    [(_, _, p)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (math.nan, 0, 0), (0, 0, 9.8))))
+    from pydantic import ValidationError
+
+    from service.app import classify
+
+    with pytest.raises(ValidationError) as v:
+        ImuSample.model_validate_json(p)
+    assert classify(v.value) == "non_finite"
+
+
+# --- outputs: conventions ---------------------------------------------------------------------------------
+def test_quaternion_of_known_attitudes_rep103():
+    # heading north (fednav heading 0), level: the FLU x axis points north = ENU yaw +90 deg
+    q = ros2.quat_enu_flu(earth.rpy_to_mat_nb(earth.rpy_from_msg_deg([0.0, 0.0, 0.0])))
+    np.testing.assert_allclose(q, [0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)], atol=1e-12)
+    # heading east: ENU yaw 0, identity
+    q = ros2.quat_enu_flu(earth.rpy_to_mat_nb(earth.rpy_from_msg_deg([0.0, 0.0, 90.0])))
+    np.testing.assert_allclose(np.abs(q), [0.0, 0.0, 0.0, 1.0], atol=1e-12)
+    # any attitude: the quaternion maps FLU forward/left/up to fednav's forward/-right/up in ENU
+    rng = np.random.default_rng(12)
+    for _ in range(20):
+        rpy = [rng.uniform(-170, 170), rng.uniform(-80, 80), rng.uniform(0, 360)]
+        m = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(rpy))
+        x, y, z, w = ros2.quat_enu_flu(m)
+        R = earth.quat_to_mat(np.array([w, x, y, z]))
+        np.testing.assert_allclose(R[:, 0], m[:, 1], atol=1e-12)
+        np.testing.assert_allclose(R[:, 1], -m[:, 0], atol=1e-12)
+        np.testing.assert_allclose(R[:, 2], m[:, 2], atol=1e-12)
+
+
+def test_pose_covariance_attitude_block_is_the_error_of_the_published_orientation():
+    """fednav's phi (C_computed = (I - [phi x]) C_true) is -1 x the world-axes rotation error of the
+    published orientation: Monte Carlo of phi, the rotation errors of the published quaternions, and
+    their sample covariance against pose_covariance's rotation block and its cross terms."""
+    rng = np.random.default_rng(3)
+    m_true = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg([5.0, -3.0, 30.0]))
+    A = rng.normal(size=(6, 6)) * 1e-3
+    P6 = A @ A.T  # joint covariance of (dp, phi)
+    P9 = np.zeros((9, 9))
+    idx = np.r_[0:3, 6:9]
+    P9[np.ix_(idx, idx)] = P6
+    P9[3:6, 3:6] = np.eye(3) * 0.01
+    x = rng.multivariate_normal(np.zeros(6), P6, size=4000)
+    qt = ros2.quat_enu_flu(m_true)
+    Rt = earth.quat_to_mat(np.r_[qt[3], qt[:3]])
+    errs = []
+    for dp, phi in zip(x[:, :3], x[:, 3:], strict=True):
+        m_comp = (np.eye(3) - earth.skew(phi)) @ m_true
+        m_comp = np.linalg.qr(m_comp)[0] * np.sign(np.diag(np.linalg.qr(m_comp)[1]))  # re-orthonormalise
+        qc = ros2.quat_enu_flu(m_comp)
+        Rc = earth.quat_to_mat(np.r_[qc[3], qc[:3]])
+        errs.append(np.r_[dp, earth.quat_to_rotvec(earth.mat_to_quat(Rc @ Rt.T))])
+    C_mc = np.cov(np.array(errs).T)
+    C = ros2.pose_covariance(P9)
+    np.testing.assert_allclose(C, C_mc, atol=0.1 * np.abs(P6).max())
+    assert np.all(
+        np.sign(C[:3, 3:][np.abs(P6[:3, 3:]) > 3e-6]) == -np.sign(P6[:3, 3:][np.abs(P6[:3, 3:]) > 3e-6])
+    )
+
+
+def test_twist_in_child_frame_and_its_covariance():
+    m = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg([0.0, 0.0, 0.0]))  # heading north
+    P9 = np.zeros((9, 9))
+    P9[3:6, 3:6] = np.diag([1.0, 4.0, 9.0])  # east, north, up
+    C = ros2.twist_covariance(P9, m)
+    np.testing.assert_allclose(np.diag(C)[:3], [4.0, 1.0, 9.0])  # forward = north, left = west
+    assert np.all(np.diag(C)[3:] == ros2.UNKNOWN_VARIANCE)
+
+
+class _Nav:
+    def __init__(self, t, lat_deg, lon_deg, h, vel, rpy_deg):
+        self.t, self.lat_rad, self.lon_rad, self.h_m = t, math.radians(lat_deg), math.radians(lon_deg), h
+        self.vel_enu_mps = np.array(vel, dtype=float)
+        self.mat_nb = earth.rpy_to_mat_nb(earth.rpy_from_msg_deg(rpy_deg))
+        self.llh = np.array([self.lat_rad, self.lon_rad, h])
+
+
+def test_odometry_navsatfix_tf_and_diagnostics_roundtrip_through_cdr():
+    c = cfg(outputs={"tf": True, "datum": [40.0, 118.0, 0.0]})
+    enc = ros2.RosEncoder(c)
+    t = 1_300_000_000.5
+    nav = _Nav(t, 40.001, 118.0, 10.0, (0.0, 20.0, 0.0), (0.0, 0.0, 0.0))
+    P9 = np.diag([1.0, 4.0, 9.0, 0.01, 0.04, 0.09, 1e-6, 2e-6, 3e-6])
+    odo = STORE.deserialize_cdr(enc.cdr(enc.odometry("lc", nav, P9)), "nav_msgs/msg/Odometry")
+    assert (odo.header.frame_id, odo.child_frame_id) == ("map", "base_link")
+    assert ros2.stamp_to_t(odo.header.stamp.sec, odo.header.stamp.nanosec) == pytest.approx(t, abs=1e-6)
+    p = odo.pose.pose.position
+    assert (
+        p.x == pytest.approx(0.0, abs=1e-6)
+        and p.y == pytest.approx(111.03, abs=0.05)
+        and p.z == pytest.approx(10.0, abs=0.01)
+    )
+    assert odo.twist.twist.linear.x == pytest.approx(20.0) and abs(odo.twist.twist.linear.y) < 1e-9
+    cov = odo.pose.covariance.reshape(6, 6)
+    np.testing.assert_allclose(np.diag(cov), [1.0, 4.0, 9.0, 1e-6, 2e-6, 3e-6], rtol=1e-4)
+    fix = STORE.deserialize_cdr(enc.cdr(enc.navsatfix(nav, P9, "aided")), "sensor_msgs/msg/NavSatFix")
+    assert fix.latitude == pytest.approx(40.001) and fix.position_covariance_type == 3
+    np.testing.assert_allclose(fix.position_covariance, [1, 0, 0, 0, 4, 0, 0, 0, 9])
+    assert (
+        STORE.deserialize_cdr(
+            enc.cdr(enc.navsatfix(nav, P9, "initialising")), "sensor_msgs/msg/NavSatFix"
+        ).status.status
+        == -1
+    )
+    tf = STORE.deserialize_cdr(enc.cdr(enc.tf("lc", nav)), "tf2_msgs/msg/TFMessage")
+    assert tf.transforms[0].child_frame_id == "base_link"
+    assert tf.transforms[0].transform.translation.y == pytest.approx(p.y)
+    h = Health(
+        t=t,
+        uptime_s=1.0,
+        received=10,
+        accepted=9,
+        rejected={"bad_cdr": 1},
+        dropped_overload=0,
+        queue_depth=0,
+        latency_ms={"p50": 1.0, "p99": 2.0, "max": 3.0},
+        pipelines={
+            "lc": PipelineHealth(status="aided", last_t=t, updates=3),
+            "fed": PipelineHealth(status="failed", last_t=t, updates=0),
+            "tc": PipelineHealth(status="coasting", last_t=t, updates=1),
+            "new": PipelineHealth(status="initialising", last_t=None, updates=0),
+        },
+    )
+    arr = STORE.deserialize_cdr(enc.cdr(enc.diagnostics("v1", h)), "diagnostic_msgs/msg/DiagnosticArray")
+    levels = {s.name: s.level for s in arr.status}
+    assert levels == {
+        "fednav/v1/service": 0,
+        "fednav/v1/lc": 0,
+        "fednav/v1/fed": 2,
+        "fednav/v1/tc": 1,
+        "fednav/v1/new": 3,
+    }
+    svc = arr.status[0]
+    assert {kv.key: kv.value for kv in svc.values}["rejected.bad_cdr"] == "1"
+    stale = h.model_copy(update={"stale": ["imu/main"]})
+    assert (
+        STORE.deserialize_cdr(enc.cdr(enc.diagnostics("v1", stale)), "diagnostic_msgs/msg/DiagnosticArray")
+        .status[0]
+        .level
+        == 1
+    )
+
+
+def test_rmw_zenoh_attachment_layout():
+    gid = bytes(range(16))
+    # rmw_zenoh (zenoh-cpp serializer): int64 seq, int64 timestamp, std::array<uint8_t,16> as a sequence
+    a = ros2.rmw_attachment(7, 1_700_000_000_123_456_789, gid)
+    assert len(a) == 8 + 8 + 1 + 16
+    assert struct.unpack_from("<qq", a) == (7, 1_700_000_000_123_456_789)
+    assert a[16] == 16 and a[17:] == gid
+    # the earlier keyed layout
+    k = ros2.rmw_attachment(7, 1_700_000_000_123_456_789, gid, keyed=True)
+    assert k[0] == 15 and k[1:16] == b"sequence_number"
+    assert struct.unpack_from("<q", k, 16)[0] == 7
+    assert k[24] == 16 and k[25:41] == b"source_timestamp"
+    assert struct.unpack_from("<q", k, 41)[0] == 1_700_000_000_123_456_789
+    assert k[49] == 10 and k[50:60] == b"source_gid" and k[60] == 16 and k[61:] == gid
+
+
+def test_rmw_zenoh_graph_tokens():
+    c = cfg(node_name="nav")
+    h = ros2.type_hash("nav_msgs/msg/Odometry")
+    toks = ros2.graph_tokens(
+        c,
+        "abc123",
+        [("/fednav/lc/odometry", "nav_msgs/msg/Odometry")],
+        [("/imu/data", "sensor_msgs/msg/Imu")],
+    )
+    assert toks[0] == "@ros2_lv/0/abc123/0/0/NN/%/%/nav"
+    assert (
+        toks[1] == "@ros2_lv/0/abc123/0/1/MP/%/%/nav/%fednav%lc%odometry/nav_msgs::msg::dds_::Odometry_/"
+        f"{h}/::,:,:,:,,"
+    )
+    assert toks[2].startswith(
+        "@ros2_lv/0/abc123/0/2/MS/%/%/nav/%imu%data/sensor_msgs::msg::dds_::Imu_/RIHS01_"
+    )
+    for t in toks:  # valid Zenoh key expressions, 9 chunks for the node and 13 for the topics
+        import zenoh
+
+        zenoh.KeyExpr(t)
+        assert len(t.split("/")) in (9, 13)
+
+
+# --- configuration ------------------------------------------------------------------------------------------
+def test_config_errors_name_the_field():
+    ok = {"vehicles": ["v1"], "ros2": cfg().model_dump()}
+    assert config_mod.from_dict(ok).ros2.vehicle == "v1"
+    with pytest.raises(config_mod.ConfigError, match="ros2.vehicle 'v9' is not a served vehicle"):
+        config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"vehicle": "v9"}})
+    with pytest.raises(config_mod.ConfigError, match=r"ros2\.inputs\.0\.topic"):
+        config_mod.from_dict(
+            ok
+            | {
+                "ros2": ok["ros2"]
+                | {"inputs": [{"topic": "imu data", "type": "sensor_msgs/msg/Imu", "sensor_id": "a"}]}
+            }
+        )
+    with pytest.raises(config_mod.ConfigError, match="no NavSatFix topic"):
+        config_mod.from_dict(
+            ok
+            | {
+                "ros2": ok["ros2"]
+                | {
+                    "inputs": [
+                        {
+                            "topic": "/v",
+                            "type": "geometry_msgs/msg/TwistWithCovarianceStamped",
+                            "sensor_id": "a",
+                        }
+                    ]
+                }
+            }
+        )
+    with pytest.raises(config_mod.ConfigError, match=r"ros2\.carrier"):
+        config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"carrier": "dds"}})
+    with pytest.raises(config_mod.ConfigError, match="ros2.outputs.tf_pipeline"):
+        config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"outputs": {"tf": True, "tf_pipeline": "x"}}})
+    with pytest.raises(config_mod.ConfigError, match="not a configured pipeline"):
+        config_mod.from_dict(ok | {"ros2": ok["ros2"] | {"outputs": {"pipelines": ["nope"]}}})
+
+
+def test_example_config_loads_and_missing_rosbags_is_one_line(monkeypatch, capsys):
+    from pathlib import Path
+
+    from service import __main__ as service_main
+
+    example = Path(__file__).resolve().parents[1] / "service" / "configs" / "ros2.toml"
+    c = config_mod.load(example)
+    assert c.ros2.vehicle == "robot1" and c.ros2.outputs.tf and len(c.ros2.inputs) == 3
+
+    def missing(distro="jazzy"):
+        raise ros2.RosUnavailable(ros2.INSTALL_HINT)
+
+    monkeypatch.setattr(ros2, "typestore", missing)
+    assert service_main.main(["--config", str(example), "--no-record"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "install fednav[ros]" in err[0]
