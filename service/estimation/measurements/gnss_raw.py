@@ -422,7 +422,7 @@ class GnssRawModel:
 
     def _isb_index(self, sats: SatArrays) -> np.ndarray:
         """(N,) index into ``isb_constellations`` of each satellite, -1 for the clock's own."""
-        idx = {CONSTELLATION_OF_PREFIX.get(c, ""): j for j, c in enumerate(self.isb_constellations)}
+        idx = {c: j for j, c in enumerate(self.isb_constellations)}
         return np.array([idx.get(CONSTELLATION_OF_PREFIX.get(sid[0], ""), -1) for sid in sats.ids], dtype=int)
 
     def _predict(
