@@ -155,6 +155,7 @@ class IonoKlobuchar(WireModel):
     BDS: BDS-SIS-ICD-B1I 5.2.4.7), as in the navigation message (seconds, semicircle powers)."""
 
     constellation: Literal["GPS", "BDS"]
+    """Constellation whose navigation message broadcast the coefficients"""
     alpha: tuple[float, float, float, float]
     """alpha_0..3: amplitude polynomial, s/semicircle^n"""
     beta: tuple[float, float, float, float]
