@@ -276,3 +276,22 @@ def test_real_rinex2_conversion_resolves_wuhan():
         v = solve_velocity(rr, sol.pos_ecef_m, sp, np.array([s.sat_vel_ecef_mps for s in m.sats]))
         assert np.linalg.norm(v.vel_ecef_mps) < 0.2
     assert 0.3 < np.median(rms) < 5.0
+
+
+def test_rinex2raw_cli_writes_valid_json_lines(tmp_path, capsys):
+    from service.messages import GnssRaw
+    from simulators.__main__ import main
+
+    nav_path = write_nav3(tmp_path / "mixed.15p", with_geo=False)
+    src = MultiBroadcast(read_rinex3_nav(nav_path))
+    rx = llh_to_ecef(RX_LLH)
+    t_rx = gps_seconds(2015, 1, 28, 6, 10, 0)
+    obs = _synthetic_pseudoranges(src, ("G12", "C12"), t_rx, rx, 0.0)
+    obs_path = _obs3(tmp_path / "rx.15o", [((2015, 1, 28, 6, 10, 0), obs)])
+    out = tmp_path / "raw.jsonl"
+    assert main(["rinex2raw", str(obs_path), str(nav_path), "--out", str(out), "--systems", "GC"]) == 0
+    lines = out.read_text().splitlines()
+    assert len(lines) == 1
+    msg = GnssRaw.model_validate_json(lines[0])
+    assert [s.id for s in msg.sats] == ["C12", "G12"] and msg.t == t_rx
+    assert "1 epochs, 2 observations" in capsys.readouterr().out
