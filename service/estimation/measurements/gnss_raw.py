@@ -26,9 +26,9 @@ simulator's scenarios keep their model): the broadcast Klobuchar ionosphere of t
 (``GnssRaw.iono``; GPS IS-GPS-200N 20.3.3.5.2.5, BeiDou BDS-SIS-ICD-B1I 5.2.4.7) and the
 Saastamoinen troposphere with the DO-229 mapping function are added to the predicted pseudorange
 (:mod:`~service.estimation.measurements.atmosphere`); elevation weighting divides the message's
-zenith variances by ``sin^2 E`` (E floored at 5 deg); one inter-system bias (ISB, m) per listed extra constellation is
-a private random-walk state added to its satellites' pseudoranges (the receiver clock is that of
-every other constellation, GPS first).
+zenith variances by ``sin^2 E`` (E floored at 5 deg); one inter-system bias (ISB, m) per listed
+extra constellation is a private random-walk state added to its satellites' pseudoranges (the
+receiver clock is that of every other constellation, GPS first).
 
 Measurement rows (z = INS-predicted minus measured, error state x = computed minus true)
 -------------------------------------------------------------------------------------
