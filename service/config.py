@@ -155,6 +155,15 @@ class TightlyCoupledConfig(Model):
         60.0, gt=0, description="Healthy time before an excluded satellite returns"
     )
     elevation_mask_deg: float = Field(5.0, ge=0, lt=90)
+    # Real receivers (docs/real_rinex.md); all off by default (the simulator's scenarios add none).
+    troposphere: bool = Field(False, description="Saastamoinen zenith delay x DO-229 mapping")
+    ionosphere: bool = Field(False, description="Broadcast Klobuchar of GnssRaw.iono (GPS; BeiDou)")
+    elevation_weighting: bool = Field(False, description="Pseudorange/range-rate variance / sin^2(el)")
+    isb_constellations: tuple[Literal["BDS", "GAL", "GLO", "QZS"], ...] = Field(
+        (), description="One inter-system bias state (m, random walk) per listed constellation"
+    )
+    isb_psd_m2ps: float = Field(1e-4, gt=0, description="ISB random-walk PSD, m^2/s")
+    init_isb_std_m: float = Field(1000.0, gt=0, description="ISB prior 1-sigma, m")
 
 
 Vec3 = tuple[float, float, float]

@@ -150,12 +150,26 @@ class SatObservation(WireModel):
         return self
 
 
+class IonoKlobuchar(WireModel):
+    """Broadcast Klobuchar ionosphere coefficients of one constellation (GPS: IS-GPS-200 20.3.3.5.1.7;
+    BDS: BDS-SIS-ICD-B1I 5.2.4.7), as in the navigation message (seconds, semicircle powers)."""
+
+    constellation: Literal["GPS", "BDS"]
+    """Constellation whose navigation message broadcast the coefficients"""
+    alpha: tuple[float, float, float, float]
+    """alpha_0..3: amplitude polynomial, s/semicircle^n"""
+    beta: tuple[float, float, float, float]
+    """beta_0..3: period polynomial, s/semicircle^n"""
+
+
 class GnssRaw(WireModel):
     """Raw pseudoranges and range rates of one epoch (tightly coupled aiding)."""
 
     t: Time
     sats: list[SatObservation] = Field(max_length=128)
     """One entry per tracked satellite"""
+    iono: list[IonoKlobuchar] = Field(default_factory=list, max_length=2)
+    """Optional broadcast ionosphere coefficients (the service applies them when configured to)"""
 
 
 class StarAttitude(WireModel):

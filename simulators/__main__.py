@@ -66,6 +66,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    rest = sys.argv[1:] if argv is None else argv
+    if rest and rest[0] in ("rinex2raw", "eval-rinex"):  # real RINEX data (docs/real_rinex.md)
+        from simulators.rinex_eval import cli
+
+        return cli(rest)
     args = parse_args(argv)
     from simulators.scenario import ScenarioError, load_scenario
 

@@ -56,6 +56,12 @@ def raw_gnss_model(cfg) -> GnssRawModel:
         init_drift_std_mps=c.init_drift_std_mps,
         elevation_mask_deg=cfg.elevation_mask_deg,
         use_range_rate=cfg.use_range_rate,
+        troposphere=getattr(cfg, "troposphere", False),
+        ionosphere=getattr(cfg, "ionosphere", False),
+        elevation_weighting=getattr(cfg, "elevation_weighting", False),
+        isb_constellations=tuple(getattr(cfg, "isb_constellations", ())),
+        isb_psd_m2ps=getattr(cfg, "isb_psd_m2ps", 1e-4),
+        init_isb_std_m=getattr(cfg, "init_isb_std_m", 1000.0),
     )
 
 
@@ -118,6 +124,9 @@ class TightlyCoupled(Pipeline):
             ref = self.model.initial_clock(nav, msg, dt_late_s)
             if ref is not None:
                 bank.reference["clock"] = ref
+                isb = self.model.initial_isb(nav, msg, ref, dt_late_s)
+                if isb is not None:
+                    bank.reference["isb"] = isb
                 self.clock_initialised = True
         meas = self.model(nav, msg, bank.context(dt_late_s))
         try:

@@ -7,6 +7,7 @@ orbits         time helpers, nominal constellations, the ``OrbitSource`` protoco
 sp3            SP3-c/d reader and Lagrange interpolation (``Sp3Orbits``).
 rinex          RINEX 2 GPS navigation reader + IS-GPS-200 ephemeris (``BroadcastEphemeris``) and
                RINEX 2 observation reader (``read_rinex2_obs``).
+rinex_raw      RINEX 2/3 observation + GPS/Galileo/BeiDou navigation -> GnssRaw (``iter_gnss_raw``).
 constellation  azimuth/elevation, DOPs, satellite selection rules (``select_satellites``).
 raw_sensor     ``GnssRawSpec`` / ``GnssRawSensor`` producing ``service.messages.GnssRaw``, receiver
                clock model, atmosphere models, single-point position/velocity solvers.

@@ -140,19 +140,28 @@ def read_rinex2_nav(path: str | Path) -> GpsEphemerides:
 
 
 def gps_broadcast_states(
-    eph: GpsEphemerides, rec: np.ndarray, t_gps_s: np.ndarray, with_tgd: bool = True
+    eph: GpsEphemerides,
+    rec: np.ndarray,
+    t_gps_s: np.ndarray,
+    with_tgd: bool = True,
+    mu_m3ps2: float = GPS_MU_M3PS2,
+    omega_e_rps: float = GPS_OMEGA_E_RPS,
+    tgd_field: str = "tgd",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """IS-GPS-200N Table 20-IV user algorithm, vectorised over records ``rec`` (N,) at times (N,).
 
     Returns position (N, 3) m and velocity (N, 3) m/s in ECEF at ``t_gps_s`` (velocity: analytic
     derivative of the same equations, ECEF-relative), clock (N,) s and clock drift (N,) s/s
-    (``af0 + af1 dt + af2 dt^2 + F e sqrt(A) sin E [- T_GD]``).
+    (``af0 + af1 dt + af2 dt^2 + F e sqrt(A) sin E [- T_GD]``). The same Keplerian algorithm serves
+    Galileo (OS SIS ICD 5.1.1) and BeiDou MEO/IGSO (BDS-SIS-ICD-B1I 5.2.4.12) with their own
+    ``mu_m3ps2``/``omega_e_rps`` (F = -2 sqrt(mu) / c^2) and group-delay field ``tgd_field``.
     """
     p = {k: v[rec] for k, v in eph.params.items()}
     t = np.asarray(t_gps_s, dtype=float)
     a = p["sqrt_a"] ** 2
     e = p["e"]
-    n0 = np.sqrt(GPS_MU_M3PS2 / a**3)
+    n0 = np.sqrt(mu_m3ps2 / a**3)
+    f_rel = -2.0 * math.sqrt(mu_m3ps2) / 299792458.0**2
     tk = t - eph.toe_gps_s[rec]
     n = n0 + p["delta_n"]
     mk = p["m0"] + n * tk
@@ -174,9 +183,7 @@ def gps_broadcast_states(
     r = a * one_m_ecos + dr
     inc = p["i0"] + di + p["idot"] * tk
     xp, yp = r * np.cos(u), r * np.sin(u)
-    omega_k = (
-        p["omega0"] + (p["omega_dot"] - GPS_OMEGA_E_RPS) * tk - GPS_OMEGA_E_RPS * eph.params["toe_sow"][rec]
-    )
+    omega_k = p["omega0"] + (p["omega_dot"] - omega_e_rps) * tk - omega_e_rps * eph.params["toe_sow"][rec]
     co, so, ci, si = np.cos(omega_k), np.sin(omega_k), np.cos(inc), np.sin(inc)
     x = xp * co - yp * ci * so
     y = xp * so + yp * ci * co
@@ -187,7 +194,7 @@ def gps_broadcast_states(
     inc_dot = p["idot"] + 2.0 * nu_dot * (p["cis"] * c2 - p["cic"] * s2)
     u_dot = nu_dot + 2.0 * nu_dot * (p["cus"] * c2 - p["cuc"] * s2)
     r_dot = e * a * ek_dot * se + 2.0 * nu_dot * (p["crs"] * c2 - p["crc"] * s2)
-    omega_k_dot = p["omega_dot"] - GPS_OMEGA_E_RPS
+    omega_k_dot = p["omega_dot"] - omega_e_rps
     xp_dot = r_dot * np.cos(u) - r * u_dot * np.sin(u)
     yp_dot = r_dot * np.sin(u) + r * u_dot * np.cos(u)
     vx = (
@@ -205,10 +212,10 @@ def gps_broadcast_states(
     vz = yp_dot * si + yp * inc_dot * ci
     # Clock (20.3.3.3.3.1): dt_sv = af0 + af1 (t - toc) + af2 (t - toc)^2 + dt_r, dt_r = F e sqrt(A) sin E.
     tc = t - eph.toc_gps_s[rec]
-    clk = p["af0"] + p["af1"] * tc + p["af2"] * tc**2 + GPS_F_REL * e * p["sqrt_a"] * se
-    drift = p["af1"] + 2.0 * p["af2"] * tc + GPS_F_REL * e * p["sqrt_a"] * ce * ek_dot
+    clk = p["af0"] + p["af1"] * tc + p["af2"] * tc**2 + f_rel * e * p["sqrt_a"] * se
+    drift = p["af1"] + 2.0 * p["af2"] * tc + f_rel * e * p["sqrt_a"] * ce * ek_dot
     if with_tgd:
-        clk = clk - p["tgd"]
+        clk = clk - p[tgd_field]
     return np.stack([x, y, z], -1), np.stack([vx, vy, vz], -1), clk, drift
 
 

@@ -21,7 +21,14 @@ the exact receive-time derivative
     pseudorange = rho + b - sat_clock_m                    b: receiver clock bias, m
     range_rate  = rho_dot + d - sat_clock_drift_mps        d: receiver clock drift, m/s
 
-No atmosphere, no lever arm (antenna at the IMU), one receiver clock for every constellation.
+No lever arm (antenna at the IMU). Optional (``GnssRawModel`` options, all off by default so the
+simulator's scenarios keep their model): the broadcast Klobuchar ionosphere of the message
+(``GnssRaw.iono``; GPS IS-GPS-200N 20.3.3.5.2.5, BeiDou BDS-SIS-ICD-B1I 5.2.4.7) and the
+Saastamoinen troposphere with the DO-229 mapping function are added to the predicted pseudorange
+(:mod:`~service.estimation.measurements.atmosphere`); elevation weighting divides the message's
+zenith variances by ``sin^2 E`` (E floored at 5 deg); one inter-system bias (ISB, m) per listed
+extra constellation is a private random-walk state added to its satellites' pseudoranges (the
+receiver clock is that of every other constellation, GPS first).
 
 Measurement rows (z = INS-predicted minus measured, error state x = computed minus true)
 -------------------------------------------------------------------------------------
@@ -49,6 +56,7 @@ import numpy as np
 import scipy.linalg
 
 from service import earth
+from service.estimation.measurements import atmosphere
 from service.estimation.measurements.base import Measurement, ModelContext, PrivateStates
 from service.ins import error_model as em
 from service.messages import GnssRaw
@@ -264,6 +272,49 @@ def raw_rows(
     )
 
 
+CONSTELLATION_OF_PREFIX = {"G": "GPS", "C": "BDS", "E": "GAL", "R": "GLO", "J": "QZS"}
+
+
+def azimuth(pred: Predicted) -> np.ndarray:
+    """(N,) azimuth (rad, clockwise from north) of the lines of sight."""
+    return np.arctan2(pred.los_enu[:, 0], pred.los_enu[:, 1])
+
+
+def atmosphere_delay_m(
+    nav, pred: Predicted, sats: SatArrays, msg: GnssRaw, troposphere: bool, ionosphere: bool
+) -> np.ndarray:
+    """(N,) modelled pseudorange delays (m) at the INS position: troposphere (Saastamoinen zenith x
+    DO-229 mapping) and broadcast Klobuchar ionosphere. The signal is taken as GPS L1 / Galileo E1
+    / BeiDou B1I (what ``simulators.gnss.rinex_raw`` writes). GPS coefficients serve Galileo E1
+    (same carrier; NeQuick-G is not implemented) and, scaled by (f_L1 / f_B1I)^2, BeiDou when the
+    message has no BeiDou coefficients; satellites with no coefficients get no ionosphere."""
+    n = len(sats.ids)
+    delay = np.zeros(n)
+    if n == 0:
+        return delay
+    el = np.maximum(pred.elevation_rad, 0.0)
+    if troposphere:
+        delay += atmosphere.saastamoinen_zenith_m(nav.lat_rad, nav.h_m) * atmosphere.tropo_mapping(el)
+    if ionosphere and msg.iono:
+        coef = {k.constellation: k for k in msg.iono}
+        az = azimuth(pred)
+        pre = np.array([sid[0] for sid in sats.ids])
+        args = (nav.lat_rad, nav.lon_rad, el, az, msg.t)
+        if "GPS" in coef:
+            k = coef["GPS"]
+            gps = atmosphere.C_MPS * atmosphere.klobuchar_gps_s(k.alpha, k.beta, *args)
+            use = np.isin(pre, ("G", "E", "J"))
+            delay[use] += gps[use]
+            if "BDS" not in coef:
+                ratio = (atmosphere.GPS_L1_HZ / atmosphere.BDS_B1I_HZ) ** 2
+                delay[pre == "C"] += ratio * gps[pre == "C"]
+        if "BDS" in coef:
+            k = coef["BDS"]
+            bds = atmosphere.C_MPS * atmosphere.klobuchar_bds_s(k.alpha, k.beta, *args)
+            delay[pre == "C"] += bds[pre == "C"]
+    return delay
+
+
 def clock_from_residuals(rx: Receiver, sats: SatArrays) -> tuple[float, float]:
     """Receiver clock bias (m) and drift (m/s) as the mean residual of all satellites with the
     receiver clock set to zero (first-epoch initialisation; the INS position/velocity errors and
@@ -323,9 +374,19 @@ class GnssRawModel:
         init_drift_std_mps: float,
         elevation_mask_deg: float = 5.0,
         use_range_rate: bool = True,
+        troposphere: bool = False,
+        ionosphere: bool = False,
+        elevation_weighting: bool = False,
+        isb_constellations: tuple[str, ...] = (),
+        isb_psd_m2ps: float = 1e-4,
+        init_isb_std_m: float = 1000.0,
     ):
         self.elevation_mask_deg = float(elevation_mask_deg)
         self.use_range_rate = bool(use_range_rate)
+        self.troposphere = bool(troposphere)
+        self.ionosphere = bool(ionosphere)
+        self.elevation_weighting = bool(elevation_weighting)
+        self.isb_constellations = tuple(isb_constellations)
         params = (correlation_time_s, bias_psd_m2ps, drift_psd_m2ps3)
         cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -338,11 +399,72 @@ class GnssRawModel:
                 out = cache[key] = clock_transition(T, *params)
             return out
 
-        self.private_states = (
+        blocks = [
             PrivateStates(
                 "clock", ("clk_bias_m", "clk_drift_mps"), transition, (init_bias_std_m, init_drift_std_mps)
-            ),
+            )
+        ]
+        if self.isb_constellations:
+            k = len(self.isb_constellations)
+
+            def isb_transition(T: float) -> tuple[np.ndarray, np.ndarray]:
+                return np.eye(k), np.eye(k) * isb_psd_m2ps * abs(T)  # random walk
+
+            blocks.append(
+                PrivateStates(
+                    "isb",
+                    tuple(f"isb_{c}_m" for c in self.isb_constellations),
+                    isb_transition,
+                    (init_isb_std_m,) * k,
+                )
+            )
+        self.private_states = tuple(blocks)
+
+    def _isb_index(self, sats: SatArrays) -> np.ndarray:
+        """(N,) index into ``isb_constellations`` of each satellite, -1 for the clock's own."""
+        idx = {c: j for j, c in enumerate(self.isb_constellations)}
+        return np.array([idx.get(CONSTELLATION_OF_PREFIX.get(sid[0], ""), -1) for sid in sats.ids], dtype=int)
+
+    def _predict(
+        self, nav, rx: Receiver, sats: SatArrays, msg: GnssRaw, isb_m: np.ndarray | None
+    ) -> Predicted:
+        """Predicted observables with the configured atmosphere and inter-system biases."""
+        pred = predict(rx, sats)
+        extra = atmosphere_delay_m(nav, pred, sats, msg, self.troposphere, self.ionosphere)
+        if isb_m is not None and len(sats.ids):
+            j = self._isb_index(sats)
+            extra = extra + np.where(j >= 0, np.asarray(isb_m)[np.maximum(j, 0)], 0.0)
+        if not np.any(extra):
+            return pred
+        return Predicted(
+            pred.pseudorange_m + extra,
+            pred.range_rate_mps,
+            pred.los_enu,
+            pred.doppler_factor,
+            pred.elevation_rad,
         )
+
+    def initial_isb(
+        self, nav, msg: GnssRaw, clock_ref: np.ndarray, dt_late_s: float = 0.0
+    ) -> np.ndarray | None:
+        """First-epoch ISB references (m): per listed constellation, the mean pseudorange residual of
+        its satellites above the mask minus the clock bias (0 where none is seen); None without ISB."""
+        if not self.isb_constellations:
+            return None
+        sats = sat_arrays(msg)
+        out = np.zeros(len(self.isb_constellations))
+        if not sats.ids:
+            return out
+        rx = receiver_from_nav(nav, clock_ref[0], clock_ref[1], dt_late_s)
+        pred = self._predict(nav, rx, sats, msg, None)
+        vis = elevation_mask(pred, self.elevation_mask_deg)
+        j = self._isb_index(sats)
+        res = sats.pseudorange_m - pred.pseudorange_m
+        for c in range(len(out)):
+            sel = vis & (j == c)
+            if np.any(sel):
+                out[c] = float(np.mean(res[sel]))
+        return out
 
     def initial_clock(self, nav, msg: GnssRaw, dt_late_s: float = 0.0) -> np.ndarray | None:
         """First-epoch clock reference [bias_m, drift_mps]: the mean residual of the satellites
@@ -351,10 +473,19 @@ class GnssRawModel:
         if not sats.ids:
             return None
         rx0 = receiver_from_nav(nav, 0.0, 0.0, dt_late_s)
-        vis0 = elevation_mask(predict(rx0, sats), self.elevation_mask_deg)
+        pred0 = self._predict(nav, rx0, sats, msg, None)
+        vis0 = elevation_mask(pred0, self.elevation_mask_deg)
+        if self.isb_constellations and np.any(vis0 & (self._isb_index(sats) < 0)):
+            vis0 = vis0 & (self._isb_index(sats) < 0)  # the clock is that of the non-ISB systems
         if not np.any(vis0):
             return None
-        return np.array(clock_from_residuals(rx0, sats.take(np.flatnonzero(vis0))))
+        use = np.flatnonzero(vis0)
+        return np.array(
+            [
+                float(np.mean(sats.pseudorange_m[use] - pred0.pseudorange_m[use])),
+                float(np.mean(sats.range_rate_mps[use] - pred0.range_rate_mps[use])),
+            ]
+        )
 
     def __call__(self, nav, msg: GnssRaw, ctx: ModelContext) -> Measurement:
         """Rows of the usable satellites (none usable: zero rows -- an epoch without satellites
@@ -362,9 +493,21 @@ class GnssRawModel:
         sats = sat_arrays(msg)
         ref = ctx.reference["clock"]
         rx = receiver_from_nav(nav, ref[0], ref[1], ctx.dt_late_s)
-        pred = predict(rx, sats)
+        isb_ref = ctx.reference["isb"] if self.isb_constellations else None
+        pred = self._predict(nav, rx, sats, msg, isb_ref)
         visible = elevation_mask(pred, self.elevation_mask_deg)
         rows = raw_rows(pred, sats, self.use_range_rate, ctx.n_states, ctx.columns["clock"])
+        if self.elevation_weighting and len(sats.ids):
+            sin_el = np.sin(np.clip(pred.elevation_rad, math.radians(5.0), math.pi / 2))
+            rows = RawRows(
+                rows.z, rows.H, rows.r_var / sin_el[rows.row_sat] ** 2, rows.row_sat, rows.labels, rows.ids
+            )
+        if isb_ref is not None and len(sats.ids):
+            j = self._isb_index(sats)[rows.row_sat]
+            pr_row = np.array([lab.endswith(".pr") for lab in rows.labels])
+            cols = ctx.columns["isb"]
+            for c in range(len(self.isb_constellations)):
+                rows.H[pr_row & (j == c), cols.start + c] = 1.0
         first = {sid: i for i, sid in reversed(list(enumerate(sats.ids)))}
         usable = [i for i, sid in enumerate(sats.ids) if visible[i] and first[sid] == i]
         col = np.full(len(sats.ids), -1)
@@ -393,6 +536,8 @@ __all__ = [
     "RawRows",
     "Receiver",
     "SatArrays",
+    "atmosphere_delay_m",
+    "azimuth",
     "clock_from_residuals",
     "earth_rotation_matrices",
     "elevation_mask",
