@@ -132,7 +132,8 @@ class SatObservation(WireModel):
     range_rate_sigma_mps: float = Field(gt=0.0, le=1.0e3)
     """1-sigma range-rate noise, m/s"""
     sat_pos_ecef_m: Vec3
-    """Satellite position at transmission, ECEF (rotated to reception), m"""
+    """Satellite position at transmission time, in the ECEF frame of that time (NOT rotated to reception:
+    the service applies the Earth-rotation correction itself), m"""
     sat_vel_ecef_mps: Vec3
     """Satellite velocity, ECEF, m/s"""
     sat_clock_m: float = Field(default=0.0, ge=-1.0e7, le=1.0e7, description="Satellite clock bias x c, m")
