@@ -258,6 +258,10 @@ class TransferAlignmentBank:
 
     ``mode``: "kf" (plain Kalman filter with the nominal R) or "akf" (Sage-Husa R and chi2
     fading factors on P; an adapted R_ii never goes below ``r_floor`` times the nominal).
+    ``fading_form``: "added" (P = J + T J T' + Q, T = sqrt(S^2 - I): fading only adds
+    uncertainty; default) or "scaled" (eq 8 literally, S J S' + Q, which shrinks P along
+    combinations of faded and unfaded correlated states and made the filter overconfident:
+    :func:`service.estimation.adaptive.faded_covariance`, docs/seed002.md).
     ``fusion``: "none" (local filters only; the honest reading, docs/seed002.md) or "paper"
     (eq 18-21 applied to all 27 states as if they were common).
     """
@@ -275,6 +279,7 @@ class TransferAlignmentBank:
         r_floor: float = 0.1,
         fading: bool = True,
         order: str = "r_then_p",
+        fading_form: str = "added",
         t0: float = 0.0,
     ):
         if mode not in ("kf", "akf"):
@@ -287,6 +292,9 @@ class TransferAlignmentBank:
         if order not in ("r_then_p", "p_then_r"):
             raise ValueError(f"order {order!r}: use 'r_then_p' or 'p_then_r'")
         self.order = order
+        if fading_form not in ("scaled", "added"):
+            raise ValueError(f"fading_form {fading_form!r}: use 'scaled' or 'added'")
+        self.fading_form = fading_form
         self.T = float(filter_period_s)
         B = p.B
         self.x = np.zeros((B, N_STATES))
@@ -378,7 +386,7 @@ class TransferAlignmentBank:
             fad = fading_factors(r, H, J, H @ Qd @ Ht + self.sh.R, self.thr, self.row_thr, FADING_STATES)
             if not self.fading:  # Sage-Husa R only: the statistic is still reported
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
-            P_pred = faded_covariance(J, fad.s, Qd)
+            P_pred = faded_covariance(J, fad.s, Qd, self.fading_form)
             R = self.sh.update(r, H @ P_pred @ Ht).copy()
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         elif self.mode == "akf":  # R first (section 1.2 order): the chi2 test sees the adapted R
@@ -388,7 +396,7 @@ class TransferAlignmentBank:
             fad = fading_factors(r, H, J, HQHt + R, self.thr, self.row_thr, FADING_STATES, HJHt=HJHt)
             if not self.fading:
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
-            P_pred = faded_covariance(J, fad.s, Qd)
+            P_pred = faded_covariance(J, fad.s, Qd, self.fading_form)
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         else:
             P_pred = kalman.symmetrise(J + Qd)

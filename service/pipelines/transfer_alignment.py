@@ -54,6 +54,7 @@ def bank_from_config(cfg: TransferAlignmentConfig, t0: float = 0.0) -> ta.Transf
         fading=cfg.fading,
         order=cfg.adaptive_order,
         p_fa=cfg.p_fa,
+        fading_form=cfg.fading_form,
         r_floor=cfg.r_floor,
         t0=t0,
     )
