@@ -223,6 +223,10 @@ class TransferAlignmentConfig(Model):
     r_att_arcmin: float = Field(0.3, gt=0, description="Nominal attitude-difference noise, arcmin")
     r_vel_mps: float = Field(2.0e-4, gt=0, description="Nominal velocity-difference noise, m/s")
     r_rate_dps: float = Field(0.19, gt=0, description="Nominal angular-rate-difference noise, deg/s")
+    r_vel_vibration: bool = Field(
+        False,
+        description="Velocity rows' R adds the node's vibration velocity diag(M r_rate M') (docs/seed002.md)",
+    )
 
 
 class TransponderConfig(Model):

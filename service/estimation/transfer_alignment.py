@@ -67,6 +67,23 @@ def skew(v: np.ndarray) -> np.ndarray:
     return K
 
 
+def _skew3(v: np.ndarray) -> np.ndarray:
+    """skew() of one vector (3,), built directly (the same entries; the per-sample hot path)."""
+    x, y, z = v.tolist()
+    return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
+
+
+_SKEW_ROWS = np.array([0, 0, 1, 1, 2, 2])
+_SKEW_COLS = np.array([1, 2, 0, 2, 0, 1])
+
+
+def _skew_b(v: np.ndarray) -> np.ndarray:
+    """skew() of a bank of vectors (B, 3) with one scatter (the same entries)."""
+    K = np.zeros((v.shape[0], 3, 3))
+    K[:, _SKEW_ROWS, _SKEW_COLS] = np.stack((-v[:, 2], v[:, 1], v[:, 2], -v[:, 0], -v[:, 1], v[:, 0]), -1)
+    return K
+
+
 def rot(rv: np.ndarray) -> np.ndarray:
     """Rotation matrices exp([rv x]) of rotation vectors (..., 3) (Rodrigues, series near 0)."""
     rv = np.asarray(rv, dtype=float)
@@ -109,7 +126,7 @@ class TAParams:
 
     lever_arm_m (B, 3) nominal lever arms in master axes; flex_beta_rps, flex_sigma_rad (B, 3);
     kappa: flexure displacement factor (M = -kappa [r_nom x]); noise densities of the slave IMU;
-    prior sigmas; R0 (9,) nominal measurement variances [att rad^2, vel (m/s)^2, rate (rad/s)^2].
+    prior sigmas; R0 (9,) or (B, 9) nominal measurement variances [att rad^2, vel (m/s)^2, rate (rad/s)^2].
     """
 
     lever_arm_m: np.ndarray
@@ -133,7 +150,7 @@ class TAParams:
         B = self.lever_arm_m.shape[0]
         self.flex_beta_rps = np.broadcast_to(np.asarray(self.flex_beta_rps, float), (B, 3)).copy()
         self.flex_sigma_rad = np.broadcast_to(np.asarray(self.flex_sigma_rad, float), (B, 3)).copy()
-        self.R0 = np.asarray(self.R0, dtype=float)
+        self.R0 = np.asarray(self.R0, dtype=float)  # (9,) or per member (B, 9)
         self.M = flexure_displacement_matrix(self.lever_arm_m, self.kappa)
 
     @property
@@ -299,7 +316,7 @@ class TransferAlignmentBank:
         B = p.B
         self.x = np.zeros((B, N_STATES))
         self.P = p.initial_covariance()
-        self.R0 = np.diag(p.R0)
+        self.R0 = p.R0[..., :, None] * np.eye(N_MEAS)  # (9, 9) or (B, 9, 9)
         self.sh = (
             SageHusaR(self.R0, B, forgetting, restart=restart, diagonal=True, floor=r_floor * p.R0)
             if mode == "akf"
@@ -331,9 +348,9 @@ class TransferAlignmentBank:
             self.V = np.cross(w_m, self.p.lever_arm_m)  # nominal lever-arm velocity, C_im = I
         # second-order exponentials of the sample increments (|dtheta| < 0.05 rad: error < 2e-5
         # of the increment, orthonormality restored at every epoch)
-        Km = skew(dth_m)
+        Km = _skew3(dth_m)
         dCm = _I3 + Km + 0.5 * (Km @ Km)
-        Ks = skew(dth_s)
+        Ks = _skew_b(dth_s)
         C_new = dCm.T @ self.C_ms @ (_I3 + Ks + 0.5 * (Ks @ Ks))
         C_mid = 0.5 * (self.C_ms + C_new)  # mid-interval relative attitude (error O(dmu^2) ~ 1e-8)
         f_sm = np.einsum("bij,bj->bi", C_mid, dv_s)
