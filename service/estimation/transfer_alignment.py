@@ -73,15 +73,23 @@ def _skew3(v: np.ndarray) -> np.ndarray:
     return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
 
 
-_SKEW_ROWS = np.array([0, 0, 1, 1, 2, 2])
-_SKEW_COLS = np.array([1, 2, 0, 2, 0, 1])
+_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])  # flat entries (0,1) (0,2) (1,0) (1,2) (2,0) (2,1)
+_SKEW_FROM = np.array([5, 1, 2, 3, 4, 0])  # of [x, y, z, -x, -y, -z]: -z, y, z, -x, -y, x
 
 
 def _skew_b(v: np.ndarray) -> np.ndarray:
-    """skew() of a bank of vectors (B, 3) with one scatter (the same entries)."""
-    K = np.zeros((v.shape[0], 3, 3))
-    K[:, _SKEW_ROWS, _SKEW_COLS] = np.stack((-v[:, 2], v[:, 1], v[:, 2], -v[:, 0], -v[:, 1], v[:, 0]), -1)
-    return K
+    """skew() of a bank of vectors (B, 3) with one gather and one scatter (the same entries)."""
+    B = v.shape[0]
+    K = np.zeros((B, 9))
+    K[:, _SKEW_AT] = np.concatenate((v, -v), axis=1)[:, _SKEW_FROM]
+    return K.reshape(B, 3, 3)
+
+
+def _cross_b(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross(a (3,), b (B, 3)) with the same products and differences, without its overhead."""
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-1)
 
 
 def rot(rv: np.ndarray) -> np.ndarray:
@@ -363,12 +371,19 @@ class TransferAlignmentBank:
         self.t = t_end
         # master rate at the end of the sample: the sample means are rates at mid-sample; linear
         # extrapolation by half a sample (matters in roll/turn entries: omega_dot x r ~ 1e-3 m/s)
-        w_end = w_m if self._w_prev is None else 1.5 * w_m - 0.5 * self._w_prev
+        # (evaluated at the epoch only: _last_rates)
+        self._last = (w_m, self._w_prev, dth_s, dt)
         self._w_prev = w_m
-        self._last_rates = (w_m, dth_s / dt, w_end)
         if self._acc_T >= self.T - 1e-9:
             return self._epoch()
         return None
+
+    @property
+    def _last_rates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(master rate, slave rates, master rate extrapolated to the end) of the last sample."""
+        w_m, w_prev, dth_s, dt = self._last
+        w_end = w_m if w_prev is None else 1.5 * w_m - 0.5 * w_prev
+        return w_m, dth_s / dt, w_end
 
     def w_hat(self) -> np.ndarray:
         """(B, 3) slave-minus-master velocity in master axes."""
@@ -377,7 +392,7 @@ class TransferAlignmentBank:
     def measurements(self) -> np.ndarray:
         w_m, w_s, w_end = self._last_rates
         z_a = rotvec(self.C_ms)
-        z_v = self.w_hat() - np.cross(w_end, self.p.lever_arm_m)
+        z_v = self.w_hat() - _cross_b(w_end, self.p.lever_arm_m)
         z_w = w_s - w_m
         return np.concatenate([z_a, z_v, z_w], axis=1)
 

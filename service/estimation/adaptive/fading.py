@@ -68,6 +68,8 @@ def fading_factors(
     w = np.linalg.solve(L, r[:, :, None])[:, :, 0]
     gamma = np.einsum("bi,bi->b", w, w)
     triggered = gamma > threshold
+    if not triggered.any():  # the usual epoch: every factor is 1 (the same result, without the work)
+        return FadingResult(np.ones((r.shape[0], J.shape[-1])), gamma, triggered, np.ones_like(r))
     a = np.diagonal(HJHt, axis1=1, axis2=2)
     b = np.diagonal(Bk, axis1=1, axis2=2)
     with np.errstate(divide="ignore", invalid="ignore"):
