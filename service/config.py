@@ -213,6 +213,10 @@ class TransferAlignmentConfig(Model):
         "r_then_p", description="akf: Sage-Husa R before the chi2 fading test (section 1.2 order) or after"
     )
     p_fa: float = Field(0.01, gt=0, lt=0.5, description="Fading chi2 test false-alarm probability")
+    fading_form: Literal["scaled", "added"] = Field(
+        "added",
+        description="akf: P = J + T J T' + Q, T = sqrt(S^2 - I) (consistent) or S J S' + Q (eq 8 literal)",
+    )
     r_floor: float = Field(
         1.0, gt=0, le=1, description="Adapted R_ii never below this fraction of the nominal (docs/seed002.md)"
     )
@@ -229,6 +233,10 @@ class TransferAlignmentConfig(Model):
     r_att_arcmin: float = Field(0.3, gt=0, description="Nominal attitude-difference noise, arcmin")
     r_vel_mps: float = Field(2.0e-4, gt=0, description="Nominal velocity-difference noise, m/s")
     r_rate_dps: float = Field(0.19, gt=0, description="Nominal angular-rate-difference noise, deg/s")
+    r_vel_vibration: bool = Field(
+        False,
+        description="Velocity rows' R adds the node's vibration velocity diag(M r_rate M') (docs/seed002.md)",
+    )
 
 
 class TransponderConfig(Model):

@@ -138,6 +138,12 @@ def evaluate(scenario, runs: int, seed: int, settle_s: float = 60.0) -> dict:
         result["improvement_pct"] = {
             c.name: improvement_pct(pipes, base, c.name) for c in cfgs if c.name != base
         }
+    # against every plain-KF pipeline (e.g. the KF given the nominal R and the KF given the true R)
+    kfs = [c.name for c in cfgs if c.filter == "kf" and c.fusion == "none"]
+    if len(kfs) > 1:
+        result["improvement_pct_by_base"] = {
+            b: {c.name: improvement_pct(pipes, b, c.name) for c in cfgs if c.name != b} for b in kfs
+        }
     result["paper"] = reference(scenario.name)
     return result
 
@@ -175,4 +181,7 @@ def format_table(result: dict) -> str:
     for k, v in result.get("improvement_pct", {}).items():
         ours = f"lever arm {v['lever_arm']:.1f} %, heading {v['heading']:.1f} %"
         lines.append(f"improvement {k}: {ours}  (paper {PCT['lever_arm']} %, {PCT['heading']} %)")
+    for b, d in result.get("improvement_pct_by_base", {}).items():
+        for k, v in d.items():
+            lines.append(f"vs {b}: {k} lever arm {v['lever_arm']:.1f} %, heading {v['heading']:.1f} %")
     return "\n".join(lines)

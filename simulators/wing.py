@@ -68,6 +68,12 @@ class WingSpec(_M):
         default_factory=list, description="Turbulence windows [start_s, end_s] (relative time)"
     )
     turbulence_gain: float = Field(4.0, ge=1, description="Vibration gain inside turbulence windows")
+    vibration_displacement: bool = Field(
+        False, description="The vibration bends the wing like the flexure: the node moves by M v(t) too"
+    )
+    turbulence_flexure_gain: float = Field(
+        1.0, ge=1, description="Flexure (angle and rate) gain inside turbulence windows (gust loads)"
+    )
 
 
 @dataclass
@@ -131,7 +137,8 @@ def _gm2(n: int, dt: float, beta: np.ndarray, sigma: np.ndarray, rng: np.random.
 
 
 def _resonator(n: int, dt: float, f_hz: float, zeta: float, rms: np.ndarray, rng: np.random.Generator):
-    """Band-limited vibration: x_ddot = -2 zeta w0 x_dot - w0^2 x + w, unit rms scaled by ``rms``."""
+    """Band-limited vibration: x_ddot = -2 zeta w0 x_dot - w0^2 x + w, unit rms scaled by ``rms``;
+    returns the angle and its rate (N, 3)."""
     w0 = 2.0 * np.pi * f_hz
     A = np.array([[0.0, 1.0], [-w0 * w0, -2.0 * zeta * w0]])
     q = 4.0 * zeta * w0**3  # var(x) = q / (4 zeta w0^3) = 1
@@ -144,20 +151,26 @@ def _resonator(n: int, dt: float, f_hz: float, zeta: float, rms: np.ndarray, rng
     Lq = np.linalg.cholesky(0.5 * (Qd + Qd.T))
     Phi = expm(A * dt)
     x = np.zeros((n, 3))
+    xd = np.zeros((n, 3))
     for ax in range(3):
         x0 = np.array([rng.standard_normal(), w0 * rng.standard_normal()])
-        x[:, ax] = _lti2(Phi, rng.standard_normal((n, 2)) @ Lq.T, x0)[:, 0]
-    return x * np.asarray(rms)
+        xa = _lti2(Phi, rng.standard_normal((n, 2)) @ Lq.T, x0)
+        x[:, ax], xd[:, ax] = xa[:, 0], xa[:, 1]
+    return x * np.asarray(rms), xd * np.asarray(rms)
 
 
-def turbulence_gain(t_rel_s: np.ndarray, spec: WingSpec, ramp_s: float = 2.0) -> np.ndarray:
-    """Vibration gain (N,): 1 outside the windows, ``turbulence_gain`` inside, cosine ramps."""
+def turbulence_gain(
+    t_rel_s: np.ndarray, spec: WingSpec, ramp_s: float = 2.0, gain: float | None = None
+) -> np.ndarray:
+    """Vibration gain (N,): 1 outside the windows, ``turbulence_gain`` (or ``gain``) inside,
+    cosine ramps."""
+    top = spec.turbulence_gain if gain is None else float(gain)
     g = np.ones_like(t_rel_s)
     for t0, t1 in spec.turbulence:
         up = np.clip((t_rel_s - t0) / ramp_s, 0.0, 1.0)
         down = np.clip((t1 - t_rel_s) / ramp_s, 0.0, 1.0)
         shape = 0.5 - 0.5 * np.cos(np.pi * np.minimum(up, down))
-        g = np.maximum(g, 1.0 + (spec.turbulence_gain - 1.0) * shape)
+        g = np.maximum(g, 1.0 + (top - 1.0) * shape)
     return g
 
 
@@ -171,6 +184,9 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
     omega_dot = np.gradient(omega, dt, axis=0)
     dCm = rot(traj.dtheta_rad)
     gain = turbulence_gain(t_rel, spec)
+    gain_dot = np.gradient(gain, dt)
+    fgain = turbulence_gain(t_rel, spec, gain=spec.turbulence_flexure_gain)
+    fgain_dot = np.gradient(fgain, dt)
     out = []
     for node in spec.nodes:
         r_nom = np.asarray(node.lever_arm_m, float)
@@ -179,7 +195,9 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
         dr0 = rng.standard_normal(3) * np.asarray(spec.lever_arm_error_m)
         beta = np.asarray(node.flexure_beta_rps, float)
         th, thd = _gm2(n, dt, beta, np.asarray(node.flexure_arcmin) * earth.ARCMIN, rng)
-        vib = _resonator(
+        if spec.turbulence_flexure_gain != 1.0:  # gust loads: theta g(t), rate theta_dot g + theta g'
+            th, thd = th * fgain[:, None], thd * fgain[:, None] + th * fgain_dot[:, None]
+        vib, vib_dot = _resonator(
             n,
             dt,
             spec.vibration_hz,
@@ -187,10 +205,14 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
             np.asarray(spec.vibration_arcmin) * earth.ARCMIN,
             rng,
         )
-        vib = vib * gain[:, None]
+        vib, vib_dot = vib * gain[:, None], vib_dot * gain[:, None] + vib * gain_dot[:, None]
         M = flexure_displacement_matrix(r_nom, spec.kappa)
-        r = r_nom + dr0 + th @ M.T
+        r = r_nom + dr0 + th @ M.T  # the scored lever arm: nominal + error + quasi-static flexure
         rdot = thd @ M.T
+        r_lever = r
+        if spec.vibration_displacement:  # the node's position also vibrates (noise, not scored)
+            r = r + vib @ M.T
+            rdot = rdot + vib_dot @ M.T
         C_ms = rot(rho0 + dd + th + vib)
         # gyro: exact relative rotation increments
         dth = np.zeros((n, 3))
@@ -198,6 +220,8 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
         # accelerometer: f_s^m = f_m + omega_dot x r + omega x (omega x r) + 2 omega x r_dot + r_ddot
         a_rel = np.cross(omega_dot, r) + np.cross(omega, np.cross(omega, r)) + 2.0 * np.cross(omega, rdot)
         dv_m = traj.dvel_mps[1:] + 0.5 * (a_rel[:-1] + a_rel[1:]) * dt + (thd[1:] - thd[:-1]) @ M.T
+        if spec.vibration_displacement:
+            dv_m = dv_m + (vib_dot[1:] - vib_dot[:-1]) @ M.T
         C_mid = rot(0.5 * (rotvec(C_ms[:-1]) + rotvec(C_ms[1:])))
         dv = np.zeros((n, 3))
         dv[1:] = np.einsum("kji,kj->ki", C_mid, dv_m)  # C_sm = C_ms'
@@ -212,7 +236,9 @@ def simulate_wing(spec: WingSpec, traj, rng: np.random.Generator, imu_rate_hz: f
         )
         dth_meas, dv_meas, imu_truth = apply_imu_errors(ispec, dth, dv, rng)
         out.append(
-            NodeTruth(node.id, r_nom, rho0, dd, dr0, th, thd, vib, r, C_ms, imu_truth, dth_meas, dv_meas)
+            NodeTruth(
+                node.id, r_nom, rho0, dd, dr0, th, thd, vib, r_lever, C_ms, imu_truth, dth_meas, dv_meas
+            )
         )
     return out
 

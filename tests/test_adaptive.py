@@ -138,3 +138,34 @@ def test_fading_statistic_is_chi2_distributed_when_consistent():
     res = fading_factors(r, H, J, Bk, chi2_threshold(m, 0.05), chi2_threshold(1, 0.05))
     assert res.triggered.mean() == pytest.approx(0.05, abs=0.006)
     assert np.all(res.s[~res.triggered] == 1.0)
+
+
+def test_scaled_fading_shrinks_a_correlated_direction_added_form_never_does():
+    """Eq 8 literal (S J S') with factors that differ between correlated states is smaller than J
+    along some direction (the hand case J = [[1, 1], [1, 1]], s = (2, 1), v = (1, -3): v'(SJS' -
+    J)v = -3); the added form J + T J T', T = sqrt(S^2 - I), keeps the same diagonal and is >= J."""
+    J = np.array([[[1.0, 1.0], [1.0, 1.0]]])
+    s = np.array([[2.0, 1.0]])
+    Q = np.zeros_like(J)
+    v = np.array([1.0, -3.0])
+    scaled = faded_covariance(J, s, Q, "scaled")[0]
+    added = faded_covariance(J, s, Q, "added")[0]
+    assert v @ (scaled - J[0]) @ v == pytest.approx(-3.0)
+    np.testing.assert_allclose(added, [[4.0, 1.0], [1.0, 1.0]])
+    np.testing.assert_allclose(np.diag(added), np.diag(scaled))
+    # random correlated covariances and factors: the added form dominates J, the scaled form not
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((200, 6, 6))
+    Jr = A @ np.swapaxes(A, 1, 2) + 1e-6 * np.eye(6)
+    sr = np.where(rng.random((200, 6)) < 0.5, 1.0, 1.0 + 2.0 * rng.random((200, 6)))
+    Qr = np.zeros_like(Jr)
+    d_add = np.linalg.eigvalsh(faded_covariance(Jr, sr, Qr, "added") - Jr).min(axis=1)
+    d_sca = np.linalg.eigvalsh(faded_covariance(Jr, sr, Qr, "scaled") - Jr).min(axis=1)
+    assert np.all(d_add > -1e-9)
+    assert np.mean(d_sca < -1e-6) > 0.5
+    np.testing.assert_allclose(
+        np.diagonal(faded_covariance(Jr, sr, Qr, "added"), axis1=1, axis2=2),
+        np.diagonal(faded_covariance(Jr, sr, Qr, "scaled"), axis1=1, axis2=2),
+    )
+    with pytest.raises(ValueError):
+        faded_covariance(J, s, Q, "other")

@@ -67,6 +67,31 @@ def skew(v: np.ndarray) -> np.ndarray:
     return K
 
 
+def _skew3(v: np.ndarray) -> np.ndarray:
+    """skew() of one vector (3,), built directly (the same entries; the per-sample hot path)."""
+    x, y, z = v.tolist()
+    return np.array(((0.0, -z, y), (z, 0.0, -x), (-y, x, 0.0)))
+
+
+_SKEW_AT = np.array([1, 2, 3, 5, 6, 7])  # flat entries (0,1) (0,2) (1,0) (1,2) (2,0) (2,1)
+_SKEW_FROM = np.array([5, 1, 2, 3, 4, 0])  # of [x, y, z, -x, -y, -z]: -z, y, z, -x, -y, x
+
+
+def _skew_b(v: np.ndarray) -> np.ndarray:
+    """skew() of a bank of vectors (B, 3) with one gather and one scatter (the same entries)."""
+    B = v.shape[0]
+    K = np.zeros((B, 9))
+    K[:, _SKEW_AT] = np.concatenate((v, -v), axis=1)[:, _SKEW_FROM]
+    return K.reshape(B, 3, 3)
+
+
+def _cross_b(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross(a (3,), b (B, 3)) with the same products and differences, without its overhead."""
+    a0, a1, a2 = a.tolist()
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=-1)
+
+
 def rot(rv: np.ndarray) -> np.ndarray:
     """Rotation matrices exp([rv x]) of rotation vectors (..., 3) (Rodrigues, series near 0)."""
     rv = np.asarray(rv, dtype=float)
@@ -109,7 +134,7 @@ class TAParams:
 
     lever_arm_m (B, 3) nominal lever arms in master axes; flex_beta_rps, flex_sigma_rad (B, 3);
     kappa: flexure displacement factor (M = -kappa [r_nom x]); noise densities of the slave IMU;
-    prior sigmas; R0 (9,) nominal measurement variances [att rad^2, vel (m/s)^2, rate (rad/s)^2].
+    prior sigmas; R0 (9,) or (B, 9) nominal measurement variances [att rad^2, vel (m/s)^2, rate (rad/s)^2].
     """
 
     lever_arm_m: np.ndarray
@@ -133,7 +158,7 @@ class TAParams:
         B = self.lever_arm_m.shape[0]
         self.flex_beta_rps = np.broadcast_to(np.asarray(self.flex_beta_rps, float), (B, 3)).copy()
         self.flex_sigma_rad = np.broadcast_to(np.asarray(self.flex_sigma_rad, float), (B, 3)).copy()
-        self.R0 = np.asarray(self.R0, dtype=float)
+        self.R0 = np.asarray(self.R0, dtype=float)  # (9,) or per member (B, 9)
         self.M = flexure_displacement_matrix(self.lever_arm_m, self.kappa)
 
     @property
@@ -258,6 +283,10 @@ class TransferAlignmentBank:
 
     ``mode``: "kf" (plain Kalman filter with the nominal R) or "akf" (Sage-Husa R and chi2
     fading factors on P; an adapted R_ii never goes below ``r_floor`` times the nominal).
+    ``fading_form``: "added" (P = J + T J T' + Q, T = sqrt(S^2 - I): fading only adds
+    uncertainty; default) or "scaled" (eq 8 literally, S J S' + Q, which shrinks P along
+    combinations of faded and unfaded correlated states and made the filter overconfident:
+    :func:`service.estimation.adaptive.faded_covariance`, docs/seed002.md).
     ``fusion``: "none" (local filters only; the honest reading, docs/seed002.md) or "paper"
     (eq 18-21 applied to all 27 states as if they were common).
     """
@@ -275,6 +304,7 @@ class TransferAlignmentBank:
         r_floor: float = 0.1,
         fading: bool = True,
         order: str = "r_then_p",
+        fading_form: str = "added",
         t0: float = 0.0,
     ):
         if mode not in ("kf", "akf"):
@@ -287,11 +317,14 @@ class TransferAlignmentBank:
         if order not in ("r_then_p", "p_then_r"):
             raise ValueError(f"order {order!r}: use 'r_then_p' or 'p_then_r'")
         self.order = order
+        if fading_form not in ("scaled", "added"):
+            raise ValueError(f"fading_form {fading_form!r}: use 'scaled' or 'added'")
+        self.fading_form = fading_form
         self.T = float(filter_period_s)
         B = p.B
         self.x = np.zeros((B, N_STATES))
         self.P = p.initial_covariance()
-        self.R0 = np.diag(p.R0)
+        self.R0 = p.R0[..., :, None] * np.eye(N_MEAS)  # (9, 9) or (B, 9, 9)
         self.sh = (
             SageHusaR(self.R0, B, forgetting, restart=restart, diagonal=True, floor=r_floor * p.R0)
             if mode == "akf"
@@ -323,9 +356,9 @@ class TransferAlignmentBank:
             self.V = np.cross(w_m, self.p.lever_arm_m)  # nominal lever-arm velocity, C_im = I
         # second-order exponentials of the sample increments (|dtheta| < 0.05 rad: error < 2e-5
         # of the increment, orthonormality restored at every epoch)
-        Km = skew(dth_m)
+        Km = _skew3(dth_m)
         dCm = _I3 + Km + 0.5 * (Km @ Km)
-        Ks = skew(dth_s)
+        Ks = _skew_b(dth_s)
         C_new = dCm.T @ self.C_ms @ (_I3 + Ks + 0.5 * (Ks @ Ks))
         C_mid = 0.5 * (self.C_ms + C_new)  # mid-interval relative attitude (error O(dmu^2) ~ 1e-8)
         f_sm = np.einsum("bij,bj->bi", C_mid, dv_s)
@@ -338,12 +371,19 @@ class TransferAlignmentBank:
         self.t = t_end
         # master rate at the end of the sample: the sample means are rates at mid-sample; linear
         # extrapolation by half a sample (matters in roll/turn entries: omega_dot x r ~ 1e-3 m/s)
-        w_end = w_m if self._w_prev is None else 1.5 * w_m - 0.5 * self._w_prev
+        # (evaluated at the epoch only: _last_rates)
+        self._last = (w_m, self._w_prev, dth_s, dt)
         self._w_prev = w_m
-        self._last_rates = (w_m, dth_s / dt, w_end)
         if self._acc_T >= self.T - 1e-9:
             return self._epoch()
         return None
+
+    @property
+    def _last_rates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(master rate, slave rates, master rate extrapolated to the end) of the last sample."""
+        w_m, w_prev, dth_s, dt = self._last
+        w_end = w_m if w_prev is None else 1.5 * w_m - 0.5 * w_prev
+        return w_m, dth_s / dt, w_end
 
     def w_hat(self) -> np.ndarray:
         """(B, 3) slave-minus-master velocity in master axes."""
@@ -352,7 +392,7 @@ class TransferAlignmentBank:
     def measurements(self) -> np.ndarray:
         w_m, w_s, w_end = self._last_rates
         z_a = rotvec(self.C_ms)
-        z_v = self.w_hat() - np.cross(w_end, self.p.lever_arm_m)
+        z_v = self.w_hat() - _cross_b(w_end, self.p.lever_arm_m)
         z_w = w_s - w_m
         return np.concatenate([z_a, z_v, z_w], axis=1)
 
@@ -378,7 +418,7 @@ class TransferAlignmentBank:
             fad = fading_factors(r, H, J, H @ Qd @ Ht + self.sh.R, self.thr, self.row_thr, FADING_STATES)
             if not self.fading:  # Sage-Husa R only: the statistic is still reported
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
-            P_pred = faded_covariance(J, fad.s, Qd)
+            P_pred = faded_covariance(J, fad.s, Qd, self.fading_form)
             R = self.sh.update(r, H @ P_pred @ Ht).copy()
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         elif self.mode == "akf":  # R first (section 1.2 order): the chi2 test sees the adapted R
@@ -388,7 +428,7 @@ class TransferAlignmentBank:
             fad = fading_factors(r, H, J, HQHt + R, self.thr, self.row_thr, FADING_STATES, HJHt=HJHt)
             if not self.fading:
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
-            P_pred = faded_covariance(J, fad.s, Qd)
+            P_pred = faded_covariance(J, fad.s, Qd, self.fading_form)
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         else:
             P_pred = kalman.symmetrise(J + Qd)

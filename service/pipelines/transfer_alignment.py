@@ -25,15 +25,20 @@ def params_from_config(cfg: TransferAlignmentConfig) -> ta.TAParams:
     r_att = (cfg.r_att_arcmin * earth.ARCMIN) ** 2
     r_vel = cfg.r_vel_mps**2
     r_rate = (cfg.r_rate_dps * earth.DEG) ** 2
+    lever = np.array([n.lever_arm_m for n in cfg.nodes])
+    R0 = np.tile(np.array([r_att] * 3 + [r_vel] * 3 + [r_rate] * 3), (len(cfg.nodes), 1))
+    if cfg.r_vel_vibration:  # the vibration rate moves the node: diag(M r_rate M'), M = -kappa [r x]
+        M = ta.flexure_displacement_matrix(lever, cfg.kappa)
+        R0[:, 3:6] += r_rate * np.einsum("bij,bij->bi", M, M)
     return ta.TAParams(
-        lever_arm_m=np.array([n.lever_arm_m for n in cfg.nodes]),
+        lever_arm_m=lever,
         flex_beta_rps=np.array([n.flexure_beta_rps for n in cfg.nodes]),
         flex_sigma_rad=np.array([n.flexure_arcmin for n in cfg.nodes]) * earth.ARCMIN,
         arw_rad_psqrts=cfg.arw_dpsh * earth.DEG / 60.0,
         vrw_mps_psqrts=cfg.vrw_ugpsHz * earth.UG,
         gyro_bias_rps=cfg.gyro_bias_dph * earth.DPH,
         accel_bias_mps2=cfg.accel_bias_ug * earth.UG,
-        R0=np.array([r_att] * 3 + [r_vel] * 3 + [r_rate] * 3),
+        R0=R0,
         phi0_rad=cfg.initial_attitude_arcmin * earth.ARCMIN,
         dw0_mps=cfg.initial_velocity_mps,
         install_rad=cfg.install_arcmin * earth.ARCMIN,
@@ -54,6 +59,7 @@ def bank_from_config(cfg: TransferAlignmentConfig, t0: float = 0.0) -> ta.Transf
         fading=cfg.fading,
         order=cfg.adaptive_order,
         p_fa=cfg.p_fa,
+        fading_form=cfg.fading_form,
         r_floor=cfg.r_floor,
         t0=t0,
     )
@@ -125,51 +131,48 @@ class TransferAlignment(LooselyCoupled):
         return out
 
     def _alignment_messages(self, info: ta.StepInfo) -> list[Alignment]:
+        """One Alignment per node, every field computed for all nodes at once (array arithmetic
+        then ``tolist``: the same float64 values as element-wise Python arithmetic)."""
         bank = self.ta
         sd = bank.sigmas()
-        mount = ta.rotvec(bank.C_ms)
         deg = 1.0 / earth.DEG
         R = np.sqrt(info.R_diag)
         R[:, [0, 1, 2, 6, 7, 8]] *= deg
+        x, P = bank.x, bank.P
+        inst_var = (
+            np.diagonal(P[:, ta.RHO, ta.RHO], axis1=1, axis2=2)
+            + np.diagonal(P[:, ta.DD, ta.DD], axis1=1, axis2=2)
+            + 2 * np.diagonal(P[:, ta.RHO, ta.DD], axis1=1, axis2=2)
+        )
+        fields = {
+            "mount_deg": ta.rotvec(bank.C_ms) * deg,
+            "misalignment_std_deg": sd[:, ta.PHI] * deg,
+            "installation_deg": (x[:, ta.RHO] + x[:, ta.DD]) * deg,
+            "installation_std_deg": np.sqrt(np.clip(inst_var, 0.0, None)) * deg,
+            "flexure_deg": x[:, ta.TH] * deg,
+            "flexure_std_deg": sd[:, ta.TH] * deg,
+            "lever_arm_m": bank.lever_arm_m(),
+            "lever_arm_std_m": sd[:, ta.DR],
+            "gyro_bias_dph": x[:, ta.EPS] * (1.0 / earth.DPH),
+            "accel_bias_ug": x[:, ta.NAB] * (1.0 / earth.UG),
+            "r_std": R,
+        }
+        rows = {k: v.tolist() for k, v in fields.items()}
+        fading = info.fading_s.max(axis=1).tolist()
+        nis = info.nis.tolist()
+        share = [None] * len(self.node_ids) if info.alpha is None else info.alpha.tolist()
+        t = float(info.t)
         msgs = []
         for b, node in enumerate(self.node_ids):
-            x, s = bank.x[b], sd[b]
-
-            def v3(a, scale=1.0):
-                return tuple(float(q) * scale for q in a)
-
             msgs.append(
                 Alignment(
-                    t=float(info.t),
+                    t=t,
                     pipeline=self.name,
                     node=node,
-                    mount_deg=v3(mount[b], deg),
-                    misalignment_std_deg=v3(s[ta.PHI], deg),
-                    installation_deg=v3(x[ta.RHO] + x[ta.DD], deg),
-                    installation_std_deg=v3(
-                        np.sqrt(
-                            np.clip(
-                                np.diagonal(
-                                    bank.P[b][ta.RHO, ta.RHO]
-                                    + bank.P[b][ta.DD, ta.DD]
-                                    + 2 * bank.P[b][ta.RHO, ta.DD]
-                                ),
-                                0.0,
-                                None,
-                            )
-                        ),
-                        deg,
-                    ),
-                    flexure_deg=v3(x[ta.TH], deg),
-                    flexure_std_deg=v3(s[ta.TH], deg),
-                    lever_arm_m=v3(bank.lever_arm_m()[b]),
-                    lever_arm_std_m=v3(s[ta.DR]),
-                    gyro_bias_dph=v3(x[ta.EPS], 1.0 / earth.DPH),
-                    accel_bias_ug=v3(x[ta.NAB], 1.0 / earth.UG),
-                    r_std=tuple(float(q) for q in R[b]),
-                    fading=float(info.fading_s[b].max()),
-                    nis=float(info.nis[b]),
-                    share=None if info.alpha is None else float(info.alpha[b]),
+                    **{k: tuple(v[b]) for k, v in rows.items()},
+                    fading=fading[b],
+                    nis=nis[b],
+                    share=share[b],
                 )
             )
         return msgs

@@ -68,6 +68,8 @@ def fading_factors(
     w = np.linalg.solve(L, r[:, :, None])[:, :, 0]
     gamma = np.einsum("bi,bi->b", w, w)
     triggered = gamma > threshold
+    if not triggered.any():  # the usual epoch: every factor is 1 (the same result, without the work)
+        return FadingResult(np.ones((r.shape[0], J.shape[-1])), gamma, triggered, np.ones_like(r))
     a = np.diagonal(HJHt, axis1=1, axis2=2)
     b = np.diagonal(Bk, axis1=1, axis2=2)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -85,9 +87,25 @@ def fading_factors(
     return FadingResult(s, gamma, triggered, rows)
 
 
-def faded_covariance(J: np.ndarray, s: np.ndarray, Qd: np.ndarray) -> np.ndarray:
-    """P_k|k-1 = S J S' + Q with S = diag(s) (eq 8), for J (B, n, n), s (B, n)."""
-    P = s[:, :, None] * J * s[:, None, :] + Qd
+def faded_covariance(J: np.ndarray, s: np.ndarray, Qd: np.ndarray, form: str = "scaled") -> np.ndarray:
+    """Predicted covariance with per-state fading factors s (B, n) on J (B, n, n).
+
+    ``form="scaled"``: P = S J S' + Q with S = diag(s) (eq 8, literal). With factors that differ
+    between correlated states, S J S' - J is indefinite: S J S' is *smaller* than J along some
+    directions (e.g. J = [[1, 1], [1, 1]], s = (2, 1): v = (1, -3) gives v'(SJS' - J)v = -3), so
+    the literal form can make the filter overconfident about a combination of states (here the
+    lever arm against the flexure angle, the misalignment against the mounting angles).
+    ``form="added"``: P = J + T J T' + Q with T = diag(sqrt(s^2 - 1)): the same diagonal as eq 8
+    (s_i^2 J_ii), the added term is positive semi-definite (a congruence of J), so P >= J + Q in
+    every direction: fading only ever adds uncertainty.
+    """
+    if form == "scaled":
+        P = s[:, :, None] * J * s[:, None, :] + Qd
+    elif form == "added":
+        t = np.sqrt(np.maximum(s * s - 1.0, 0.0))
+        P = J + t[:, :, None] * J * t[:, None, :] + Qd
+    else:
+        raise ValueError(f"fading form {form!r}: use 'scaled' or 'added'")
     return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 

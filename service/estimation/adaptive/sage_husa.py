@@ -120,8 +120,10 @@ class SageHusaR:
         Rd = np.where(ok, new, Rd)
         if self.floor is not None:
             Rd = np.maximum(Rd, self.floor)
+        R = np.zeros_like(self.R)
         m = Rd.shape[1]
-        self.R = Rd[:, :, None] * np.eye(m)
+        R[:, np.arange(m), np.arange(m)] = Rd  # diag(Rd): the same values as Rd[:, :, None] * I
+        self.R = R
         self._advance()
         return self.R
 
