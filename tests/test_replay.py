@@ -315,3 +315,16 @@ def test_cli_check_only_publishes_nothing_and_reports_json(files, capsys):
     assert "axes look like FLU, mapping says FRD" in capsys.readouterr().out
     # a failed check publishes nothing (no service is running: it would wait for one otherwise)
     assert replay_main([str(bad), "--match-timeout", "0.1"]) == 2
+
+
+def test_example_mappings_and_service_config_are_valid():
+    from service.config import load
+
+    root = Path(__file__).resolve().parents[1] / "replay" / "examples"
+    names = sorted(p.name for p in root.glob("*.toml"))
+    assert names == ["nmea_imu_csv.toml", "ros2_bag.toml", "service.toml"]
+    for name in ("nmea_imu_csv.toml", "ros2_bag.toml"):
+        m, _ = mapping.load_mapping(root / name)
+        assert {s.kind for s in m.streams} == {"imu", "gnss_fix"}
+    cfg = load(root / "service.toml")
+    assert cfg.vehicles == [m.vehicle]
