@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"replayed log: {log_s:.0f} s, IMU 100 Hz + GNSS 5 Hz, one loosely coupled pipeline")
     print(
-        f"{'format':10s} {'messages':>9s} {'parse msg/s':>12s} {'to nothing':>11s} {'to service':>11s} {'service RTF':>12s}"
+        f"{'format':10s} {'messages':>9s} {'parse msg/s':>12s} {'to nothing':>11s} "
+        f"{'to service':>11s} {'service RTF':>12s}"
     )
     for case, r in results.items():
         print(
