@@ -239,26 +239,31 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
                     "or the log is decimated"
                 )
             gravity_check(stream, first, report)
-        for why in ("implausible", "not_finite"):
+        for why in sorted(set(sr.skipped) - {"stamp_not_increasing", "gap"}):
             if sr.skipped.get(why):
                 report.warnings.append(
                     f"{label}: {sr.skipped[why]} sample(s) skipped ({why.replace('_', ' ')})"
                 )
-    started = [(s.t_first, s.name) for s in report.streams if s.t_first is not None]
-    if len(started) > 1:
-        lo, hi = min(started), max(started)
-        gap = hi[0] - lo[0]
-        if gap > TIME_BASES_DIFFER_S:
+    # A time-base mistake shifts a whole stream: its start AND its end. A GNSS that starts later
+    # (cold start) still ends with the IMU, so only both ends apart count.
+    spans = [s for s in report.streams if s.t_first is not None]
+    for a, b in itertools.combinations(spans, 2):
+        d_start, d_end = b.t_first - a.t_first, b.t_last - a.t_last
+        shift = d_start if abs(d_start) < abs(d_end) else d_end
+        if min(abs(d_start), abs(d_end)) > TIME_BASES_DIFFER_S:
             report.errors.append(
-                f"time bases differ: {lo[1]} starts at {gps_str(lo[0])} but {hi[1]} at {gps_str(hi[0])}, "
-                f"{gap:.1f} s later; check each stream's time_base "
-                "('gps', 'unix', 'utc', 'boot' + boot_offset_s), "
+                f"time bases differ: {a.name} starts at {gps_str(a.t_first)} but {b.name} at "
+                f"{gps_str(b.t_first)}, {d_start:+.1f} s (and ends {d_end:+.1f} s) apart; "
+                "check each stream's time_base ('gps', 'unix', 'utc', 'boot' + boot_offset_s), "
                 "time_offset_s and leap_seconds"
             )
-        elif abs(gap - mapping.leap_seconds) < 0.5:
+        elif 1.0 < abs(shift) and abs(abs(shift) - mapping.leap_seconds) < 0.5:
             report.warnings.append(
-                f"{lo[1]} and {hi[1]} start {gap:.1f} s apart, the leap seconds (GPS - UTC): "
-                "is one stream in UTC "
-                "and the other in GPS time?"
+                f"{a.name} and {b.name} are {abs(shift):.1f} s apart, the leap seconds (GPS - UTC): "
+                "is one stream in UTC and the other in GPS time?"
+            )
+        elif abs(d_start) > TIME_BASES_DIFFER_S:
+            report.warnings.append(
+                f"{b.name} starts {d_start:+.1f} s after {a.name} (they end together: a late first fix?)"
             )
     return report

@@ -82,6 +82,8 @@ def events(
         if msgtype not in FIX_TYPES:
             raise SourceError(f"{path} {stream.topic}: {msgtype} is not sensor_msgs/NavSatFix")
         if m.status.status < 0:  # STATUS_NO_FIX
+            if stats is not None:
+                stats["no_fix"] = stats.get("no_fix", 0) + 1
             continue
         ts = _stamp(m)
         if not twists:
@@ -91,6 +93,8 @@ def events(
             )
         i = int(np.argmin(np.abs(tw_t - ts)))
         if abs(tw_t[i] - ts) > TWIST_MATCH_S:
+            if stats is not None:
+                stats["no_velocity"] = stats.get("no_velocity", 0) + 1
             continue  # no velocity at this epoch
         _, vel, vstd = twists[i]
         cov = np.asarray(m.position_covariance, float).reshape(3, 3)

@@ -73,6 +73,8 @@ def events(
     if stream.kind == "gnss_fix":
         for m in _messages(path, "NAV-PVT"):
             if not m.gnssFixOk or m.fixType < 3 or m.invalidLlh:
+                if stats is not None:
+                    stats["no_3d_fix"] = stats.get("no_3d_fix", 0) + 1
                 continue
             t = nav_pvt_gps_s(m, mapping.leap_seconds) + stream.time_offset_s
             h_std = max(m.hAcc * 1e-3 / math.sqrt(2.0), 1e-3)
