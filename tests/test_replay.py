@@ -329,3 +329,22 @@ def test_example_mappings_and_service_config_are_valid():
         assert {s.kind for s in m.streams} == {"imu", "gnss_fix"}
     cfg = load(root / "service.toml")
     assert cfg.vehicles == [m.vehicle]
+
+
+def test_progress_bar_draws_only_when_enabled():
+    import io
+
+    from replay.__main__ import Progress
+
+    out = io.StringIO()
+    p = Progress(4, enabled=True, stream=out)
+    for t in (10.0, 10.5, 11.0, 12.0):
+        p.step(t)
+    p.close()
+    last = out.getvalue().rstrip("\n").split("\r")[-1]
+    assert last.startswith("[" + "#" * 30 + "] 100.0% 4/4 msgs") and "+    2.0 s log" in last
+    quiet = io.StringIO()
+    q = Progress(4, enabled=False, stream=quiet)
+    q.step(1.0)
+    q.close()
+    assert quiet.getvalue() == ""
