@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import sys
 import tempfile
@@ -107,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         svc.signal(signal.SIGTERM)
         svc.wait(timeout=60)
+        shutil.rmtree(tmp, ignore_errors=True)
     doc = {"log_s": round(log_s, 1), "imu_hz": 100, "gnss_hz": 5, "cases": results}
     if args.json:
         print(json.dumps(doc, indent=2))
