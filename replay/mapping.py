@@ -22,7 +22,7 @@ from __future__ import annotations
 import re
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -123,6 +123,9 @@ class StreamMapping(_Model):
     time_offset_s: float = Field(0.0, description="Added to every converted stamp, s")
     tick_s: float | None = Field(
         None, gt=0, description="UBX ESF-RAW: duration of one sensor time-tag tick, s (receiver manual)"
+    )
+    rinex_options: dict[str, Any] = Field(
+        default_factory=dict, description="RINEX: keyword options passed to iter_gnss_raw (its documentation)"
     )
     pos_std_m: tuple[float, float, float] = Field(
         (2.0, 2.0, 4.0), description="Fix position 1-sigma E/N/U, m, where the source gives none"

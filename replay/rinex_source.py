@@ -4,7 +4,7 @@ The RINEX reader and the satellite/atmosphere models are built in ``simulators/g
 raw-GNSS work (``simulators.gnss.rinex_raw.iter_gnss_raw(obs_path, nav_paths, **options)``,
 yielding ``(t_gps_s, GnssRaw)``). This module only calls it: when that module is not importable
 (not merged yet), a ``rinex`` stream is refused with a plain message, before anything is published.
-Options for it go in the mapping's stream table only once that function documents them.
+The stream's ``rinex_options`` table is passed to it as keyword arguments (see its documentation).
 """
 
 from __future__ import annotations
@@ -45,5 +45,5 @@ def events(
         raise SourceError("a rinex stream needs 'rinex_nav' (navigation files) in the mapping")
     suffix = key_suffix(stream.kind, stream.sensor_id)
     nav = [base / p for p in mapping.rinex_nav]
-    for t, raw in iter_gnss_raw(base / stream.source, nav):
+    for t, raw in iter_gnss_raw(base / stream.source, nav, **stream.rinex_options):
         yield Event(float(t) + stream.time_offset_s, suffix, raw)

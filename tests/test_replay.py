@@ -348,3 +348,37 @@ def test_progress_bar_draws_only_when_enabled():
     q.step(1.0)
     q.close()
     assert quiet.getvalue() == ""
+
+
+def test_rinex_slot_calls_iter_gnss_raw_when_present(tmp_path, monkeypatch):
+    import sys
+    import types
+
+    from service.messages import GnssRaw
+
+    calls = []
+
+    def iter_gnss_raw(obs_path, nav_paths, **options):
+        calls.append((obs_path, nav_paths, options))
+        yield 1.4e9, GnssRaw(t=1.4e9, sats=[])
+        yield 1.4e9 + 1.0, GnssRaw(t=1.4e9 + 1.0, sats=[])
+
+    fake = types.ModuleType("simulators.gnss.rinex_raw")
+    fake.iter_gnss_raw = iter_gnss_raw
+    monkeypatch.setitem(sys.modules, "simulators.gnss.rinex_raw", fake)
+    m = from_dict(
+        {
+            "rinex_nav": ["brdc.19n"],
+            "streams": [
+                {
+                    "source": "site.19o",
+                    "kind": "gnss_raw",
+                    "sensor_id": "rx",
+                    "rinex_options": {"elevation_mask_deg": 10},
+                }
+            ],
+        }
+    )
+    ev = list(stream_events(m.streams[0], tmp_path, m))
+    assert [e.t_gps_s for e in ev] == [1.4e9, 1.4e9 + 1.0] and ev[0].key_suffix == "sensor/gnss/rx/raw"
+    assert calls == [(tmp_path / "site.19o", [tmp_path / "brdc.19n"], {"elevation_mask_deg": 10})]
