@@ -31,6 +31,11 @@ TIME_BASES_DIFFER_S = 60.0
 MIN_IMU_RATE_HZ = 50.0
 IMU_GAP_S = 0.5  # the service's default [intake] max_imu_gap_s
 COMMON_AXES = ("FLU", "FRD", "RFU")
+SKIP_HINTS = {
+    "implausible": ": rates or specific forces beyond the wire limits (50 rad/s, 50 g): check gyro_unit "
+    "(deg/s data declared rad/s?) and accel_unit",
+    "no_velocity": ": no twist within 0.05 s of the fix",
+}
 
 
 @dataclass
@@ -241,8 +246,9 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
             gravity_check(stream, first, report)
         for why in sorted(set(sr.skipped) - {"stamp_not_increasing", "gap"}):
             if sr.skipped.get(why):
+                hint = SKIP_HINTS.get(why, "")
                 report.warnings.append(
-                    f"{label}: {sr.skipped[why]} sample(s) skipped ({why.replace('_', ' ')})"
+                    f"{label}: {sr.skipped[why]} sample(s) skipped ({why.replace('_', ' ')}){hint}"
                 )
     # A time-base mistake shifts a whole stream: its start AND its end. A GNSS that starts later
     # (cold start) still ends with the IMU, so only both ends apart count.

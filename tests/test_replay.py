@@ -382,3 +382,18 @@ def test_rinex_slot_calls_iter_gnss_raw_when_present(tmp_path, monkeypatch):
     ev = list(stream_events(m.streams[0], tmp_path, m))
     assert [e.t_gps_s for e in ev] == [1.4e9, 1.4e9 + 1.0] and ev[0].key_suffix == "sensor/gnss/rx/raw"
     assert calls == [(tmp_path / "site.19o", [tmp_path / "brdc.19n"], {"elevation_mask_deg": 10})]
+
+
+def test_gyro_in_deg_per_s_declared_rad_per_s_is_named(tmp_path):
+    # rate-form CSV in FLU, deg/s, turning at 60 deg/s after a static second: declared rad/s,
+    # the turn reads 60 rad/s, above the wire's plausibility limit
+    rows = ["t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z"]
+    for k in range(300):
+        t = 1.4e9 + 0.01 * k
+        rows.append(f"{t:.2f},0,0,{60.0 if k >= 150 else 0.0},0,0,9.81")
+    (tmp_path / "imu.csv").write_text("\n".join(rows) + "\n")
+    m = from_dict({"streams": [{"source": "imu.csv", "kind": "imu", "sensor_id": "i", "time_base": "gps"}]})
+    r = checks.run_checks(m, tmp_path)
+    assert any("skipped (implausible)" in w and "deg/s data declared rad/s?" in w for w in r.warnings), (
+        r.warnings
+    )
