@@ -89,6 +89,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.zenoh_config and not Path(args.zenoh_config).is_file():
+        print(f"fednav-replay: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
+        return 1
     if args.speed < 0:
         print("fednav-replay: --speed must be >= 0", file=sys.stderr)
         return 1
@@ -107,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.json:
             print(json.dumps(summary))
         return 2 if report.errors else 0
+    import zenoh
+
     from simulators.publisher import MatchTimeout, publish_stream
 
     progress = Progress(report.total, enabled=not args.json and sys.stderr.isatty())
@@ -130,6 +135,14 @@ def main(argv: list[str] | None = None) -> int:
         progress.close()
         print(f"fednav-replay: {exc}", file=sys.stderr)
         return 1
+    except zenoh.ZError as exc:
+        progress.close()
+        where = ", ".join(args.connect or ["tcp/127.0.0.1:7447"])
+        print(
+            f"fednav-replay: cannot reach a Zenoh peer at {where} ({exc}): is fednav-service running?",
+            file=sys.stderr,
+        )
+        return 3
     progress.close()
     rate = result["messages"] / max(result["wall_s"], 1e-9)
     summary["published"] = {**result, "messages_per_s": rate}

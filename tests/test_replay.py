@@ -397,3 +397,27 @@ def test_gyro_in_deg_per_s_declared_rad_per_s_is_named(tmp_path):
     assert any("skipped (implausible)" in w and "deg/s data declared rad/s?" in w for w in r.warnings), (
         r.warnings
     )
+
+
+def test_no_service_and_unserved_vehicle_are_named(files, capsys):
+    import zenoh
+
+    from simulators.processes import free_port
+
+    dead = free_port()
+    assert (
+        replay_main([str(files["nmea_csv"]), "--connect", f"tcp/127.0.0.1:{dead}", "--match-timeout", "0.5"])
+        == 3
+    )
+    assert "is fednav-service running?" in capsys.readouterr().err
+    # a Zenoh peer is there, but nothing subscribes to this vehicle's keys
+    port = free_port()
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    with zenoh.open(c):
+        args = [str(files["nmea_csv"]), "--connect", f"tcp/127.0.0.1:{port}", "--match-timeout", "0.5"]
+        assert replay_main(args) == 3
+    err = capsys.readouterr().err
+    assert "no subscriber matched fednav/nmea_csv/sensor/" in err and "serving vehicle 'nmea_csv'" in err
