@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip==25.3
-	$(PY) -m pip install --quiet -e '.[dev,ros]'
+	$(PY) -m pip install --quiet -e '.[dev,ros,replay]'
 	touch $(STAMP)
 
 demo: $(STAMP)

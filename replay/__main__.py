@@ -1,0 +1,157 @@
+"""``fednav-replay MAPPING.toml``: publish recorded logs over Zenoh as live sensors.
+
+The mapping file (replay/mapping.py, example in replay/examples/) names the streams. The tool
+reads every stream once and checks it (replay/checks.py), then publishes all streams merged in
+time order, with the keys, JSON wire messages and publisher settings of ``fednav-sim run``
+(simulators/publisher.py: reliable, blocking congestion control, waits for the service to
+match). ``--speed 0`` (default) publishes as fast as the service takes it; ``--speed 1`` at
+recorded pace. A progress bar is drawn on a terminal (not with ``--json`` or when stderr is not
+a terminal). Exit codes: 0 done, 1 usage/mapping error, 2 checks failed, 3 no service matched.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from service.messages import WireModel
+
+from .checks import Report, run_checks
+from .mapping import MappingError, load_mapping
+from .sources import SourceError, all_events
+
+
+class Progress:
+    """A one-line progress bar on stderr (count, percent, sensor time, messages/s)."""
+
+    def __init__(self, total: int, enabled: bool, stream=None):
+        self.total, self.enabled = max(total, 1), enabled
+        self.out = stream or sys.stderr
+        self.n = 0
+        self.t0 = time.monotonic()
+        self._last = 0.0
+        self._t_first: float | None = None
+
+    def step(self, t: float) -> None:
+        self.n += 1
+        if self._t_first is None:
+            self._t_first = t
+        now = time.monotonic()
+        if self.enabled and (now - self._last > 0.1 or self.n == self.total):
+            self._last = now
+            frac = min(self.n / self.total, 1.0)
+            bar = "#" * int(30 * frac) + "." * (30 - int(30 * frac))
+            rate = self.n / max(now - self.t0, 1e-9)
+            self.out.write(
+                f"\r[{bar}] {100 * frac:5.1f}% {self.n}/{self.total} msgs  "
+                f"+{t - self._t_first:7.1f} s log  {rate:8.0f} msg/s"
+            )
+            self.out.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.out.write("\n")
+            self.out.flush()
+
+
+def keyed(
+    events: Iterable, prefix: str, vehicle: str, progress: Progress | None = None
+) -> Iterator[tuple[str, WireModel]]:
+    """Events -> (full key, message) for simulators.publisher.publish_stream."""
+    for ev in events:
+        if progress is not None:
+            progress.step(ev.t_gps_s)
+        yield f"{prefix}/{vehicle}/{ev.key_suffix}", ev.msg
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog="fednav-replay", description="Publish recorded sensor logs over Zenoh as live fednav sensors."
+    )
+    ap.add_argument("mapping", type=Path, help="mapping file (TOML), see replay/examples/")
+    ap.add_argument(
+        "--check", action="store_true", help="only check the logs and the mapping; publish nothing"
+    )
+    ap.add_argument("--speed", type=float, default=0.0, help="0: as fast as possible (default); 1: real time")
+    ap.add_argument("--connect", action="append", default=None, help="Zenoh endpoint of the service")
+    ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
+    ap.add_argument("--zenoh-config", default=None, help="Zenoh config file (TLS, access control)")
+    ap.add_argument("--vehicle", default=None, help="override the mapping's vehicle name")
+    ap.add_argument("--match-timeout", type=float, default=30.0, help="seconds to wait for the service")
+    ap.add_argument("--force", action="store_true", help="publish even when a check fails")
+    ap.add_argument("--json", action="store_true", help="print one JSON summary on stdout, no progress bar")
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    if args.zenoh_config and not Path(args.zenoh_config).is_file():
+        print(f"fednav-replay: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
+        return 1
+    if args.speed < 0:
+        print("fednav-replay: --speed must be >= 0", file=sys.stderr)
+        return 1
+    try:
+        mapping, base = load_mapping(args.mapping)
+    except MappingError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    vehicle = args.vehicle or mapping.vehicle
+    report: Report = run_checks(mapping, base)
+    summary: dict = {"vehicle": vehicle, "check": report.as_dict()}
+    if not args.json:
+        print(f"fednav-replay {args.mapping} -> {mapping.prefix}/{vehicle}/...")
+        print(report.text())
+    if args.check or (report.errors and not args.force):
+        if args.json:
+            print(json.dumps(summary))
+        return 2 if report.errors else 0
+    import zenoh
+
+    from simulators.publisher import MatchTimeout, publish_stream
+
+    progress = Progress(report.total, enabled=not args.json and sys.stderr.isatty())
+    try:
+        result = publish_stream(
+            keyed(all_events(mapping, base), mapping.prefix, vehicle, progress),
+            speed=args.speed,
+            connect=args.connect,
+            listen=args.listen,
+            zenoh_config=args.zenoh_config,
+            match_timeout_s=args.match_timeout,
+        )
+    except MatchTimeout as exc:
+        progress.close()
+        print(
+            f"fednav-replay: {exc}: is fednav-service running and serving vehicle {vehicle!r}?",
+            file=sys.stderr,
+        )
+        return 3
+    except SourceError as exc:
+        progress.close()
+        print(f"fednav-replay: {exc}", file=sys.stderr)
+        return 1
+    except zenoh.ZError as exc:
+        progress.close()
+        where = ", ".join(args.connect or ["tcp/127.0.0.1:7447"])
+        print(
+            f"fednav-replay: cannot reach a Zenoh peer at {where} ({exc}): is fednav-service running?",
+            file=sys.stderr,
+        )
+        return 3
+    progress.close()
+    rate = result["messages"] / max(result["wall_s"], 1e-9)
+    summary["published"] = {**result, "messages_per_s": rate}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"published {result['messages']} messages in {result['wall_s']:.2f} s ({rate:.0f} msg/s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

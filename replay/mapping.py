@@ -1,0 +1,244 @@
+"""The replay mapping file (TOML): which recorded stream becomes which fednav sensor, and how.
+
+fednav's conventions (docs/DESIGN.md, service/messages.py): body frame right-forward-up (RFU),
+navigation frame ENU, time ``t`` in seconds of GPS time since 1980-01-06, angles in rad on the
+IMU wire (increments), specific force in m/s (increments). A stream states how its source
+differs: body axes, units, rate or increment form, time base and leap seconds.
+
+Axes: three letters naming where the source's x, y, z axes point on the vehicle, each one of
+F(orward)/B(ack), R(ight)/L(eft), U(p)/D(own): ``FLU`` (ROS REP-103), ``FRD`` (aerospace,
+u-blox), ``RFU`` (fednav itself); or a 3x3 matrix ``M`` with ``v_rfu = M @ v_source``.
+
+Time bases (``t_gps = convert(stamp) + time_offset_s``):
+- ``gps``: seconds since the GPS epoch 1980-01-06, GPS time scale (no leap seconds);
+- ``unix``: POSIX seconds since 1970-01-01 in UTC (ROS header stamps, most loggers):
+  ``t_gps = stamp - 315964800 + leap_seconds``;
+- ``utc``: calendar UTC (NMEA's date and time of day); numeric stamps are read as POSIX UTC;
+- ``boot``: seconds since the device booted; ``boot_offset_s`` is the GPS time of boot zero.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from service.validation_errors import format_errors
+
+GPS_EPOCH_UNIX_S = 315964800.0  # 1980-01-06T00:00:00Z as POSIX seconds
+LEAP_SECONDS_NOW = 18  # GPS - UTC since 2017-01-01 (IERS Bulletin C); older logs need their value
+G0_MPS2 = 9.80665  # standard gravity, the "g" of accelerometer datasheets
+
+_AXIS = {
+    "R": (1.0, 0.0, 0.0),
+    "L": (-1.0, 0.0, 0.0),
+    "F": (0.0, 1.0, 0.0),
+    "B": (0.0, -1.0, 0.0),
+    "U": (0.0, 0.0, 1.0),
+    "D": (0.0, 0.0, -1.0),
+}
+
+Format = Literal["ros", "nmea", "ubx", "csv", "rinex"]
+TimeBase = Literal["gps", "unix", "utc", "boot"]
+
+
+class MappingError(ValueError):
+    pass
+
+
+def axes_matrix(axes: str | list[list[float]]) -> np.ndarray:
+    """Rotation ``M`` with ``v_rfu = M @ v_source`` from a three-letter name or a 3x3 matrix.
+
+    Raises ValueError naming what is wrong (unknown letter, an axis twice, left-handed)."""
+    if isinstance(axes, str):
+        name = axes.upper()
+        if len(name) != 3 or any(c not in _AXIS for c in name):
+            raise ValueError(
+                f"axes {axes!r}: use three letters from F/B, R/L, U/D (e.g. FLU, FRD) or a matrix"
+            )
+        m = np.array([_AXIS[c] for c in name]).T  # column i: where source axis i points in RFU
+        if abs(abs(np.linalg.det(m)) - 1.0) > 1e-9:
+            raise ValueError(f"axes {axes!r}: each of forward/back, right/left, up/down must appear once")
+    else:
+        m = np.asarray(axes, dtype=float)
+        if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+            raise ValueError("axes matrix must be 3x3 and finite")
+        if np.max(np.abs(m @ m.T - np.eye(3))) > 1e-6:
+            raise ValueError("axes matrix is not orthonormal (rows/columns must be unit and orthogonal)")
+    if np.linalg.det(m) < 0:
+        raise ValueError(f"axes {axes!r} form a left-handed frame: one axis sign is wrong")
+    return m
+
+
+def axes_name(m: np.ndarray) -> str | None:
+    """The three-letter name of an axis-permutation matrix, None for a general rotation."""
+    out = []
+    for i in range(3):
+        col = tuple(float(x) for x in np.round(m[:, i], 9))
+        hit = [k for k, v in _AXIS.items() if v == col]
+        if not hit:
+            return None
+        out.append(hit[0])
+    return "".join(out)
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class StreamMapping(_Model):
+    """One recorded stream -> one fednav sensor."""
+
+    source: str = Field(
+        description="File (path relative to the mapping file): bag dir/.bag/.mcap, .nmea, .ubx, .csv"
+    )
+    format: Format | None = Field(None, description="Parser; None: from the file name")
+    kind: Literal["imu", "gnss_fix", "gnss_raw"] = Field(description="fednav sensor kind it becomes")
+    sensor_id: str = Field(pattern=r"^[A-Za-z0-9_\-.]+$", description="Sensor id in the key")
+    topic: str | None = Field(None, description="ROS: topic of sensor_msgs/Imu or sensor_msgs/NavSatFix")
+    twist_topic: str | None = Field(
+        None, description="ROS: geometry_msgs/TwistWithCovarianceStamped topic giving the fix velocity"
+    )
+    twist_frame: Literal["ENU", "NED"] = Field("ENU", description="Frame of the twist's linear velocity")
+    sentences: list[Literal["GGA", "RMC", "GST", "VTG"]] = Field(
+        default_factory=lambda: ["GGA", "RMC", "GST", "VTG"], description="NMEA sentence types used"
+    )
+    date: str | None = Field(None, description="NMEA: UTC date YYYY-MM-DD when the log has no RMC")
+    axes: str | list[list[float]] = Field(
+        "FLU", description="Source body axes (letters) or 3x3 matrix to RFU"
+    )
+    gyro_unit: Literal["rad/s", "deg/s"] = Field(
+        "rad/s", description="Gyro unit (increment form: rad or deg)"
+    )
+    accel_unit: Literal["m/s^2", "g"] = Field(
+        "m/s^2", description="Accelerometer unit (increment: m/s or g*s)"
+    )
+    form: Literal["rate", "increment"] = Field("rate", description="Rates (rad/s, m/s^2) or increments")
+    time_base: TimeBase = Field("unix", description="gps | unix | utc | boot (see module doc)")
+    boot_offset_s: float | None = Field(None, description="boot: GPS time (s) of the device's boot zero")
+    time_offset_s: float = Field(0.0, description="Added to every converted stamp, s")
+    tick_s: float | None = Field(
+        None, gt=0, description="UBX ESF-RAW: duration of one sensor time-tag tick, s (receiver manual)"
+    )
+    rinex_options: dict[str, Any] = Field(
+        default_factory=dict, description="RINEX: keyword options passed to iter_gnss_raw (its documentation)"
+    )
+    pos_std_m: tuple[float, float, float] = Field(
+        (2.0, 2.0, 4.0), description="Fix position 1-sigma E/N/U, m, where the source gives none"
+    )
+    vel_std_mps: tuple[float, float, float] = Field(
+        (0.1, 0.1, 0.2), description="Fix velocity 1-sigma E/N/U, m/s, where the source gives none"
+    )
+
+    @field_validator("axes")
+    @classmethod
+    def _axes(cls, v):
+        axes_matrix(v)
+        return v
+
+    @field_validator("pos_std_m", "vel_std_mps")
+    @classmethod
+    def _positive(cls, v):
+        if not all(x > 0 for x in v):
+            raise ValueError("every sigma must be > 0")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        fmt = self.resolved_format()
+        if self.time_base == "boot" and self.boot_offset_s is None:
+            raise ValueError("time_base 'boot' needs boot_offset_s (the GPS time of the device's boot zero)")
+        if fmt == "ros" and not self.topic:
+            raise ValueError("a ROS bag/MCAP stream needs 'topic'")
+        if fmt == "nmea" and self.kind != "gnss_fix":
+            raise ValueError("NMEA gives GNSS fixes: kind must be 'gnss_fix'")
+        if fmt == "nmea" and self.time_base != "utc":
+            raise ValueError("NMEA time is UTC: time_base must be 'utc'")
+        if fmt == "csv" and self.kind != "imu":
+            raise ValueError("the CSV format is for IMU data: kind must be 'imu'")
+        if fmt == "rinex" and self.kind != "gnss_raw":
+            raise ValueError("RINEX gives raw GNSS: kind must be 'gnss_raw'")
+        if self.kind == "gnss_raw" and fmt != "rinex":
+            raise ValueError("kind 'gnss_raw' comes from RINEX (format 'rinex')")
+        return self
+
+    def resolved_format(self) -> Format:
+        if self.format:
+            return self.format
+        s = self.source.lower()
+        for ext, fmt in (
+            (".nmea", "nmea"),
+            (".ubx", "ubx"),
+            (".csv", "csv"),
+            (".bag", "ros"),
+            (".mcap", "ros"),
+        ):
+            if s.endswith(ext):
+                return fmt  # type: ignore[return-value]
+        suffix = Path(s).suffix
+        if suffix in (".obs", ".rnx") or re.fullmatch(r"\.\d\d[o]", suffix):
+            return "rinex"
+        return "ros"  # a ROS 2 bag directory
+
+    def matrix(self) -> np.ndarray:
+        return axes_matrix(self.axes)
+
+    def gyro_scale(self) -> float:
+        return np.pi / 180.0 if self.gyro_unit == "deg/s" else 1.0
+
+    def accel_scale(self) -> float:
+        return G0_MPS2 if self.accel_unit == "g" else 1.0
+
+
+class ReplayMapping(_Model):
+    """A replay: the vehicle, the key prefix, leap seconds and the streams."""
+
+    vehicle: str = Field("v1", pattern=r"^[A-Za-z0-9_\-.]+$", description="Vehicle name in the keys")
+    prefix: str = Field("fednav", description="Key prefix (the service's 'prefix')")
+    leap_seconds: int = Field(LEAP_SECONDS_NOW, ge=0, le=60, description="GPS - UTC at the log's date, s")
+    rinex_nav: list[str] = Field(default_factory=list, description="RINEX navigation files (gnss_raw)")
+    streams: list[StreamMapping] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _unique(self):
+        seen = set()
+        for s in self.streams:
+            k = (s.kind, s.sensor_id)
+            if k in seen:
+                raise ValueError(
+                    f"two streams publish {s.kind} sensor {s.sensor_id!r}: give them different ids"
+                )
+            seen.add(k)
+        return self
+
+
+def to_gps_s(stamp: float, stream: StreamMapping, leap_seconds: int) -> float:
+    """A source stamp (seconds in the stream's time base) -> GPS seconds since 1980-01-06."""
+    if stream.time_base == "gps":
+        t = stamp
+    elif stream.time_base in ("unix", "utc"):
+        t = stamp - GPS_EPOCH_UNIX_S + leap_seconds
+    else:  # boot
+        t = stamp + float(stream.boot_offset_s)
+    return t + stream.time_offset_s
+
+
+def load_mapping(path: Path | str) -> tuple[ReplayMapping, Path]:
+    """Read and validate a mapping file; returns it and its directory (sources are relative to it)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise MappingError(f"cannot read {path}: {exc}") from None
+    return from_dict(data, str(path)), path.resolve().parent
+
+
+def from_dict(data: dict, source: str = "<dict>") -> ReplayMapping:
+    try:
+        return ReplayMapping.model_validate(data)
+    except ValidationError as err:
+        raise MappingError(format_errors(err, ReplayMapping, f"invalid mapping in {source}:")) from None

@@ -1,0 +1,124 @@
+"""NMEA 0183 logs (GGA, RMC, GST, VTG), each line parsed and checksum-checked by ``pynmea2``.
+
+Sentences are grouped into epochs by their UTC time of day (VTG has none: it joins the epoch of
+the sentence before it). An epoch with a valid GGA becomes one GnssFix: position from GGA
+(ellipsoidal height = altitude above mean sea level + geoid separation), position sigmas from
+GST (else the mapping's ``pos_std_m``), speed and course over ground from RMC or VTG, the date
+from RMC (else the mapping's ``date``). Lines that are not NMEA or fail their checksum are
+counted in ``stats`` and skipped. The message itself is built by ``events.nmea_fix_to_wire``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Iterator
+from pathlib import Path
+
+from .events import Event, key_suffix, nmea_fix_to_wire
+from .mapping import ReplayMapping, StreamMapping, to_gps_s
+
+KNOT_MPS = 1852.0 / 3600.0
+
+
+class SourceError(ValueError):
+    pass
+
+
+def _epochs(path: Path, wanted: set[str], stats: dict):
+    """Yield dicts {time, GGA, RMC, GST, VTG} in file order, one per UTC time of day."""
+    import pynmea2
+
+    cur: dict | None = None
+    with path.open(errors="replace") as f:
+        for line in f:
+            line = line.strip()
+            if not line.startswith("$"):
+                continue
+            try:
+                m = pynmea2.parse(line, check=True)
+            except (pynmea2.ParseError, ValueError, AttributeError):
+                stats["bad_sentence"] = stats.get("bad_sentence", 0) + 1
+                continue
+            typ = m.sentence_type
+            if typ not in wanted:
+                continue
+            ts = getattr(m, "timestamp", None)
+            if typ != "VTG" and ts is not None and (cur is None or cur["time"] != ts):
+                if cur is not None:
+                    yield cur
+                cur = {"time": ts}
+            if cur is not None:
+                cur[typ] = m
+    if cur is not None:
+        yield cur
+
+
+def _float(x) -> float | None:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v
+
+
+def events(
+    stream: StreamMapping, base: Path, mapping: ReplayMapping, stats: dict | None = None
+) -> Iterator[Event]:
+    path = base / stream.source
+    if not path.exists():
+        raise SourceError(f"{path}: no such file")
+    stats = {} if stats is None else stats
+    suffix = key_suffix(stream.kind, stream.sensor_id)
+    date = dt.date.fromisoformat(stream.date) if stream.date else None
+    last_tod = None
+    for ep in _epochs(path, set(stream.sentences), stats):
+        rmc, gga = ep.get("RMC"), ep.get("GGA")
+        if rmc is not None and getattr(rmc, "datestamp", None):
+            date = rmc.datestamp
+        elif date is not None and last_tod is not None and ep["time"] < last_tod:
+            date = date + dt.timedelta(days=1)  # midnight passed without an RMC
+        last_tod = ep["time"]
+        if gga is None or not int(gga.gps_qual or 0):
+            stats["no_fix"] = stats.get("no_fix", 0) + 1
+            continue
+        if date is None:
+            raise SourceError(
+                f"{path}: no RMC sentence gives the date: set 'date' (YYYY-MM-DD) in the mapping"
+            )
+        when = dt.datetime.combine(date, ep["time"]).replace(tzinfo=dt.UTC)
+        t = to_gps_s(when.timestamp(), stream, mapping.leap_seconds)
+        alt, sep = _float(gga.altitude), _float(gga.geo_sep)
+        if alt is None:
+            continue
+        height = alt + (sep or 0.0)
+        gst = ep.get("GST")
+        pstd = stream.pos_std_m
+        if gst is not None:
+            s = (_float(gst.std_dev_longitude), _float(gst.std_dev_latitude), _float(gst.std_dev_altitude))
+            if all(x is not None and x > 0 for x in s):
+                pstd = s
+        speed = course = None
+        if rmc is not None and rmc.status == "A":
+            speed, course = _float(rmc.spd_over_grnd), _float(rmc.true_course)
+            speed = None if speed is None else speed * KNOT_MPS
+        vtg = ep.get("VTG")
+        if (speed is None or course is None) and vtg is not None:
+            kmh, course = _float(vtg.spd_over_grnd_kmph), _float(vtg.true_track)
+            speed = None if kmh is None else kmh / 3.6
+        if speed is not None and course is None and speed < 0.1:
+            course = 0.0  # receivers leave the course empty at rest
+        yield Event(
+            t,
+            suffix,
+            nmea_fix_to_wire(
+                t,
+                gga.latitude,
+                gga.longitude,
+                height,
+                speed,
+                course,
+                pstd,
+                stream.vel_std_mps[0],
+                num_sats=int(_float(gga.num_sats) or 0),
+            ),
+        )

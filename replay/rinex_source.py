@@ -1,0 +1,49 @@
+"""Adapter slot: RINEX observation + navigation files -> GnssRaw events.
+
+The RINEX reader and the satellite/atmosphere models are built in ``simulators/gnss/`` by the
+raw-GNSS work (``simulators.gnss.rinex_raw.iter_gnss_raw(obs_path, nav_paths, **options)``,
+yielding ``(t_gps_s, GnssRaw)``). This module only calls it: when that module is not importable
+(not merged yet), a ``rinex`` stream is refused with a plain message, before anything is published.
+The stream's ``rinex_options`` table is passed to it as keyword arguments (see its documentation).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+from .events import Event, key_suffix
+from .mapping import ReplayMapping, StreamMapping
+
+
+class SourceError(ValueError):
+    pass
+
+
+def available() -> bool:
+    try:
+        import simulators.gnss.rinex_raw  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+NOT_AVAILABLE = (
+    "RINEX replay is not available in this build: it needs simulators.gnss.rinex_raw.iter_gnss_raw "
+    "(the RINEX -> GnssRaw conversion), which is not installed"
+)
+
+
+def events(
+    stream: StreamMapping, base: Path, mapping: ReplayMapping, stats: dict | None = None
+) -> Iterator[Event]:
+    if not available():
+        raise SourceError(NOT_AVAILABLE)
+    from simulators.gnss.rinex_raw import iter_gnss_raw
+
+    if not mapping.rinex_nav:
+        raise SourceError("a rinex stream needs 'rinex_nav' (navigation files) in the mapping")
+    suffix = key_suffix(stream.kind, stream.sensor_id)
+    nav = [base / p for p in mapping.rinex_nav]
+    for t, raw in iter_gnss_raw(base / stream.source, nav, **stream.rinex_options):
+        yield Event(float(t) + stream.time_offset_s, suffix, raw)

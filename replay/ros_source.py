@@ -1,0 +1,105 @@
+"""ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) and bare MCAP files, read with ``rosbags``
+(its AnyReader picks the container, its type store decodes the messages: no ROS install).
+
+Topics: sensor_msgs/Imu (rates: angular_velocity rad/s, linear_acceleration m/s^2, in the frame
+the mapping's ``axes`` names; REP-103 says FLU), sensor_msgs/NavSatFix (latitude/longitude deg,
+altitude m above the WGS-84 ellipsoid, position_covariance ENU m^2) paired with
+geometry_msgs/TwistWithCovarianceStamped on ``twist_topic`` (linear velocity in ``twist_frame``,
+ENU or NED). Stamps are the message headers' (sensor time), not the bag's receive time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from .events import Event, ImuBuilder, gnss_fix_to_wire, key_suffix
+from .mapping import ReplayMapping, StreamMapping, to_gps_s
+
+IMU_TYPES = ("sensor_msgs/msg/Imu",)
+FIX_TYPES = ("sensor_msgs/msg/NavSatFix",)
+TWIST_TYPES = ("geometry_msgs/msg/TwistWithCovarianceStamped",)
+TWIST_MATCH_S = 0.05  # a twist is paired with a fix whose stamp is within this, s
+
+
+class SourceError(ValueError):
+    pass
+
+
+def _stamp(msg) -> float:
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+def _read(path: Path, topic: str):
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns:
+            have = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
+            raise SourceError(f"{path}: no topic {topic!r}; the file has: {', '.join(have) or 'nothing'}")
+        for con, _t, raw in reader.messages(connections=conns):
+            yield con.msgtype, reader.deserialize(raw, con.msgtype)
+
+
+def events(
+    stream: StreamMapping, base: Path, mapping: ReplayMapping, stats: dict | None = None
+) -> Iterator[Event]:
+    path = base / stream.source
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or bag directory")
+    suffix = key_suffix(stream.kind, stream.sensor_id)
+    leap = mapping.leap_seconds
+    if stream.kind == "imu":
+        b = ImuBuilder(stream.matrix(), stream.gyro_scale(), stream.accel_scale(), stream.form, stats=stats)
+        for msgtype, m in _read(path, stream.topic):
+            if msgtype not in IMU_TYPES:
+                raise SourceError(f"{path} {stream.topic}: {msgtype} is not sensor_msgs/Imu")
+            w, a = m.angular_velocity, m.linear_acceleration
+            t = to_gps_s(_stamp(m), stream, leap)
+            s = b.push(t, (w.x, w.y, w.z), (a.x, a.y, a.z))
+            if s is not None:
+                yield Event(t, suffix, s)
+        return
+    # gnss_fix: NavSatFix + the nearest twist (both decoded once; fixes are small streams)
+    twists: list[tuple[float, np.ndarray, np.ndarray]] = []
+    if stream.twist_topic:
+        for msgtype, m in _read(path, stream.twist_topic):
+            if msgtype not in TWIST_TYPES:
+                raise SourceError(f"{path} {stream.twist_topic}: {msgtype} is not TwistWithCovarianceStamped")
+            v = np.array([m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z])
+            cov = np.asarray(m.twist.covariance, float).reshape(6, 6)[:3, :3]
+            std = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+            if stream.twist_frame == "NED":
+                v, std = np.array([v[1], v[0], -v[2]]), std[[1, 0, 2]]
+            twists.append((_stamp(m), v, std))
+    twists.sort(key=lambda x: x[0])
+    tw_t = np.array([x[0] for x in twists])
+    for msgtype, m in _read(path, stream.topic):
+        if msgtype not in FIX_TYPES:
+            raise SourceError(f"{path} {stream.topic}: {msgtype} is not sensor_msgs/NavSatFix")
+        if m.status.status < 0:  # STATUS_NO_FIX
+            if stats is not None:
+                stats["no_fix"] = stats.get("no_fix", 0) + 1
+            continue
+        ts = _stamp(m)
+        if not twists:
+            raise SourceError(
+                f"{path} {stream.topic}: the current GnssFix needs a velocity: set twist_topic "
+                "(geometry_msgs/TwistWithCovarianceStamped)"
+            )
+        i = int(np.argmin(np.abs(tw_t - ts)))
+        if abs(tw_t[i] - ts) > TWIST_MATCH_S:
+            if stats is not None:
+                stats["no_velocity"] = stats.get("no_velocity", 0) + 1
+            continue  # no velocity at this epoch
+        _, vel, vstd = twists[i]
+        cov = np.asarray(m.position_covariance, float).reshape(3, 3)
+        known = m.position_covariance_type > 0 and np.all(np.diag(cov) > 0)
+        pstd = np.sqrt(np.diag(cov)) if known else np.array(stream.pos_std_m)
+        vstd = vstd if np.all(vstd > 0) else np.array(stream.vel_std_mps)
+        t = to_gps_s(ts, stream, leap)
+        yield Event(t, suffix, gnss_fix_to_wire(t, m.latitude, m.longitude, m.altitude, vel, pstd, vstd))
