@@ -21,7 +21,16 @@ class Model(BaseModel):
 
 
 class ImuModel(Model):
-    """The IMU grade the filters assume (process model), in datasheet units."""
+    """The IMU grade the filters assume (process model), in datasheet units.
+
+    ``grade`` fills every field not given from a preset (docs/imu_grades.md); explicit numbers
+    override. Without a grade the defaults are the navigation-grade preset."""
+
+    grade: Literal["navigation", "tactical", "industrial_mems", "consumer_mems"] | None = Field(
+        None,
+        description="IMU class preset (docs/imu_grades.md): navigation, tactical, industrial_mems, "
+        "consumer_mems (a phone); fields given explicitly override the preset",
+    )
 
     gyro_bias_dph: float = Field(0.01, ge=0, description="Gyro bias 1-sigma (initial uncertainty), deg/h")
     accel_bias_ug: float = Field(50.0, ge=0, description="Accelerometer bias 1-sigma, micro-g")
@@ -29,6 +38,17 @@ class ImuModel(Model):
     vrw_ugpsHz: float = Field(5.0, gt=0, description="Velocity random walk, micro-g/sqrt(Hz)")
     gyro_bias_rw_dphpsh: float = Field(0.0, ge=0, description="Gyro bias random walk, deg/h/sqrt(h)")
     accel_bias_rw_ugpsh: float = Field(0.0, ge=0, description="Accel bias random walk, micro-g/sqrt(h)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _preset(cls, data):
+        if isinstance(data, dict) and data.get("grade") is not None:
+            from service.ins.imu_grades import PRESETS
+
+            preset = PRESETS.get(data["grade"])
+            if preset is not None:  # an unknown grade is refused by the Literal, naming it
+                data = {**preset.config_fields(), **data}
+        return data
 
     def noise(self) -> ImuNoise:
         return ImuNoise(
