@@ -62,9 +62,33 @@ class ImuModel(Model):
         return self.gyro_bias_dph * earth.DPH, self.accel_bias_ug * earth.UG
 
 
+class GnssCorrelatedError(Model):
+    """First-order Gauss-Markov receiver position error as filter states (docs/own_data.md)."""
+
+    sigma_enu_m: tuple[float, float, float] = Field(
+        description="1-sigma of the correlated part of the fix error, east/north/up, m (the fix's own "
+        "sigma is its total error: the white part is what remains)"
+    )
+    correlation_time_s: float = Field(60.0, gt=0, description="Correlation time, s")
+
+    @model_validator(mode="after")
+    def _positive(self):
+        if min(self.sigma_enu_m) <= 0:
+            raise ValueError("sigma_enu_m: every component must be > 0")
+        return self
+
+
 class LooselyCoupledConfig(Model):
     kind: Literal["loosely_coupled"] = "loosely_coupled"
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Frames and angle conventions')",
+    )
+    gnss_correlated_error: GnssCorrelatedError | None = Field(
+        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
+    )
     use_star: bool = Field(True, description="Use star-tracker attitude when present")
     innovation_gate_sigma: float | None = Field(
         5.0,
@@ -131,6 +155,11 @@ class FederatedConfig(Model):
         description="Share floor of a state seen only by a flagged row (docs/seed000.md: not below ~0.01)",
     )
     master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
+    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Frames and angle conventions')",
+    )
 
 
 class CentralizedConfig(Model):
@@ -140,6 +169,11 @@ class CentralizedConfig(Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     fault_handling: FaultHandlingName = "none"
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5)
+    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Frames and angle conventions')",
+    )
 
 
 class ClockModel(Model):

@@ -78,6 +78,7 @@ class _CorePipeline(Pipeline):
         master_share: float = 0.0,
         floor_share: float = 0.05,
         report_faults: bool = True,
+        model_options: dict[str, dict] | None = None,
     ):
         super().__init__(name, imu, major_interval_s)
         self.local_names = [s for s, _ in subsystems]
@@ -100,7 +101,10 @@ class _CorePipeline(Pipeline):
                         f"({self.channels[kind].name!r}, {sub_name!r}); it would be counted twice"
                     )
                 self.channels[kind] = _Channel(
-                    measurements.make(kind), i, sub_name, make_fault_test(fault_handling, false_alarm_prob)
+                    measurements.make(kind, **(model_options or {}).get(kind, {})),
+                    i,
+                    sub_name,
+                    make_fault_test(fault_handling, false_alarm_prob),
                 )
         self.core: FederatedCore | None = None
         self._version = 0
@@ -301,6 +305,7 @@ class Federated(_CorePipeline):
             master_share=cfg.master_share,
             floor_share=cfg.floor_share,
             report_faults=True,
+            model_options={"gnss_fix": {"lever_arm_b_m": cfg.gnss_lever_arm_b_m}},
         )
         self.cfg = cfg
 
@@ -321,6 +326,7 @@ class Centralized(_CorePipeline):
             fault_handling=cfg.fault_handling,
             false_alarm_prob=cfg.false_alarm_prob,
             report_faults=cfg.fault_handling != "none",
+            model_options={"gnss_fix": {"lever_arm_b_m": cfg.gnss_lever_arm_b_m}},
         )
         self.cfg = cfg
         # report per sensor kind (one test each), all owned by the single filter

@@ -13,7 +13,8 @@ Rows, by the fix's variant (``GnssFix.variant``); z = INS-predicted minus measur
   [u_a, s u_c]) rotated into the (u_a, u_c) frame, where it is diagonal:
   R = diag(s_s^2, s^2 s_c^2). Row-independent, so every per-row gate and fault test applies.
   Without a course sigma s_c = s_s / s (isotropic horizontal velocity, R = s_s^2 I); with one,
-  the cross-track sigma s s_c is kept at least s_s (at low speed a course says nothing). docs/own_data.md derives it.
+  the cross-track sigma s s_c is kept at least s_s (at low speed a course says nothing).
+  docs/own_data.md derives it.
 
 Lever arm (attitude error convention of ``Ins.correct``: C_nb(computed) = (I - [phi x]) C_nb):
 C_nb,c l = C_nb l + [(C_nb l) x] phi, so H_pos,att = [(C_nb l) x]; likewise
