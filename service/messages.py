@@ -637,6 +637,32 @@ class Health(WireModel):
         default_factory=list,
         description="Streams silent for more than three of their own intervals (at least 1 s)",
     )
+    time_base_mismatch: dict[str, float] = Field(
+        default_factory=dict,
+        description="Streams ('kind/id') whose latest time is more than 60 s from the vehicle's IMU time, "
+        "with that offset, s: a time base mismatch (every stream must carry GPS seconds)",
+    )
+
+
+class ServiceHealth(WireModel):
+    """Service-level health, once a second (key ``{prefix}/_services/{zenoh id}/health``): what
+    the service refused before any vehicle, e.g. data under a vehicle name it does not serve."""
+
+    uptime_s: float
+    """Seconds since the service started"""
+    vehicles: list[str]
+    """Vehicles served as configured ('*': all)"""
+    active_vehicles: list[str]
+    """Vehicles with data so far (a worker running)"""
+    refused_before_routing: dict[str, int] = Field(
+        default_factory=dict,
+        description="Messages refused before any vehicle, by reason: unserved_vehicle (a name not in "
+        "'vehicles'), vehicle_limit (more than intake.max_vehicles with '*'), bad_vehicle_name",
+    )
+    unserved_vehicles: dict[str, int] = Field(
+        default_factory=dict,
+        description="Messages per vehicle name the service does not serve (the first 100 names)",
+    )
 
 
 SENSOR_MESSAGES: dict[str, type[WireModel]] = {
@@ -667,6 +693,7 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Health,
     Alignment,
     AlignmentTruth,
+    ServiceHealth,
 ]
 
 
