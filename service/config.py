@@ -84,7 +84,7 @@ class LooselyCoupledConfig(Model):
     gnss_lever_arm_b_m: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0),
         description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
-        "(README 'Frames and angle conventions')",
+        "(README 'Conventions (one place)')",
     )
     gnss_correlated_error: GnssCorrelatedError | None = Field(
         None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
@@ -158,7 +158,10 @@ class FederatedConfig(Model):
     gnss_lever_arm_b_m: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0),
         description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
-        "(README 'Frames and angle conventions')",
+        "(README 'Conventions (one place)')",
+    )
+    gnss_correlated_error: GnssCorrelatedError | None = Field(
+        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
     )
 
 
@@ -172,7 +175,10 @@ class CentralizedConfig(Model):
     gnss_lever_arm_b_m: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0),
         description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
-        "(README 'Frames and angle conventions')",
+        "(README 'Conventions (one place)')",
+    )
+    gnss_correlated_error: GnssCorrelatedError | None = Field(
+        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
     )
 
 

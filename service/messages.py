@@ -10,6 +10,8 @@ Units are in the field names (``_m``, ``_mps``, ``_rad``, ``_deg``, ``_s``); fra
 seconds of GPS time (since 1980-01-06), float64. Attitude ``rpy_deg`` = [roll, pitch, heading]
 with heading clockwise from true north in [0, 360).
 
+Every frame and angle convention is stated once, in the README section "Conventions (one place)".
+
 ``python -m service.messages --write docs/schemas`` regenerates the JSON Schemas shipped in docs/.
 """
 
@@ -79,7 +81,8 @@ def _check_rpy(rpy) -> None:
 
 # --- sensors ----------------------------------------------------------------------------------------
 class ImuSample(WireModel):
-    """One IMU interval ending at ``t``: angle and velocity increments in the body frame (RFU)."""
+    """One IMU interval ending at ``t``: angle and velocity increments in the body frame (RFU:
+    x right, y forward, z up; README "Conventions (one place)")."""
 
     t: Time
     dt_s: float = Field(gt=0.0, le=MAX_DT_S, description="Interval length, s")
@@ -111,7 +114,7 @@ class GnssFix(WireModel):
     course (``speed_mps`` + ``course_deg``, e.g. NMEA RMC/VTG or Android; optional
     ``vertical_rate_mps``); full 3-D velocity (``vel_enu_mps``). Sigmas are optional: missing ones
     take the documented defaults from ``fix_type`` and ``hdop`` (README "GNSS fixes"). Angle
-    conventions: README "Frames and angle conventions"."""
+    conventions: README "Conventions (one place)"."""
 
     t: Time
     lat_deg: Lat
@@ -255,7 +258,8 @@ class GnssRaw(WireModel):
 
 
 class StarAttitude(WireModel):
-    """Star tracker attitude solution, expressed as the body attitude in the navigation frame."""
+    """Star tracker attitude solution, expressed as the body attitude in the navigation frame
+    (ENU; angle signs: README "Conventions (one place)")."""
 
     t: Time
     rpy_deg: Vec3
@@ -304,7 +308,8 @@ class UsblFix(WireModel):
 
 
 class InitialNav(WireModel):
-    """Initial navigation state handed over by a host system (or by a simulator)."""
+    """Initial navigation state handed over by a host system (or by a simulator). Frames and
+    angle signs: README "Conventions (one place)"."""
 
     t: Time
     lat_deg: Lat
@@ -364,7 +369,8 @@ NavStatus = Literal["initialising", "unaided", "aided", "coasting", "degraded", 
 
 
 class Solution(WireModel):
-    """Navigation solution of one pipeline."""
+    """Navigation solution of one pipeline (position of the IMU, not the antenna). Frames and
+    angle signs: README "Conventions (one place)"."""
 
     t: Time
     pipeline: str

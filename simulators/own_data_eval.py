@@ -116,34 +116,33 @@ def _rms(x: np.ndarray) -> float:
     return float(math.sqrt(np.mean(x * x))) if x.size else float("nan")
 
 
-def evaluate(scenario: Scenario, runs: int, seed: int, skip_s: float) -> dict:
+def collect(scenario: Scenario, runs: int, seed: int) -> dict:
+    """The raw per-run figures of ``runs`` seeded runs (seeds seed, seed + 1, ...)."""
     cfg = service_config(scenario)
     traj = scenario.build_trajectory()
     t0 = float(traj.t_s[0])
-    pooled: dict[str, dict[str, list]] = {}
-    fixes: dict[str, list] = {"pos": [], "vel_h": [], "course": []}
+    out: dict = {"scenario": scenario.name, "runs": runs, "seed": seed, "fixes": [], "pipelines": {}}
     for i in range(runs):
         sink, fe = run_once(scenario, seed + i, cfg, traj)
-        sel = fe["t"] - t0 >= skip_s
-        fixes["pos"].append(fe["pos"][sel])
-        fixes["vel_h"].append(fe["vel_h"][sel])
-        fixes["course"].append(fe["course_minus_heading_deg"][sel])
+        out["fixes"].append({**fe, "t": fe["t"] - t0})
         for name, rec in sink.records.items():
-            if not rec.err:
-                continue
-            p = pooled.setdefault(name, {"err": [], "P": [], "refused": []})
-            t = np.asarray(rec.t) - t0
-            keep = t >= skip_s
-            p["err"].append(np.asarray(rec.err)[keep])
-            p["P"].append(np.asarray(rec.P)[keep])
-            p["refused"].append(rec.refused)
-    fp = np.concatenate(fixes["pos"])
-    fv = np.concatenate(fixes["vel_h"])
-    fc = np.concatenate(fixes["course"])
+            if rec.err:
+                out["pipelines"].setdefault(name, []).append(
+                    (np.asarray(rec.t) - t0, np.asarray(rec.err), np.asarray(rec.P), rec.refused)
+                )
+    return out
+
+
+def summarise(raw: dict, skip_s: float) -> dict:
+    """The outside check's figures over the epochs after ``skip_s`` (module docstring)."""
+    sel = [f["t"] >= skip_s for f in raw["fixes"]]
+    fp = np.concatenate([f["pos"][s] for f, s in zip(raw["fixes"], sel, strict=True)])
+    fv = np.concatenate([f["vel_h"][s] for f, s in zip(raw["fixes"], sel, strict=True)])
+    fc = np.concatenate([f["course_minus_heading_deg"][s] for f, s in zip(raw["fixes"], sel, strict=True)])
     out = {
-        "scenario": scenario.name,
-        "runs": runs,
-        "seed": seed,
+        "scenario": raw["scenario"],
+        "runs": raw["runs"],
+        "seed": raw["seed"],
         "skip_s": skip_s,
         "receiver": {
             "h_median_m": float(np.median(_h(fp))),
@@ -156,9 +155,9 @@ def evaluate(scenario: Scenario, runs: int, seed: int, skip_s: float) -> dict:
         },
         "pipelines": {},
     }
-    for name, p in pooled.items():
-        e = np.concatenate(p["err"])
-        P = np.concatenate(p["P"])
+    for name, per_run in raw["pipelines"].items():
+        e = np.concatenate([err[t >= skip_s] for t, err, _, _ in per_run])
+        P = np.concatenate([cov[t >= skip_s] for t, _, cov, _ in per_run])
         he = _h(e)
         sig_h2 = P[:, 0, 0] + P[:, 1, 1]
         nees3 = np.einsum("pi,pi->p", e[:, :3], np.linalg.solve(P, e[:, :3][..., None])[..., 0])
@@ -173,9 +172,14 @@ def evaluate(scenario: Scenario, runs: int, seed: int, skip_s: float) -> dict:
             "h_sigma_ratio": _rms(he) / math.sqrt(float(np.mean(sig_h2))),
             "v_sigma_ratio": _rms(e[:, 2]) / math.sqrt(float(np.mean(P[:, 2, 2]))),
             "pos_nees_per_dof": float(np.mean(nees3)) / 3.0,
-            "refused_rows_per_run": float(np.mean(p["refused"])),
+            "refused_rows_per_run": float(np.mean([r for *_, r in per_run])),
         }
     return out
+
+
+def evaluate(scenario: Scenario, runs: int, seed: int, skip_s: float) -> dict:
+    """:func:`collect` then :func:`summarise` after ``skip_s``."""
+    return summarise(collect(scenario, runs, seed), skip_s)
 
 
 def format_table(res: dict) -> str:
@@ -209,15 +213,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scenario", nargs="?", default="own_data_phone_car")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--skip-s", type=float, default=30.0, help="initial convergence left out, s")
+    ap.add_argument(
+        "--skip-s",
+        type=float,
+        nargs="+",
+        default=[30.0],
+        help="initial convergence left out, s (one table each)",
+    )
     ap.add_argument("--json", type=str, default=None, help="also write the figures to this file")
     args = ap.parse_args(argv)
     sc = load_scenario(scenario_path(args.scenario))
-    res = evaluate(sc, args.runs, sc.seed if args.seed is None else args.seed, args.skip_s)
-    print(format_table(res))
+    raw = collect(sc, args.runs, sc.seed if args.seed is None else args.seed)
+    results = [summarise(raw, s) for s in args.skip_s]
+    for res in results:
+        print(format_table(res))
+        print()
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(res, f, indent=2)
+            json.dump(results, f, indent=2)
     return 0
 
 

@@ -209,3 +209,13 @@ def test_pipelines_take_the_lever_arm_and_correlated_error():
     fed = build_pipeline(cfg.pipelines[1], cfg)
     np.testing.assert_allclose(fed.channels["gnss_fix"].model.lever_arm_b_m, [0.0, 1.0, 1.5])
     assert make("gnss_fix").private_states == ()
+
+
+def test_shipped_configs_load():
+    """Every configuration in service/configs loads (the phone example included)."""
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "service" / "configs"
+    phone = config_mod.load(folder / "phone_car.toml")
+    assert phone.imu.grade == "consumer_mems" and phone.pipelines[0].gnss_correlated_error is not None
+    assert config_mod.load(folder / "example.toml").imu.grade == "navigation"

@@ -11,6 +11,7 @@ from service.config import ImuModel, LooselyCoupledConfig
 from service.estimation import kalman, measurements
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.measurements import MeasurementModel
+from service.estimation.measurements.gnss_fix import gnss_fix_options
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
@@ -26,14 +27,7 @@ class LooselyCoupled(Pipeline):
         super().__init__(cfg.name, imu, major_interval_s)
         self.cfg = cfg
         kinds = ["gnss_fix"] + (["star"] if cfg.use_star else [])
-        gm = cfg.gnss_correlated_error
-        options = {
-            "gnss_fix": {
-                "lever_arm_b_m": cfg.gnss_lever_arm_b_m,
-                "correlated_sigma_enu_m": None if gm is None else gm.sigma_enu_m,
-                "correlation_time_s": 60.0 if gm is None else gm.correlation_time_s,
-            }
-        }
+        options = {"gnss_fix": gnss_fix_options(cfg)}
         self.models: dict[str, MeasurementModel] = {
             k: measurements.make(k, **options.get(k, {})) for k in kinds
         }

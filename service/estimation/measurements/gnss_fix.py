@@ -75,6 +75,17 @@ def gauss_markov_block(tau_s: float, sigma_enu_m) -> PrivateStates:
     return PrivateStates(BLOCK, BLOCK_NAMES, transition, tuple(float(s) for s in sigma_enu_m))
 
 
+def gnss_fix_options(cfg) -> dict:
+    """The model's options from a pipeline configuration with ``gnss_lever_arm_b_m`` and
+    ``gnss_correlated_error`` (loosely coupled, federated, centralised)."""
+    gm = cfg.gnss_correlated_error
+    return {
+        "lever_arm_b_m": cfg.gnss_lever_arm_b_m,
+        "correlated_sigma_enu_m": None if gm is None else gm.sigma_enu_m,
+        "correlation_time_s": 60.0 if gm is None else gm.correlation_time_s,
+    }
+
+
 class GnssFixModel:
     kind = "gnss_fix"
     # the class has no private states (usable by every 15-state filter); an instance with a
