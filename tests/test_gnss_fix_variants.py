@@ -198,6 +198,12 @@ def test_pipelines_take_the_lever_arm_and_correlated_error():
                     "gnss_correlated_error": {"sigma_enu_m": [0.4, 0.4, 0.8], "correlation_time_s": 30.0},
                 },
                 {"name": "fed", "kind": "federated", "gnss_lever_arm_b_m": [0.0, 1.0, 1.5]},
+                {
+                    "name": "fed_gm",
+                    "kind": "federated",
+                    "subsystems": [{"name": "INS/GNSS", "sensors": ["gnss_fix"]}],
+                    "gnss_correlated_error": {"sigma_enu_m": [0.4, 0.4, 0.8]},
+                },
             ]
         }
     )
@@ -209,6 +215,9 @@ def test_pipelines_take_the_lever_arm_and_correlated_error():
     fed = build_pipeline(cfg.pipelines[1], cfg)
     np.testing.assert_allclose(fed.channels["gnss_fix"].model.lever_arm_b_m, [0.0, 1.0, 1.5])
     assert make("gnss_fix").private_states == ()
+    fed_gm = build_pipeline(cfg.pipelines[2], cfg)
+    assert [b.name for b in fed_gm.private_states()] == ["gnss_error"]
+    assert fed.private_states() == ()
 
 
 def test_shipped_configs_load():

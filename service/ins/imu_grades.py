@@ -5,9 +5,9 @@ does not set from the preset below (explicit numbers override). docs/imu_grades.
 sources and the reasoning per number; in short:
 
 * ``navigation``: ring-laser / fibre-optic navigation grade (Groves, "Principles of GNSS,
-  Inertial and Multisensor Integrated Navigation Systems", 2nd ed. 2013, sec. 4.4 and its IMU
+  Inertial and Multisensor Integrated Navigation Systems", 2nd ed. 2013, ch. 4 and its IMU
   grade tables): the service's historical default, unchanged.
-* ``tactical``: tactical-grade IMU (FOG or high-end MEMS; Groves 2013 sec. 4.4, tactical class).
+* ``tactical``: tactical-grade IMU (FOG or high-end MEMS; Groves 2013 ch. 4, tactical class).
 * ``industrial_mems``: calibrated industrial MEMS (Analog Devices ADIS16465/ADIS16490 class
   datasheets: in-run bias stability ~2 deg/h, ARW ~0.15 deg/sqrt(h)).
 * ``consumer_mems``: phone / wearable MEMS (Bosch BMI160/BMI088, ST LSM6DSO class datasheets:

@@ -25,7 +25,7 @@ finite differences of this model).
 
 Time-correlated receiver error (``correlated_sigma_enu_m``): a first-order Gauss-Markov
 position error b per ENU axis as the private block ``gnss_error`` (Groves 2013, "Principles of
-GNSS, Inertial and Multisensor Integrated Navigation Systems", sec. 14.2.7: correlated GNSS
+GNSS, Inertial and Multisensor Integrated Navigation Systems", ch. 14: correlated GNSS
 position errors as additional states), fix = p_a + b + n, b_k+1 = e^(-T/tau) b_k + w,
 Qd = sigma^2 (1 - e^(-2T/tau)). Closed loop like the INS: the model predicts p_a + b_ref and
 H_pos,b = I (error db = b_ref - b). The fix's sigma is read as its TOTAL error: the white part
