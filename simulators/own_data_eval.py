@@ -221,8 +221,15 @@ def main(argv: list[str] | None = None) -> int:
         help="initial convergence left out, s (one table each)",
     )
     ap.add_argument("--json", type=str, default=None, help="also write the figures to this file")
+    ap.add_argument(
+        "--imu-grade",
+        default=None,
+        help="override the filters' [service.imu] with this grade (e.g. navigation)",
+    )
     args = ap.parse_args(argv)
     sc = load_scenario(scenario_path(args.scenario))
+    if args.imu_grade:
+        sc = sc.model_copy(update={"service": {**dict(sc.service), "imu": {"grade": args.imu_grade}}})
     raw = collect(sc, args.runs, sc.seed if args.seed is None else args.seed)
     results = [summarise(raw, s) for s in args.skip_s]
     for res in results:
