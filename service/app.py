@@ -32,6 +32,7 @@ from service.messages import (
     ImmModels,
     Integrity,
     PipelineHealth,
+    ServiceHealth,
     Solution,
     Truth,
     WireModel,
@@ -304,6 +305,7 @@ class VehicleWorker:
             pipelines={k: PipelineHealth(**v) for k, v in states.items()},
             sensors={k: t for k, (t, _) in self.engine.streams.items()},
             stale=stale,
+            time_base_mismatch=dict(self.engine.time_base_mismatch),
         )
 
     def publish_health(self) -> None:
@@ -351,6 +353,9 @@ class Service:
         self.record = record
         self.workers: dict[str, VehicleWorker] = {}
         self.unrouted = Counter()  # data refused before any vehicle: by reason
+        self.unserved = Counter()  # messages per vehicle name not served (first _MAX_LOGGED_NAMES)
+        self.started = time.monotonic()
+        self._health_stop = threading.Event()
         self._logged: set[tuple[str, str]] = set()
         self._lock = threading.Lock()
         self.session = None
@@ -385,10 +390,9 @@ class Service:
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
         self.sink = OutputSink(cfg.prefix, self.pubs, self.rr, extra)
         sel = "*" if "*" in cfg.vehicles else None
-        exprs = []
-        for v in [sel] if sel else cfg.vehicles:
-            exprs += keys.inputs_selector(v, cfg.prefix)
-        self.intake = zenoh_io.Intake(self.session, exprs, self._deliver)
+        # every vehicle's inputs, served or not: data under a name the service does not serve is
+        # counted (ServiceHealth) and logged once per name instead of meeting silence
+        self.intake = zenoh_io.Intake(self.session, keys.inputs_selector("*", cfg.prefix), self._deliver)
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
             from service.transport.ros2 import header_stamp_s
@@ -402,6 +406,11 @@ class Service:
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
         for v in [] if sel else cfg.vehicles:
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
+        self._health_key = keys.service_health(str(self.session.zid()), cfg.prefix)
+        self._health_thread = threading.Thread(
+            target=self._health_loop, name="fednav-service-health", daemon=True
+        )
+        self._health_thread.start()
         log.info(
             "fednav-service up: vehicles=%s pipelines=%s rrd=%s",
             cfg.vehicles,
@@ -455,14 +464,41 @@ class Service:
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w
 
+    def service_health(self) -> ServiceHealth:
+        return ServiceHealth(
+            uptime_s=time.monotonic() - self.started,
+            vehicles=list(self.config.vehicles),
+            active_vehicles=sorted(self.workers),
+            refused_before_routing=dict(self.unrouted),
+            unserved_vehicles=dict(self.unserved),
+        )
+
+    def _health_loop(self) -> None:
+        period = self.config.output.health_period_s
+        while not self._health_stop.wait(period):
+            try:
+                self.pubs.publish(self._health_key, self.service_health())
+            except Exception:  # a publication failure must not end the loop
+                log.exception("service health publication failed")
+
     def _refuse(self, reason: str, vehicle: str) -> None:
-        """Data the service does not take for any vehicle: counted (status queryable) and logged
-        once per vehicle name and reason (at most ``_MAX_LOGGED_NAMES`` names)."""
+        """Data the service does not take for any vehicle: counted (ServiceHealth, status
+        queryable) and logged once per vehicle name and reason (at most ``_MAX_LOGGED_NAMES``
+        names)."""
         self.unrouted[reason] += 1
+        if reason == "unserved_vehicle" and (
+            vehicle in self.unserved or len(self.unserved) < _MAX_LOGGED_NAMES
+        ):
+            self.unserved[vehicle] += 1
         if len(self._logged) < _MAX_LOGGED_NAMES and (reason, vehicle) not in self._logged:
             self._logged.add((reason, vehicle))
             served = self.config.vehicles
-            log.warning("%s: data for vehicle %r refused (served: %s)", reason, vehicle[:80], served)
+            hint = (
+                " (publish under a served name, or add it to 'vehicles' in the configuration)"
+                if reason == "unserved_vehicle"
+                else ""
+            )
+            log.warning("%s: data for vehicle %r refused (served: %s)%s", reason, vehicle[:80], served, hint)
 
     def _deliver(self, wall: float, key: str, payload: bytes) -> None:
         pk = keys.parse_input(key, self.config.prefix)
@@ -524,6 +560,8 @@ class Service:
     def stop(self) -> None:
         if self.session is None:
             return
+        self._health_stop.set()
+        self._health_thread.join(timeout=5.0)
         self.intake.stop()
         if self.ros_intake is not None:
             self.ros_intake.stop()

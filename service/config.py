@@ -22,7 +22,16 @@ class Model(BaseModel):
 
 
 class ImuModel(Model):
-    """The IMU grade the filters assume (process model), in datasheet units."""
+    """The IMU grade the filters assume (process model), in datasheet units.
+
+    ``grade`` fills every field not given from a preset (docs/imu_grades.md); explicit numbers
+    override. Without a grade the defaults are the navigation-grade preset."""
+
+    grade: Literal["navigation", "tactical", "industrial_mems", "consumer_mems"] | None = Field(
+        None,
+        description="IMU class preset (docs/imu_grades.md): navigation, tactical, industrial_mems, "
+        "consumer_mems (a phone); fields given explicitly override the preset",
+    )
 
     gyro_bias_dph: float = Field(0.01, ge=0, description="Gyro bias 1-sigma (initial uncertainty), deg/h")
     accel_bias_ug: float = Field(50.0, ge=0, description="Accelerometer bias 1-sigma, micro-g")
@@ -30,6 +39,17 @@ class ImuModel(Model):
     vrw_ugpsHz: float = Field(5.0, gt=0, description="Velocity random walk, micro-g/sqrt(Hz)")
     gyro_bias_rw_dphpsh: float = Field(0.0, ge=0, description="Gyro bias random walk, deg/h/sqrt(h)")
     accel_bias_rw_ugpsh: float = Field(0.0, ge=0, description="Accel bias random walk, micro-g/sqrt(h)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _preset(cls, data):
+        if isinstance(data, dict) and data.get("grade") is not None:
+            from service.ins.imu_grades import PRESETS
+
+            preset = PRESETS.get(data["grade"])
+            if preset is not None:  # an unknown grade is refused by the Literal, naming it
+                data = {**preset.config_fields(), **data}
+        return data
 
     def noise(self) -> ImuNoise:
         return ImuNoise(
@@ -43,9 +63,33 @@ class ImuModel(Model):
         return self.gyro_bias_dph * earth.DPH, self.accel_bias_ug * earth.UG
 
 
+class GnssCorrelatedError(Model):
+    """First-order Gauss-Markov receiver position error as filter states (docs/own_data.md)."""
+
+    sigma_enu_m: tuple[float, float, float] = Field(
+        description="1-sigma of the correlated part of the fix error, east/north/up, m (the fix's own "
+        "sigma is its total error: the white part is what remains)"
+    )
+    correlation_time_s: float = Field(60.0, gt=0, description="Correlation time, s")
+
+    @model_validator(mode="after")
+    def _positive(self):
+        if min(self.sigma_enu_m) <= 0:
+            raise ValueError("sigma_enu_m: every component must be > 0")
+        return self
+
+
 class LooselyCoupledConfig(Model):
     kind: Literal["loosely_coupled"] = "loosely_coupled"
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Conventions (one place)')",
+    )
+    gnss_correlated_error: GnssCorrelatedError | None = Field(
+        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
+    )
     use_star: bool = Field(True, description="Use star-tracker attitude when present")
     innovation_gate_sigma: float | None = Field(
         5.0,
@@ -112,6 +156,14 @@ class FederatedConfig(Model):
         description="Share floor of a state seen only by a flagged row (docs/seed000.md: not below ~0.01)",
     )
     master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
+    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Conventions (one place)')",
+    )
+    gnss_correlated_error: GnssCorrelatedError | None = Field(
+        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
+    )
 
 
 class CentralizedConfig(Model):
@@ -121,6 +173,14 @@ class CentralizedConfig(Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     fault_handling: FaultHandlingName = "none"
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5)
+    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0),
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Conventions (one place)')",
+    )
+    gnss_correlated_error: GnssCorrelatedError | None = Field(
+        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
+    )
 
 
 class ClockModel(Model):

@@ -142,6 +142,8 @@ class VehicleEngine:
         self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
         self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
         self._warned: set[tuple[str, str]] = set()
+        #: streams whose time is more than TIME_BASE_MISMATCH_S from the IMU time: offset, s (Health)
+        self.time_base_mismatch: dict[str, float] = {}
         self._start_t: float | None = None
         # IMU nodes (transfer alignment): ids routed to pipelines, never to the vehicle's INS
         self._node_imus: dict[str, list[Pipeline]] = {}
@@ -163,6 +165,7 @@ class VehicleEngine:
                     del self._node_truth[k]
             return True
         previous_t = self.rules.last_t.get((kind, sensor_id))
+        self._watch_time_base(kind, sensor_id, msg.t)
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if verdict.accepted or verdict.reason in ("not_initialised", "imu_gap", "time_jump"):
             self._note_stream(kind, sensor_id, msg.t)
@@ -214,6 +217,18 @@ class VehicleEngine:
         prev = self.streams.get(key)
         self.streams[key] = (t, (t - prev[0]) if prev and t > prev[0] else (prev[1] if prev else None))
 
+    def _watch_time_base(self, kind: str, sensor_id: str, t: float) -> None:
+        """Streams (not the IMU) more than TIME_BASE_MISMATCH_S from the IMU time, named in Health
+        (``time_base_mismatch``); the once-only warning of ``_watch_refusals`` names the cause."""
+        if kind in ("imu", "truth", "alignment_truth") or self.last_imu_t is None:
+            return
+        key = f"{kind}/{sensor_id}" if sensor_id else kind
+        dt = t - self.last_imu_t
+        if abs(dt) > TIME_BASE_MISMATCH_S:
+            self.time_base_mismatch[key] = dt
+        else:
+            self.time_base_mismatch.pop(key, None)
+
     def _watch_refusals(self, kind: str, sensor_id: str, t: float, reason: str | None) -> None:
         """Log once, with the likely cause, when a stream is refused wholesale."""
         key = f"{kind}/{sensor_id}" if sensor_id else kind
@@ -225,7 +240,10 @@ class VehicleEngine:
             return
         self._warned.add(("refused", key))
         dt = t - self.last_imu_t if self.last_imu_t is not None else 0.0
-        if reason in ("late", "time_backwards", "future", "early") and abs(dt) > TIME_BASE_MISMATCH_S:
+        if (
+            reason in ("late", "time_backwards", "future", "early", "not_initialised")
+            and abs(dt) > TIME_BASE_MISMATCH_S
+        ):
             cause = (
                 f"its time is {dt:+.0f} s from the vehicle's running (IMU) time: a time base mismatch "
                 "(e.g. the IMU stamped in boot time, GNSS in GPS time)? every stream must carry GPS seconds"

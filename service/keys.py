@@ -19,6 +19,7 @@
 {prefix}/{vehicle}/nav/{pipeline}/solution    also a queryable: the latest Solution
 {prefix}/{vehicle}/service/alive              liveliness token of each served vehicle
 {prefix}/_services/{zenoh id}                 liveliness token of each running service
+{prefix}/_services/{zenoh id}/health          ServiceHealth (refused before routing, unserved names)
 """
 
 from __future__ import annotations
@@ -91,6 +92,11 @@ def service_token(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}/_services/{_chunk(instance, 'service instance')}"
 
 
+def service_health(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key of one running service's ServiceHealth."""
+    return f"{service_token(instance, prefix)}/health"
+
+
 def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[str]:
     """Key expression the service subscribes to for a vehicle selector (``*`` = all vehicles).
 
@@ -104,6 +110,8 @@ def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[s
 def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
     """True for keys a fednav service publishes (nav/..., service/...), not inputs."""
     parts = key.split("/")
+    if len(parts) >= 2 and parts[0] == prefix and parts[1] == "_services":
+        return True  # service tokens and ServiceHealth
     return len(parts) >= 3 and parts[0] == prefix and parts[2] in ("nav", "service")
 
 

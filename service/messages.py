@@ -10,6 +10,8 @@ Units are in the field names (``_m``, ``_mps``, ``_rad``, ``_deg``, ``_s``); fra
 seconds of GPS time (since 1980-01-06), float64. Attitude ``rpy_deg`` = [roll, pitch, heading]
 with heading clockwise from true north in [0, 360).
 
+Every frame and angle convention is stated once, in the README section "Conventions (one place)".
+
 ``python -m service.messages --write docs/schemas`` regenerates the JSON Schemas shipped in docs/.
 """
 
@@ -79,7 +81,8 @@ def _check_rpy(rpy) -> None:
 
 # --- sensors ----------------------------------------------------------------------------------------
 class ImuSample(WireModel):
-    """One IMU interval ending at ``t``: angle and velocity increments in the body frame (RFU)."""
+    """One IMU interval ending at ``t``: angle and velocity increments in the body frame (RFU:
+    x right, y forward, z up; README "Conventions (one place)")."""
 
     t: Time
     dt_s: float = Field(gt=0.0, le=MAX_DT_S, description="Interval length, s")
@@ -95,17 +98,52 @@ class ImuSample(WireModel):
         return self
 
 
+#: Default 1-sigma of a fix that carries no sigmas (docs: README "GNSS fixes"): horizontal
+#: per-axis position sigma by fix type at HDOP 1 (scaled by ``hdop`` when given), vertical =
+#: VERTICAL_TO_HORIZONTAL x horizontal; speed and vertical-rate sigmas.
+DEFAULT_H_STD_M = {"single": 2.5, "sbas": 1.5, "dgnss": 0.8, "float": 0.3, "fixed": 0.03}
+VERTICAL_TO_HORIZONTAL = 1.7
+DEFAULT_SPEED_STD_MPS = {"single": 0.15, "sbas": 0.1, "dgnss": 0.1, "float": 0.05, "fixed": 0.03}
+DEFAULT_VERTICAL_RATE_STD_MPS = 0.3
+
+
 class GnssFix(WireModel):
-    """Receiver position/velocity solution (loosely coupled aiding)."""
+    """Receiver position (and optionally velocity) solution for loosely coupled aiding.
+
+    Variants, by the fields present: position only (no velocity fields); horizontal speed and
+    course (``speed_mps`` + ``course_deg``, e.g. NMEA RMC/VTG or Android; optional
+    ``vertical_rate_mps``); full 3-D velocity (``vel_enu_mps``). Sigmas are optional: missing ones
+    take the documented defaults from ``fix_type`` and ``hdop`` (README "GNSS fixes"). Angle
+    conventions: README "Conventions (one place)"."""
 
     t: Time
     lat_deg: Lat
     lon_deg: Lon
     height_m: Height
-    vel_enu_mps: Vec3
-    """Velocity, east/north/up, m/s"""
-    pos_std_enu_m: PosStd3 = Field(description="1-sigma position noise, east/north/up, m")
-    vel_std_enu_mps: PosStd3 = Field(description="1-sigma velocity noise, east/north/up, m/s")
+    vel_enu_mps: Vec3 | None = None
+    """Velocity, east/north/up, m/s (None: not reported; use speed/course or position only)"""
+    pos_std_enu_m: PosStd3 | None = Field(
+        None, description="1-sigma position noise, east/north/up, m (None: default from fix_type/hdop)"
+    )
+    vel_std_enu_mps: PosStd3 | None = Field(
+        None, description="1-sigma velocity noise, east/north/up, m/s (with vel_enu_mps; None: default)"
+    )
+    speed_mps: float | None = Field(None, ge=0.0, le=MAX_SPEED_MPS)
+    """Horizontal speed over ground, m/s (with course_deg; not with vel_enu_mps)"""
+    course_deg: float | None = Field(None, ge=-360.0, le=360.0)
+    """Course over ground, deg clockwise from true north (direction of the horizontal velocity)"""
+    vertical_rate_mps: float | None = Field(None, ge=-MAX_SPEED_MPS, le=MAX_SPEED_MPS)
+    """Vertical velocity, up positive, m/s (optional, with speed_mps/course_deg)"""
+    speed_std_mps: float | None = Field(None, gt=0.0, le=1e3)
+    """1-sigma of speed_mps, m/s (None: default from fix_type)"""
+    course_std_deg: float | None = Field(None, gt=0.0, le=360.0)
+    """1-sigma of course_deg, deg (None: speed_std_mps / speed, i.e. isotropic horizontal velocity)"""
+    vertical_rate_std_mps: float | None = Field(None, gt=0.0, le=1e3)
+    """1-sigma of vertical_rate_mps, m/s (None: default)"""
+    fix_type: Literal["single", "sbas", "dgnss", "float", "fixed"] = "single"
+    """Solution type (sets default sigmas): single point, SBAS, DGNSS, RTK float, RTK fixed"""
+    hdop: float | None = Field(None, gt=0.0, le=100.0)
+    """Horizontal dilution of precision (scales the default position sigmas; None: 1)"""
     constellation: Literal["GPS", "BDS", "GAL", "GLO", "MULTI"] = "GPS"
     """Constellation(s) of the solution"""
     num_sats: int = Field(default=0, ge=0, le=200)
@@ -113,8 +151,69 @@ class GnssFix(WireModel):
 
     @model_validator(mode="after")
     def _plausible(self):
-        _check_speed(self.vel_enu_mps, "vel_enu_mps")
+        if self.vel_enu_mps is not None:
+            _check_speed(self.vel_enu_mps, "vel_enu_mps")
+            if (
+                self.speed_mps is not None
+                or self.course_deg is not None
+                or self.vertical_rate_mps is not None
+            ):
+                raise ValueError("give either vel_enu_mps or speed_mps/course_deg, not both")
+        elif self.vel_std_enu_mps is not None:
+            raise ValueError("vel_std_enu_mps given without vel_enu_mps")
+        if (self.speed_mps is None) != (self.course_deg is None):
+            raise ValueError("speed_mps and course_deg come together (horizontal speed and course)")
+        if self.vertical_rate_mps is not None and self.speed_mps is None:
+            raise ValueError("vertical_rate_mps needs speed_mps and course_deg")
         return self
+
+    @property
+    def variant(self) -> Literal["position", "speed_course", "velocity"]:
+        """Which rows the fix carries: position only, speed + course, or 3-D velocity."""
+        if self.vel_enu_mps is not None:
+            return "velocity"
+        return "speed_course" if self.speed_mps is not None else "position"
+
+    def pos_std(self) -> tuple[float, float, float]:
+        """Position 1-sigma east/north/up, m: the message's, else the fix-type/HDOP default."""
+        if self.pos_std_enu_m is not None:
+            return self.pos_std_enu_m
+        h = DEFAULT_H_STD_M[self.fix_type] * (self.hdop if self.hdop is not None else 1.0)
+        return (h, h, VERTICAL_TO_HORIZONTAL * h)
+
+    def speed_std(self) -> float:
+        """Horizontal speed (per-axis velocity) 1-sigma, m/s: the message's, else the default."""
+        if self.speed_std_mps is not None:
+            return self.speed_std_mps
+        return DEFAULT_SPEED_STD_MPS[self.fix_type]
+
+    def velocity(self) -> tuple[float, float, float] | None:
+        """ENU velocity, m/s: vel_enu_mps, or east/north from speed and course (up from the
+        vertical rate, else 0); None for a position-only fix."""
+        if self.vel_enu_mps is not None:
+            return self.vel_enu_mps
+        if self.speed_mps is None:
+            return None
+        c = math.radians(self.course_deg)
+        vu = self.vertical_rate_mps if self.vertical_rate_mps is not None else 0.0
+        return (self.speed_mps * math.sin(c), self.speed_mps * math.cos(c), vu)
+
+    def vel_std(self) -> tuple[float, float, float] | None:
+        """ENU velocity 1-sigma for initialisation (isotropic horizontal from speed_std; up from
+        the vertical rate's sigma, else the vertical-rate default x 3 as nothing measures it)."""
+        if self.vel_enu_mps is not None:
+            if self.vel_std_enu_mps is not None:
+                return self.vel_std_enu_mps
+            s = self.speed_std()
+            return (s, s, DEFAULT_VERTICAL_RATE_STD_MPS)
+        if self.speed_mps is None:
+            return None
+        s = self.speed_std()
+        if self.vertical_rate_mps is not None:
+            vs = self.vertical_rate_std_mps or DEFAULT_VERTICAL_RATE_STD_MPS
+        else:
+            vs = 3.0 * DEFAULT_VERTICAL_RATE_STD_MPS
+        return (s, s, vs)
 
 
 class SatObservation(WireModel):
@@ -174,7 +273,8 @@ class GnssRaw(WireModel):
 
 
 class StarAttitude(WireModel):
-    """Star tracker attitude solution, expressed as the body attitude in the navigation frame."""
+    """Star tracker attitude solution, expressed as the body attitude in the navigation frame
+    (ENU; angle signs: README "Conventions (one place)")."""
 
     t: Time
     rpy_deg: Vec3
@@ -223,7 +323,8 @@ class UsblFix(WireModel):
 
 
 class InitialNav(WireModel):
-    """Initial navigation state handed over by a host system (or by a simulator)."""
+    """Initial navigation state handed over by a host system (or by a simulator). Frames and
+    angle signs: README "Conventions (one place)"."""
 
     t: Time
     lat_deg: Lat
@@ -283,7 +384,8 @@ NavStatus = Literal["initialising", "unaided", "aided", "coasting", "degraded", 
 
 
 class Solution(WireModel):
-    """Navigation solution of one pipeline."""
+    """Navigation solution of one pipeline (position of the IMU, not the antenna). Frames and
+    angle signs: README "Conventions (one place)"."""
 
     t: Time
     pipeline: str
@@ -556,6 +658,32 @@ class Health(WireModel):
         default_factory=list,
         description="Streams silent for more than three of their own intervals (at least 1 s)",
     )
+    time_base_mismatch: dict[str, float] = Field(
+        default_factory=dict,
+        description="Streams ('kind/id') whose latest time is more than 60 s from the vehicle's IMU time, "
+        "with that offset, s: a time base mismatch (every stream must carry GPS seconds)",
+    )
+
+
+class ServiceHealth(WireModel):
+    """Service-level health, once a second (key ``{prefix}/_services/{zenoh id}/health``): what
+    the service refused before any vehicle, e.g. data under a vehicle name it does not serve."""
+
+    uptime_s: float
+    """Seconds since the service started"""
+    vehicles: list[str]
+    """Vehicles served as configured ('*': all)"""
+    active_vehicles: list[str]
+    """Vehicles with data so far (a worker running)"""
+    refused_before_routing: dict[str, int] = Field(
+        default_factory=dict,
+        description="Messages refused before any vehicle, by reason: unserved_vehicle (a name not in "
+        "'vehicles'), vehicle_limit (more than intake.max_vehicles with '*'), bad_vehicle_name",
+    )
+    unserved_vehicles: dict[str, int] = Field(
+        default_factory=dict,
+        description="Messages per vehicle name the service does not serve (the first 100 names)",
+    )
 
 
 SENSOR_MESSAGES: dict[str, type[WireModel]] = {
@@ -586,6 +714,7 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Health,
     Alignment,
     AlignmentTruth,
+    ServiceHealth,
 ]
 
 

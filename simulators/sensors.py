@@ -22,6 +22,7 @@ from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from scipy.signal import lfilter
 
 from service import earth
 from service.estimation.measurements.gnss_fix import LABELS as GNSS_FIX_LABELS
@@ -58,6 +59,21 @@ class GnssSpec(BaseModel):
     outages: list[tuple[float, float]] = Field(
         default_factory=list, description="No fixes for start_s <= t < end_s (s after the scenario start)"
     )
+    variant: Literal["velocity", "speed_course", "position"] = Field(
+        default="velocity",
+        description="What the fix carries: 3-D velocity, horizontal speed + course (NMEA/Android), or "
+        "position only",
+    )
+    vertical_rate: bool = Field(default=False, description="speed_course: also report the vertical rate")
+    lever_arm_b_m: Vec3 = Field(
+        default=(0.0, 0.0, 0.0), description="Antenna position from the IMU, body right/forward/up, m"
+    )
+    correlated_pos_std_enu_m: Vec3 = Field(
+        default=(0.0, 0.0, 0.0),
+        description="1-sigma of a first-order Gauss-Markov position error added to the white noise, "
+        "east/north/up, m (0: none). The message reports the total sigma sqrt(white^2 + correlated^2)",
+    )
+    correlation_time_s: float = Field(default=60.0, gt=0.0, description="Its correlation time, s")
 
     @field_validator("pos_std_enu_m")
     @classmethod
@@ -106,6 +122,18 @@ def _epochs(traj: Trajectory, rate_hz: float, what: str) -> np.ndarray:
     return np.arange(step, traj.t_s.size, step)
 
 
+def gauss_markov_sequence(
+    rng: np.random.Generator, n: int, dt_s: float, tau_s: float, sigma: np.ndarray
+) -> np.ndarray:
+    """(n, len(sigma)) stationary first-order Gauss-Markov samples every dt_s:
+    b_0 ~ N(0, sigma^2), b_k = a b_(k-1) + sigma sqrt(1 - a^2) w_k, a = exp(-dt/tau)."""
+    a = float(np.exp(-dt_s / tau_s))
+    w = rng.standard_normal((n, sigma.size))
+    w[1:] *= np.sqrt(1.0 - a * a)
+    out = lfilter([1.0], [1.0, -a], w, axis=0)
+    return out * sigma
+
+
 def simulate_gnss_fixes(
     spec: GnssSpec, traj: Trajectory, rng: np.random.Generator, faults: FaultSet | None = None
 ) -> list[tuple[int, GnssFix]]:
@@ -119,6 +147,20 @@ def simulate_gnss_fixes(
     t_rel = ks / traj.imu_rate_hz
     pos_err = rng.standard_normal((ks.size, 3)) * np.asarray(spec.pos_std_enu_m)
     vel_meas = traj.vel_enu_mps[ks] + rng.standard_normal((ks.size, 3)) * np.asarray(spec.vel_std_enu_mps)
+    gm_std = np.asarray(spec.correlated_pos_std_enu_m, dtype=float)
+    if np.any(gm_std > 0.0):  # drawn after the white noise: scenarios without it are unchanged
+        pos_err = pos_err + gauss_markov_sequence(
+            rng, ks.size, 1.0 / spec.rate_hz, spec.correlation_time_s, gm_std
+        )
+    lever = np.asarray(spec.lever_arm_b_m, dtype=float)
+    if np.any(lever != 0.0):  # antenna offsets C_nb l and C_nb (w_ib x l)
+        c_nb = mat_nb_vec(traj.rpy_rad[ks])
+        w_b, _ = traj.body_rates(t_rel)
+        ant_pos = np.einsum("pij,j->pi", c_nb, lever)
+        ant_vel = np.einsum("pij,pj->pi", c_nb, np.cross(w_b, lever))
+    else:
+        ant_pos = ant_vel = np.zeros((ks.size, 3))
+    pos_std_msg = tuple(float(x) for x in np.hypot(np.asarray(spec.pos_std_enu_m), gm_std))
     keep = np.ones(ks.size, dtype=bool)
     for a, b in spec.outages:
         keep &= ~((t_rel >= a) & (t_rel < b))
@@ -133,18 +175,34 @@ def simulate_gnss_fixes(
             vm = np.array([vals[c] for c in GNSS_CHANNELS[3:]])
         lat, lon, h = traj.llh[k]
         r_m, r_n = radii_vec(lat)
+        pe = pe + ant_pos[i]
+        vm = vm + ant_vel[i]
         lat_m = lat + pe[1] / (r_m + h)
         lon_m = lon + pe[0] / ((r_n + h) * np.cos(lat))
+        vel_fields: dict = {}
+        if spec.variant == "velocity":
+            vel_fields = {
+                "vel_enu_mps": tuple(float(x) for x in vm),
+                "vel_std_enu_mps": tuple(float(x) for x in spec.vel_std_enu_mps),
+            }
+        elif spec.variant == "speed_course":
+            vel_fields = {
+                "speed_mps": float(np.hypot(vm[0], vm[1])),
+                "course_deg": float(np.degrees(np.arctan2(vm[0], vm[1])) % 360.0),
+                "speed_std_mps": float(spec.vel_std_enu_mps[0]),
+            }
+            if spec.vertical_rate:
+                vel_fields["vertical_rate_mps"] = float(vm[2])
+                vel_fields["vertical_rate_std_mps"] = float(spec.vel_std_enu_mps[2])
         msg = GnssFix(
             t=float(traj.t_s[k]),
             lat_deg=float(np.degrees(lat_m)),
             lon_deg=float(np.degrees(earth.wrap_pi(lon_m))),
             height_m=float(h + pe[2]),
-            vel_enu_mps=tuple(float(x) for x in vm),
-            pos_std_enu_m=tuple(float(x) for x in spec.pos_std_enu_m),
-            vel_std_enu_mps=tuple(float(x) for x in spec.vel_std_enu_mps),
+            pos_std_enu_m=pos_std_msg,
             constellation=spec.constellation,
             num_sats=spec.num_sats,
+            **vel_fields,
         )
         out.append((k, msg))
     return out

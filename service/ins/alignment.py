@@ -93,13 +93,19 @@ class ImuAccumulator:
         return float(np.sqrt(var_f.sum()))
 
 
+#: velocity 1-sigma of a position-only fix used as a reference state (uninformative)
+UNKNOWN_VEL_STD_MPS = 100.0
+
+
 def fix_is_current(fix: GnssFix, t: float) -> bool:
     """Whether a fix is close enough to the INS time ``t`` to initialise from."""
     return abs(fix.t - t) <= FIX_MAX_AGE_S
 
 
 def fix_speed(fix: GnssFix) -> float:
-    return float(np.linalg.norm(fix.vel_enu_mps))
+    """Speed of a fix (3-D or from speed/course); 0 for a position-only fix (no motion start)."""
+    vel = fix.velocity()
+    return 0.0 if vel is None else float(np.linalg.norm(vel))
 
 
 def level_and_gyrocompass(f_b: np.ndarray, w_b: np.ndarray) -> np.ndarray:
@@ -142,7 +148,7 @@ def static_alignment(
     att_std = static_attitude_std(
         float(np.linalg.norm(f)), math.radians(fix.lat_deg), gyro_bias_sigma, accel_bias_sigma
     )
-    std = InitStd(np.array(fix.pos_std_enu_m), np.full(3, STATIC_VEL_STD_MPS), att_std)
+    std = InitStd(np.array(fix.pos_std()), np.full(3, STATIC_VEL_STD_MPS), att_std)
     nav = nav_at_fix(fix, rpy, t)
     nav.vel_enu_mps = np.zeros(3)
     return nav, std
@@ -159,15 +165,17 @@ def attitude_from_velocity(vel_enu_mps) -> np.ndarray:
 def motion_alignment(fix: GnssFix, t: float) -> tuple[NavState, InitStd]:
     """In-motion initialisation at the INS time ``t`` from a fix: position (carried to ``t``) and
     velocity from the fix, attitude from its velocity track, wide attitude sigmas."""
-    std = InitStd(
-        np.array(fix.pos_std_enu_m), np.array(fix.vel_std_enu_mps), np.radians(list(MOTION_ATT_STD_DEG))
-    )
-    return nav_at_fix(fix, attitude_from_velocity(fix.vel_enu_mps), t), std
+    vel, vel_std = fix.velocity(), fix.vel_std()
+    if vel is None:  # position-only fix: velocity unknown (as a reference, only position counts)
+        vel, vel_std = (0.0, 0.0, 0.0), (UNKNOWN_VEL_STD_MPS,) * 3
+    std = InitStd(np.array(fix.pos_std()), np.array(vel_std), np.radians(list(MOTION_ATT_STD_DEG)))
+    return nav_at_fix(fix, attitude_from_velocity(vel), t), std
 
 
 def nav_at_fix(fix: GnssFix, rpy_rad: np.ndarray, t: float) -> NavState:
     """State at time ``t`` from a fix, carried back/forward with the fix's velocity."""
-    vel = np.array(fix.vel_enu_mps, dtype=float)
+    v = fix.velocity()
+    vel = np.zeros(3) if v is None else np.array(v, dtype=float)
     llh = np.array([math.radians(fix.lat_deg), math.radians(fix.lon_deg), fix.height_m])
     dllh = earth.enu_m_to_llh_delta(vel * (t - fix.t), llh[0], llh[2])
     return NavState(

@@ -38,6 +38,7 @@ from service.estimation.federated.fault_tests import FaultTest, make_fault_test
 from service.estimation.federated.sharing import get_strategy
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.measurements import MeasurementModel
+from service.estimation.measurements.gnss_fix import gnss_fix_options
 from service.ins import error_model as em
 from service.ins.mechanisation import Ins, NavState
 from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
@@ -78,6 +79,7 @@ class _CorePipeline(Pipeline):
         master_share: float = 0.0,
         floor_share: float = 0.05,
         report_faults: bool = True,
+        model_options: dict[str, dict] | None = None,
     ):
         super().__init__(name, imu, major_interval_s)
         self.local_names = [s for s, _ in subsystems]
@@ -100,7 +102,10 @@ class _CorePipeline(Pipeline):
                         f"({self.channels[kind].name!r}, {sub_name!r}); it would be counted twice"
                     )
                 self.channels[kind] = _Channel(
-                    measurements.make(kind), i, sub_name, make_fault_test(fault_handling, false_alarm_prob)
+                    measurements.make(kind, **(model_options or {}).get(kind, {})),
+                    i,
+                    sub_name,
+                    make_fault_test(fault_handling, false_alarm_prob),
                 )
         self.core: FederatedCore | None = None
         self._version = 0
@@ -113,9 +118,25 @@ class _CorePipeline(Pipeline):
 
     # --- Pipeline interface ---------------------------------------------------------------------
     def private_states(self) -> tuple:
-        """Private-state blocks every member carries after the 15 common states (never fused;
-        a family whose local owns some, like the DVL's, overrides this)."""
-        return ()
+        """Private-state blocks every member carries after the 15 common states (never fused):
+        those of the configured models (e.g. the correlated GNSS error of ``gnss_fix``), each
+        observed and fed back by the local that owns its sensor (``_feedback_private``)."""
+        return tuple(b for ch in self.channels.values() for b in ch.model.private_states)
+
+    def _feedback_private(self) -> None:
+        """Each owning local's estimate of its model's private blocks into their references
+        (closed loop, like the INS; seed 004's DVL block is fed back the same way)."""
+        bank = self.bank
+        for ch in self.channels.values():
+            for block in ch.model.private_states:
+                cols = bank.columns.get(block.name)
+                if cols is None:
+                    continue
+                part = bank.x[ch.owner, cols]
+                if np.all(np.isfinite(part)) and np.any(part):
+                    dx = np.zeros(bank.n - em.N_STATES)
+                    dx[cols.start - em.N_STATES : cols.stop - em.N_STATES] = part
+                    bank.feedback_private(dx)
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
         n_locals = len(self.local_names)
@@ -166,12 +187,16 @@ class _CorePipeline(Pipeline):
             self.core.fuse_and_reset(fused)
         except np.linalg.LinAlgError:
             self.recover_covariance()
+            return
+        self._feedback_private()
 
     def recover_covariance(self) -> None:
         """Numerical-health recovery: keep the INS, restart every member from the initial
         covariance (re-divided by the sharing strategy), zero error states, flag it."""
         bank = self.bank
         bank.x[:] = 0.0
+        for ref in bank.reference.values():  # private references restart with the covariance
+            ref[:] = 0.0
         bank.P = np.broadcast_to(self._P0, bank.P.shape).copy()
         bank.q_scale = np.ones_like(bank.q_scale)
         self.core.start()
@@ -301,6 +326,7 @@ class Federated(_CorePipeline):
             master_share=cfg.master_share,
             floor_share=cfg.floor_share,
             report_faults=True,
+            model_options={"gnss_fix": gnss_fix_options(cfg)},
         )
         self.cfg = cfg
 
@@ -321,6 +347,7 @@ class Centralized(_CorePipeline):
             fault_handling=cfg.fault_handling,
             false_alarm_prob=cfg.false_alarm_prob,
             report_faults=cfg.fault_handling != "none",
+            model_options={"gnss_fix": gnss_fix_options(cfg)},
         )
         self.cfg = cfg
         # report per sensor kind (one test each), all owned by the single filter

@@ -11,6 +11,7 @@ from service.config import ImuModel, LooselyCoupledConfig
 from service.estimation import kalman, measurements
 from service.estimation.ins_filter import InsFilterBank
 from service.estimation.measurements import MeasurementModel
+from service.estimation.measurements.gnss_fix import gnss_fix_options
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
 from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
@@ -26,7 +27,11 @@ class LooselyCoupled(Pipeline):
         super().__init__(cfg.name, imu, major_interval_s)
         self.cfg = cfg
         kinds = ["gnss_fix"] + (["star"] if cfg.use_star else [])
-        self.models: dict[str, MeasurementModel] = {k: measurements.make(k) for k in kinds}
+        options = {"gnss_fix": gnss_fix_options(cfg)}
+        self.models: dict[str, MeasurementModel] = {
+            k: measurements.make(k, **options.get(k, {})) for k in kinds
+        }
+        self.private = tuple(b for m in self.models.values() for b in m.private_states)
         self.last_nis: float | None = None
         self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
@@ -34,8 +39,10 @@ class LooselyCoupled(Pipeline):
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
         self._refused_since.clear()
-        self._P0 = initial_covariance(std, self.imu)
-        self.bank = InsFilterBank(nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s)
+        self._P0 = initial_covariance(std, self.imu, self.private)
+        self.bank = InsFilterBank(
+            nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s, private=self.private
+        )
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         model = self.models.get(kind)
@@ -98,6 +105,8 @@ class LooselyCoupled(Pipeline):
 
     def recover_covariance(self) -> None:
         self.bank.x[:] = 0.0
+        for name in self.bank.reference:  # private references (correlated GNSS error) restart too
+            self.bank.reference[name][:] = 0.0
         self.bank.P[:] = self._P0
         self.restarted()
 

@@ -1,10 +1,39 @@
-"""GNSS position + velocity fix (loosely coupled), antenna at the IMU.
+"""GNSS fix (loosely coupled): the rows the fix carries, antenna lever arm, correlated error.
 
-z = [p_INS - p_fix (ENU m), v_INS - v_fix (ENU m/s)], H = [I 0 0 0 0; 0 I 0 0 0],
-R = diag(position and velocity variances of the fix), each sigma at least ``MIN_POS_STD_M`` /
-``MIN_VEL_STD_MPS`` (below any receiver's real precision, RTK included). Late aiding
-(``ctx.dt_late_s`` > 0, the fix older than the INS time): the fix position is carried forward
-with its own velocity.
+Rows, by the fix's variant (``GnssFix.variant``); z = INS-predicted minus measured:
+
+* position (always): ``pos_e, pos_n, pos_u`` (ENU m), the antenna position
+  p_a = p + C_nb l_b (l_b: antenna lever arm from the IMU, body RFU axes, m);
+* 3-D velocity: ``vel_e, vel_n, vel_u``, the antenna velocity v_a = v + C_nb (w_ib x l_b);
+* speed + course: two rows along and across the reported course,
+  ``vel_along = u_a . v_a,h - s`` and ``vel_cross = u_c . v_a,h`` with u_a = (sin c, cos c),
+  u_c = (cos c, -sin c) (c the course, clockwise from north); plus ``vel_u`` when the fix has a
+  vertical rate. This is the speed/course pair converted to an east/north velocity
+  v_f = s u_a with its first-order covariance J diag(s_s^2, s_c^2) J' (J = d v_f / d(s, c) =
+  [u_a, s u_c]) rotated into the (u_a, u_c) frame, where it is diagonal:
+  R = diag(s_s^2, s^2 s_c^2). Row-independent, so every per-row gate and fault test applies.
+  Without a course sigma s_c = s_s / s (isotropic horizontal velocity, R = s_s^2 I); with one,
+  the cross-track sigma s s_c is kept at least s_s (at low speed a course says nothing).
+  docs/own_data.md derives it.
+
+Lever arm (attitude error convention of ``Ins.correct``: C_nb(computed) = (I - [phi x]) C_nb):
+C_nb,c l = C_nb l + [(C_nb l) x] phi, so H_pos,att = [(C_nb l) x]; likewise
+H_vel,att = [(C_nb (w x l)) x]. The Earth-rate part of the antenna velocity (w_ie x C_nb l,
+< 1e-4 m/s per metre of lever arm) and the gyro-bias error's effect on w x l (10 deg/h gives
+5e-5 m/s per metre) are below any receiver's velocity noise and left out (tests check H against
+finite differences of this model).
+
+Time-correlated receiver error (``correlated_sigma_enu_m``): a first-order Gauss-Markov
+position error b per ENU axis as the private block ``gnss_error`` (Groves 2013, "Principles of
+GNSS, Inertial and Multisensor Integrated Navigation Systems", ch. 14: correlated GNSS
+position errors as additional states), fix = p_a + b + n, b_k+1 = e^(-T/tau) b_k + w,
+Qd = sigma^2 (1 - e^(-2T/tau)). Closed loop like the INS: the model predicts p_a + b_ref and
+H_pos,b = I (error db = b_ref - b). The fix's sigma is read as its TOTAL error: the white part
+used in R is sqrt(sigma_fix^2 - sigma_gm^2), at least ``MIN_WHITE_FRACTION`` of sigma_fix.
+
+Sigmas: each at least ``MIN_POS_STD_M`` / ``MIN_VEL_STD_MPS`` (below any receiver's real
+precision). Late aiding (``ctx.dt_late_s`` > 0): the fix position is carried forward with its
+own velocity (none for a position-only fix).
 """
 
 from __future__ import annotations
@@ -14,40 +43,133 @@ import math
 import numpy as np
 
 from service import earth
-from service.estimation.measurements.base import Measurement, ModelContext, floored_variances
+from service.estimation.measurements.base import (
+    Measurement,
+    ModelContext,
+    PrivateStates,
+    floored_variances,
+)
 from service.ins import error_model as em
 from service.ins.mechanisation import NavState
-from service.messages import GnssFix
+from service.messages import DEFAULT_VERTICAL_RATE_STD_MPS, GnssFix
 
+#: rows of a full fix (also the simulator's fault channels)
 LABELS = ("pos_e", "pos_n", "pos_u", "vel_e", "vel_n", "vel_u")
+SPEED_COURSE_LABELS = ("vel_along", "vel_cross")
 MIN_POS_STD_M = 0.005
 MIN_VEL_STD_MPS = 0.001
+MIN_WHITE_FRACTION = 0.2
+BLOCK = "gnss_error"
+BLOCK_NAMES = ("gnss_err_e_m", "gnss_err_n_m", "gnss_err_u_m")
+
+
+def gauss_markov_block(tau_s: float, sigma_enu_m) -> PrivateStates:
+    """First-order Gauss-Markov ENU position error of the receiver (stationary, exact
+    discretisation): Phi = e^(-T/tau) I, Qd = sigma^2 (1 - e^(-2T/tau))."""
+    var = np.square(np.asarray(sigma_enu_m, dtype=float))
+
+    def transition(T: float) -> tuple[np.ndarray, np.ndarray]:
+        a = math.exp(-T / tau_s)
+        return a * np.eye(3), np.diag(var * (1.0 - a * a))
+
+    return PrivateStates(BLOCK, BLOCK_NAMES, transition, tuple(float(s) for s in sigma_enu_m))
+
+
+def gnss_fix_options(cfg) -> dict:
+    """The model's options from a pipeline configuration with ``gnss_lever_arm_b_m`` and
+    ``gnss_correlated_error`` (loosely coupled, federated, centralised)."""
+    gm = cfg.gnss_correlated_error
+    return {
+        "lever_arm_b_m": cfg.gnss_lever_arm_b_m,
+        "correlated_sigma_enu_m": None if gm is None else gm.sigma_enu_m,
+        "correlation_time_s": 60.0 if gm is None else gm.correlation_time_s,
+    }
 
 
 class GnssFixModel:
     kind = "gnss_fix"
-    private_states = ()
+    # the class has no private states (usable by every 15-state filter); an instance with a
+    # correlated-error block declares it (the loosely coupled family builds its bank with it)
+    private_states: tuple[PrivateStates, ...] = ()
 
-    def __call__(self, nav: NavState, msg: GnssFix, ctx: ModelContext) -> Measurement:
+    def __init__(
+        self,
+        lever_arm_b_m=(0.0, 0.0, 0.0),
+        correlated_sigma_enu_m=None,
+        correlation_time_s: float = 60.0,
+    ):
+        self.lever_arm_b_m = np.asarray(lever_arm_b_m, dtype=float)
+        self.gm_sigma = None if correlated_sigma_enu_m is None else np.asarray(correlated_sigma_enu_m, float)
+        if self.gm_sigma is not None:
+            self.private_states = (gauss_markov_block(correlation_time_s, self.gm_sigma),)
+
+    # --- the antenna ------------------------------------------------------------------------------
+    def antenna_offsets(self, nav: NavState, wib_b_rps) -> tuple[np.ndarray, np.ndarray]:
+        """(C_nb l, C_nb (w x l)): the antenna's position and velocity offsets from the IMU, ENU."""
+        c_nb = nav.mat_nb
+        l_b = self.lever_arm_b_m
+        return c_nb @ l_b, c_nb @ np.cross(np.asarray(wib_b_rps, dtype=float), l_b)
+
+    def __call__(self, nav: NavState, msg: GnssFix, ctx: ModelContext) -> Measurement | None:
         lat, lon = math.radians(msg.lat_deg), math.radians(msg.lon_deg)
         r_m, r_n = earth.radii(nav.lat_rad)
-        vel = np.asarray(msg.vel_enu_mps, dtype=float)
+        dl_pos, dl_vel = self.antenna_offsets(nav, ctx.wib_b_rps)
+        vel_fix = msg.velocity()
+        carry = np.zeros(3) if vel_fix is None else np.asarray(vel_fix, dtype=float) * ctx.dt_late_s
         dp = (
             np.array(
                 [
-                    (nav.lon_rad - lon) * (r_n + nav.h_m) * math.cos(nav.lat_rad),
+                    earth.wrap_pi(nav.lon_rad - lon) * (r_n + nav.h_m) * math.cos(nav.lat_rad),
                     (nav.lat_rad - lat) * (r_m + nav.h_m),
                     nav.h_m - msg.height_m,
                 ]
             )
-            - vel * ctx.dt_late_s
+            + dl_pos
+            - carry
         )
-        z = np.concatenate([dp, nav.vel_enu_mps - vel])
-        H = np.zeros((6, ctx.n_states))
-        H[0:3, em.POS] = np.eye(3)
-        H[3:6, em.VEL] = np.eye(3)
-        var, floored = floored_variances(
-            np.concatenate([msg.pos_std_enu_m, msg.vel_std_enu_mps]),
-            np.r_[np.full(3, MIN_POS_STD_M), np.full(3, MIN_VEL_STD_MPS)],
-        )
-        return Measurement(z, H, np.diag(var), LABELS, floored=floored)
+        pos_std = np.asarray(msg.pos_std(), dtype=float)
+        H_pos = np.zeros((3, ctx.n_states))
+        H_pos[:, em.POS] = np.eye(3)
+        H_pos[:, em.ATT] = earth.skew(dl_pos)
+        if self.gm_sigma is not None:
+            cols = ctx.columns.get(BLOCK)
+            if cols is None:
+                raise ValueError("the correlated GNSS error needs a filter with the 'gnss_error' block")
+            dp = dp + np.asarray(ctx.reference[BLOCK], dtype=float)
+            H_pos[:, cols] = np.eye(3)
+            pos_std = np.sqrt(np.maximum(pos_std**2 - self.gm_sigma**2, (MIN_WHITE_FRACTION * pos_std) ** 2))
+        v_a = np.asarray(nav.vel_enu_mps, dtype=float) + dl_vel
+        H_vel = np.zeros((3, ctx.n_states))
+        H_vel[:, em.VEL] = np.eye(3)
+        H_vel[:, em.ATT] = earth.skew(dl_vel)
+        zs, Hs, stds, mins, labels = [dp], [H_pos], [pos_std], [np.full(3, MIN_POS_STD_M)], list(LABELS[:3])
+        variant = msg.variant
+        if variant == "velocity":
+            vel_std = msg.vel_std()
+            zs.append(v_a - np.asarray(msg.vel_enu_mps, dtype=float))
+            Hs.append(H_vel)
+            stds.append(np.asarray(vel_std, dtype=float))
+            mins.append(np.full(3, MIN_VEL_STD_MPS))
+            labels += LABELS[3:]
+        elif variant == "speed_course":
+            s = float(msg.speed_mps)
+            c = math.radians(msg.course_deg)
+            U = np.array([[math.sin(c), math.cos(c)], [math.cos(c), -math.sin(c)]])  # along, cross
+            s_s = msg.speed_std()
+            cross = s_s if msg.course_std_deg is None else max(s * math.radians(msg.course_std_deg), s_s)
+            zs.append(U @ v_a[:2] - np.array([s, 0.0]))
+            Hs.append(U @ H_vel[:2])
+            stds.append(np.array([s_s, cross]))
+            mins.append(np.full(2, MIN_VEL_STD_MPS))
+            labels += SPEED_COURSE_LABELS
+            if msg.vertical_rate_mps is not None:
+                zs.append(np.array([v_a[2] - msg.vertical_rate_mps]))
+                Hs.append(H_vel[2:3])
+                stds.append(np.array([msg.vertical_rate_std_mps or DEFAULT_VERTICAL_RATE_STD_MPS]))
+                mins.append(np.array([MIN_VEL_STD_MPS]))
+                labels.append(LABELS[5])
+        z = np.concatenate(zs)
+        if not np.all(np.isfinite(z)):
+            return None
+        var, floored = floored_variances(np.concatenate(stds), np.concatenate(mins))
+        return Measurement(z, np.vstack(Hs), np.diag(var), tuple(labels), floored=floored)
