@@ -32,9 +32,9 @@ def main() -> int:
     cfgs = [
         T(name="kf", filter="kf", **v),
         T(name="kf_turbR", filter="kf", r_att_arcmin=1.2, r_rate_dps=0.76, **v),
-        T(name="akf", filter="akf", **v),
+        T(name="akf", filter="akf", fading=True, **v),
         T(name="akf_r", filter="akf", fading=False, **v),
-        T(name="akf_scaled", filter="akf", fading_form="scaled", **v),
+        T(name="akf_scaled", filter="akf", fading=True, fading_form="scaled", **v),
     ]
     r = te.run_once(sc, cfgs, args.seed)
     t = r["kf"]["t"]

@@ -48,7 +48,7 @@ def bench_bank(sc, mode: str) -> float:
     dth_m, dv_m = sim.master._dth, sim.master._dv
     dth_s = np.stack([n.dtheta_rad for n in sim.nodes], axis=1)
     dv_s = np.stack([n.dvel_mps for n in sim.nodes], axis=1)
-    bank = bank_from_config(TransferAlignmentConfig(name="b", filter=mode))
+    bank = bank_from_config(TransferAlignmentConfig(name="b", filter=mode, fading=mode == "akf"))
     t0 = time.perf_counter()
     for k in range(1, dth_m.shape[0]):
         bank.push(dth_m[k], dv_m[k], dth_s[k], dv_s[k], 0.01, k * 0.01)

@@ -32,7 +32,7 @@ def short_wing(tmp_path: Path) -> Path:
     text = re.sub(r"(?m)^turbulence = .*$", "turbulence = []", text)
     text = re.sub(
         r"(?s)pipelines = \[.*?\n\]",
-        'pipelines = [{ name = "ta", kind = "transfer_alignment", filter = "akf" }]',
+        'pipelines = [{ name = "ta", kind = "transfer_alignment", filter = "akf", fading = true }]',
         text,
     )
     text = text.replace('name = "seed002_wing"', 'name = "seed002_wing_short"')
