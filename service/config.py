@@ -402,6 +402,15 @@ class ImmTightlyCoupledConfig(Model):
     gate_p_fa: float | None = Field(
         None, gt=0, lt=0.5, description="Chi-square innovation gate with row rejection (None: off)"
     )
+    selection_correction: bool = Field(
+        False,
+        description="Divide a fault model's likelihood by C(m, k), the number of k-row sets it chose its "
+        "suspected rows from (not in the paper; docs/seed003.md)",
+    )
+    output: Literal["combined", "map"] = Field(
+        "combined",
+        description="'combined': eq (12)-(13) fed back and published; 'map': the most probable model's",
+    )
 
     @model_validator(mode="after")
     def _markov(self):

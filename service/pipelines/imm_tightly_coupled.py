@@ -75,7 +75,11 @@ class ImmTightlyCoupled(Pipeline):
         self.restarted()
 
     def combined(self) -> tuple[np.ndarray, np.ndarray]:
-        """Combined state and covariance of the bank now (eq 12-13)."""
+        """The bank's output now: combined state and covariance (eq 12-13), or with
+        ``output = "map"`` the most probable model's."""
+        if self.cfg.output == "map":
+            j = int(np.argmax(self.mu))
+            return self.bank.x[j].copy(), self.bank.P[j].copy()
         return core.combine(self.bank.x, self.bank.P, self.mu)
 
     def estimate(self) -> Estimate:
@@ -122,6 +126,7 @@ class ImmTightlyCoupled(Pipeline):
                 self.weighting,
                 self.cfg.likelihood,
                 mask,
+                self.cfg.selection_correction,
             )
             if not kalman.is_positive_definite(st.P).all():
                 raise NotPositiveDefinite("IMM member covariance after the update")
@@ -129,7 +134,7 @@ class ImmTightlyCoupled(Pipeline):
             self.recover_covariance()
             return []
         bank.x, bank.P, self.mu, self.last = st.x, st.P, st.mu, st
-        bank.feedback(st.x_comb.copy())
+        bank.feedback(self.combined()[0])
         self.mark_aided(nav.t)
         xc_prior = self.mu_prior_residual(st)
         return [
