@@ -14,10 +14,12 @@ on real fixes"; issue 10, deliverable 3).
    ``GnssFix.pos_std_enu_m`` / ``vel_std_enu_mps``.
 2. A stationary simulated IMU (noise-free angle increments = earth rate, velocity increments =
    normal gravity up; body axes = ENU): the antenna did not move in the static parts, so this IS
-   the true IMU output. The filter assumes the ``industrial_mems`` grade (``--imu-grade``); the grade
-   sets only the process noise, and with 1 Hz Doppler velocity fixes (sigma ~1 cm/s) the position
-   between fixes is carried by the observed velocity, so the grade hardly changes the position
-   estimate or its sigma (measured: the table with ``--imu-grade navigation`` and ``consumer_mems``).
+   the true IMU output, and no IMU error is simulated. The filter assumes the ``industrial_mems``
+   grade (``--imu-grade``); with a noise-free IMU the grade only sets the filter's process noise,
+   i.e. how fast it forgets old fixes. With the GM states it barely matters (the correlated error
+   is modelled and the Doppler velocity, sigma ~1 cm/s, carries the position between fixes); fixes
+   fused as independent are averaged the longer the better the assumed IMU, so the white filter
+   is the more overconfident the better the grade (measured, docs/own_data.md).
 3. The unmodified ``LooselyCoupled`` pipeline, started at the first fix of each static part (its
    sigma as the initial position sigma), without Gauss-Markov states and with them for several
    correlation times.
@@ -273,7 +275,8 @@ def evaluate(
 def format_result(r: dict) -> str:
     f3 = lambda v: "/".join(f"{x:.2f}" for x in v)  # noqa: E731
     lines = [
-        f"{r['data']}: filter IMU grade {r['imu_grade']}; fix sigma scale {r['sigma_scale']:.3f}; pooled sigma0 {r['sigma0_pos_m']:.2f} m "
+        f"{r['data']}: filter IMU grade {r['imu_grade']}; fix sigma scale {r['sigma_scale']:.3f}; "
+        f"pooled sigma0 {r['sigma0_pos_m']:.2f} m "
         f"(pseudorange, zenith), {r['sigma0_vel_mps']:.4f} m/s (range rate); median fix sigma E/N/U "
         f"{f3(r['fix_sigma_median_enu_m'])} m; GM sigma E/N/U {f3(r['gm_sigma_enu_m'])} m",
     ]
