@@ -17,14 +17,35 @@ states report a larger sigma than the white filter in both parts. Deterministic 
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import pytest
 
-from simulators.real_fix_eval import evaluate, real_fixes
+from simulators.real_fix_eval import correlation_time_s, evaluate, real_fixes
 
 from .real_data import WUHAN
 
 WHITE = "white (no GM states)"
 GM30 = "GM tau 30 s"
+
+
+def test_correlation_time_of_a_first_order_gauss_markov_sequence():
+    """Closed form: x_k = e^(-T/tau) x_(k-1) + w has autocorrelation e^(-lag/tau), 1/e at lag tau
+    (the estimate is the first whole lag below 1/e, so up to one sample late); 5 seeds, 20000 s."""
+    tau_s, n = 30.0, 20000
+    phi = math.exp(-1.0 / tau_s)
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        w = rng.standard_normal(n) * math.sqrt(1.0 - phi**2)
+        x = np.empty(n)
+        x[0] = rng.standard_normal()
+        for k in range(1, n):
+            x[k] = phi * x[k - 1] + w[k]
+        est, ac = correlation_time_s(x)
+        assert 0.8 * tau_s <= est <= 1.25 * tau_s  # measured 29-33 s
+        assert ac[0] == pytest.approx(1.0)
+        assert ac[1] == pytest.approx(phi, abs=0.02)
 
 
 @pytest.fixture(scope="module")
