@@ -6,7 +6,8 @@ the sentence before it). An epoch with a valid GGA becomes one GnssFix: position
 indicator) and HDOP from GGA, position sigmas from GST (else the mapping's ``pos_std_m``, else
 the documented defaults from fix type and HDOP), the date from RMC (else the mapping's ``date``).
 The variant is what the log gives: speed + course over ground (RMC or VTG) when both are there,
-position only when not; NMEA has no vertical velocity and none is invented. Lines that are not NMEA or fail their checksum are
+position only when not; NMEA has no vertical velocity and none is invented. Lines that are not
+NMEA or fail their checksum are
 counted in ``stats`` and skipped. The message itself is built by ``events.nmea_fix_to_wire``.
 """
 

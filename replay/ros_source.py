@@ -7,7 +7,8 @@ altitude m above the WGS-84 ellipsoid, position_covariance ENU m^2) paired with
 geometry_msgs/TwistWithCovarianceStamped on ``twist_topic`` (linear velocity in ``twist_frame``,
 ENU or NED) when there is one within 0.05 s: a 3-D velocity fix; a NavSatFix without a Twist
 (no ``twist_topic``, or none near its stamp: counted as ``no_velocity``) is published as a
-position-only fix, never with an invented velocity. Stamps are the message headers' (sensor time), not the bag's receive time.
+position-only fix, never with an invented velocity. Stamps are the message headers' (sensor
+time), not the bag's receive time.
 """
 
 from __future__ import annotations
