@@ -400,12 +400,29 @@ def test_example_mappings_and_service_config_are_valid():
 
     root = Path(__file__).resolve().parents[1] / "replay" / "examples"
     names = sorted(p.name for p in root.glob("*.toml"))
-    assert names == ["nmea_imu_csv.toml", "ros2_bag.toml", "service.toml"]
-    for name in ("nmea_imu_csv.toml", "ros2_bag.toml"):
+    assert names == [
+        "nmea_imu_csv.toml",
+        "nmea_service.toml",
+        "rinex.toml",
+        "rinex_service.toml",
+        "ros2_bag.toml",
+        "service.toml",
+    ]
+    for name, service, kinds in (
+        ("nmea_imu_csv.toml", "nmea_service.toml", {"imu", "gnss_fix"}),
+        ("ros2_bag.toml", "service.toml", {"imu", "gnss_fix"}),
+        ("rinex.toml", "rinex_service.toml", {"imu", "gnss_raw"}),
+    ):
         m, _ = mapping.load_mapping(root / name)
-        assert {s.kind for s in m.streams} == {"imu", "gnss_fix"}
-    cfg = load(root / "service.toml")
-    assert cfg.vehicles == [m.vehicle]
+        assert {s.kind for s in m.streams} == kinds
+        cfg = load(root / service)
+        assert cfg.vehicles == [m.vehicle]
+    nmea = load(root / "nmea_service.toml")
+    assert nmea.imu.grade == "consumer_mems" and nmea.pipelines[0].gnss_correlated_error is not None
+    tc = load(root / "rinex_service.toml")
+    assert tc.init.mode == "message" and tc.pipelines[0].kind == "tightly_coupled"
+    rinex = mapping.load_mapping(root / "rinex.toml")[0]
+    assert [s.resolved_format() for s in rinex.streams] == ["csv", "rinex"]
 
 
 def test_progress_bar_draws_only_when_enabled():
