@@ -34,7 +34,7 @@ COMMON_AXES = ("FLU", "FRD", "RFU")
 SKIP_HINTS = {
     "implausible": ": rates or specific forces beyond the wire limits (50 rad/s, 50 g): check gyro_unit "
     "(deg/s data declared rad/s?) and accel_unit",
-    "no_velocity": ": no twist within 0.05 s of the fix",
+    "no_velocity": ": no twist within 0.05 s of the fix (published as position-only fixes)",
 }
 
 

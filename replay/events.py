@@ -91,30 +91,40 @@ def gnss_fix_to_wire(
     lat_deg: float,
     lon_deg: float,
     height_m: float,
-    vel_enu_mps,
-    pos_std_enu_m,
-    vel_std_enu_mps,
+    vel_enu_mps=None,
+    pos_std_enu_m=None,
+    vel_std_enu_mps=None,
     num_sats: int = 0,
     constellation: str = "GPS",
+    fix_type: str = "single",
+    hdop: float | None = None,
 ) -> GnssFix:
-    """The current GnssFix (3-D velocity with sigmas): NAV-PVT and NavSatFix + Twist have all of it."""
+    """A GnssFix with what the source really gives: 3-D velocity (UBX NAV-PVT, NavSatFix + Twist)
+    or none (position only, ``vel_enu_mps=None``). Sigmas left None take the documented defaults
+    from ``fix_type`` and ``hdop`` (service.messages.GnssFix.pos_std / speed_std)."""
+
+    def _tup(x):
+        return None if x is None else tuple(float(v) for v in x)
+
     return GnssFix(
         t=t,
         lat_deg=lat_deg,
         lon_deg=lon_deg,
         height_m=height_m,
-        vel_enu_mps=tuple(float(x) for x in vel_enu_mps),
-        pos_std_enu_m=tuple(float(x) for x in pos_std_enu_m),
-        vel_std_enu_mps=tuple(float(x) for x in vel_std_enu_mps),
+        vel_enu_mps=_tup(vel_enu_mps),
+        pos_std_enu_m=_tup(pos_std_enu_m),
+        vel_std_enu_mps=_tup(vel_std_enu_mps) if vel_enu_mps is not None else None,
         constellation=constellation,
         num_sats=int(min(max(num_sats, 0), 200)),
+        fix_type=fix_type,
+        hdop=hdop,
     )
 
 
-# Where an NMEA log has no velocity at an epoch (no RMC/VTG), or for the vertical (NMEA has none),
-# the current GnssFix still needs a value: zero with these sigmas, i.e. "unknown" to the filter.
-NMEA_NO_VERTICAL_VEL_STD_MPS = 5.0
-NMEA_NO_VEL_STD_MPS = 100.0
+#: NMEA GGA quality indicator -> GnssFix.fix_type (NMEA 0183 v4.10 GGA field 6: 1 GPS SPS, 2 DGPS,
+#: 3 PPS, 4 RTK fixed, 5 RTK float, 6 dead reckoning, 7 manual, 8 simulator; 9 SBAS on u-blox and
+#: others). Qualities that are not a GNSS solution (6-8) are not published as fixes.
+GGA_FIX_TYPE = {1: "single", 2: "dgnss", 3: "single", 4: "fixed", 5: "float", 9: "sbas"}
 
 
 def nmea_fix_to_wire(
@@ -124,22 +134,28 @@ def nmea_fix_to_wire(
     height_m: float,
     speed_mps: float | None,
     course_deg: float | None,
-    pos_std_enu_m,
-    horizontal_vel_std_mps: float,
+    pos_std_enu_m=None,
+    speed_std_mps: float | None = None,
     num_sats: int = 0,
+    fix_type: str = "single",
+    hdop: float | None = None,
 ) -> GnssFix:
-    """An NMEA epoch (position; horizontal speed and course over ground when RMC/VTG gave them).
-
-    THE ONE PLACE TO CHANGE AT THE MERGE OF THE GnssFix VARIANTS: the current GnssFix forces a 3-D
-    velocity, so the vertical velocity is published as 0 with a wide sigma
-    (NMEA_NO_VERTICAL_VEL_STD_MPS) and a missing speed/course as 0 with NMEA_NO_VEL_STD_MPS.
-    With the speed + course variant (and the position-only variant when speed is None), this
-    function returns that message instead and nothing else in replay/ changes."""
-    if speed_mps is None or course_deg is None:
-        vel = (0.0, 0.0, 0.0)
-        vel_std = (NMEA_NO_VEL_STD_MPS, NMEA_NO_VEL_STD_MPS, NMEA_NO_VEL_STD_MPS)
-    else:
-        c = np.radians(course_deg)
-        vel = (speed_mps * np.sin(c), speed_mps * np.cos(c), 0.0)
-        vel_std = (horizontal_vel_std_mps, horizontal_vel_std_mps, NMEA_NO_VERTICAL_VEL_STD_MPS)
-    return gnss_fix_to_wire(t, lat_deg, lon_deg, height_m, vel, pos_std_enu_m, vel_std, num_sats)
+    """An NMEA epoch as the GnssFix variant it really is: horizontal speed + course when RMC/VTG
+    gave both, position only when not. Nothing is invented: NMEA has no vertical velocity, so
+    none is sent. Position sigmas: GST's (``pos_std_enu_m``) when present, else None, i.e. the
+    documented defaults from ``fix_type`` and ``hdop`` (from GGA); ``speed_std_mps`` None: the
+    fix type's default; the course sigma is left to GnssFix (speed sigma / speed: isotropic)."""
+    has_vel = speed_mps is not None and course_deg is not None
+    return GnssFix(
+        t=t,
+        lat_deg=lat_deg,
+        lon_deg=lon_deg,
+        height_m=height_m,
+        pos_std_enu_m=None if pos_std_enu_m is None else tuple(float(x) for x in pos_std_enu_m),
+        speed_mps=float(speed_mps) if has_vel else None,
+        course_deg=float(course_deg) if has_vel else None,
+        speed_std_mps=float(speed_std_mps) if has_vel and speed_std_mps is not None else None,
+        fix_type=fix_type,
+        hdop=hdop,
+        num_sats=int(min(max(num_sats, 0), 200)),
+    )

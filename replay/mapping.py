@@ -127,11 +127,15 @@ class StreamMapping(_Model):
     rinex_options: dict[str, Any] = Field(
         default_factory=dict, description="RINEX: keyword options passed to iter_gnss_raw (its documentation)"
     )
-    pos_std_m: tuple[float, float, float] = Field(
-        (2.0, 2.0, 4.0), description="Fix position 1-sigma E/N/U, m, where the source gives none"
+    pos_std_m: tuple[float, float, float] | None = Field(
+        None,
+        description="Fix position 1-sigma E/N/U, m, where the source gives none "
+        "(None: GnssFix's documented defaults from fix type and HDOP)",
     )
-    vel_std_mps: tuple[float, float, float] = Field(
-        (0.1, 0.1, 0.2), description="Fix velocity 1-sigma E/N/U, m/s, where the source gives none"
+    vel_std_mps: tuple[float, float, float] | None = Field(
+        None,
+        description="Fix velocity 1-sigma E/N/U, m/s, where the source gives none (NMEA: the first "
+        "value is the speed sigma; None: GnssFix's documented default for the fix type)",
     )
 
     @field_validator("axes")
@@ -143,7 +147,7 @@ class StreamMapping(_Model):
     @field_validator("pos_std_m", "vel_std_mps")
     @classmethod
     def _positive(cls, v):
-        if not all(x > 0 for x in v):
+        if v is not None and not all(x > 0 for x in v):
             raise ValueError("every sigma must be > 0")
         return v
 

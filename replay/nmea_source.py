@@ -2,9 +2,12 @@
 
 Sentences are grouped into epochs by their UTC time of day (VTG has none: it joins the epoch of
 the sentence before it). An epoch with a valid GGA becomes one GnssFix: position from GGA
-(ellipsoidal height = altitude above mean sea level + geoid separation), position sigmas from
-GST (else the mapping's ``pos_std_m``), speed and course over ground from RMC or VTG, the date
-from RMC (else the mapping's ``date``). Lines that are not NMEA or fail their checksum are
+(ellipsoidal height = altitude above mean sea level + geoid separation), fix type (quality
+indicator) and HDOP from GGA, position sigmas from GST (else the mapping's ``pos_std_m``, else
+the documented defaults from fix type and HDOP), the date from RMC (else the mapping's ``date``).
+The variant is what the log gives: speed + course over ground (RMC or VTG) when both are there,
+position only when not; NMEA has no vertical velocity and none is invented. Lines that are not
+NMEA or fail their checksum are
 counted in ``stats`` and skipped. The message itself is built by ``events.nmea_fix_to_wire``.
 """
 
@@ -14,7 +17,7 @@ import datetime as dt
 from collections.abc import Iterator
 from pathlib import Path
 
-from .events import Event, key_suffix, nmea_fix_to_wire
+from .events import GGA_FIX_TYPE, Event, key_suffix, nmea_fix_to_wire
 from .mapping import ReplayMapping, StreamMapping, to_gps_s
 
 KNOT_MPS = 1852.0 / 3600.0
@@ -78,9 +81,11 @@ def events(
         elif date is not None and last_tod is not None and ep["time"] < last_tod:
             date = date + dt.timedelta(days=1)  # midnight passed without an RMC
         last_tod = ep["time"]
-        if gga is None or not int(gga.gps_qual or 0):
+        qual = int(_float(gga.gps_qual) or 0) if gga is not None else 0
+        if qual not in GGA_FIX_TYPE:  # 0 invalid, 6-8 dead reckoning / manual / simulator
             stats["no_fix"] = stats.get("no_fix", 0) + 1
             continue
+        fix_type = GGA_FIX_TYPE[qual]
         if date is None:
             raise SourceError(
                 f"{path}: no RMC sentence gives the date: set 'date' (YYYY-MM-DD) in the mapping"
@@ -107,10 +112,9 @@ def events(
             speed = None if kmh is None else kmh / 3.6
         if speed is not None and course is None and speed < 0.1:
             course = 0.0  # receivers leave the course empty at rest
-        yield Event(
-            t,
-            suffix,
-            nmea_fix_to_wire(
+        hdop = _float(gga.horizontal_dil)
+        try:
+            fix = nmea_fix_to_wire(
                 t,
                 gga.latitude,
                 gga.longitude,
@@ -118,7 +122,12 @@ def events(
                 speed,
                 course,
                 pstd,
-                stream.vel_std_mps[0],
+                None if stream.vel_std_mps is None else stream.vel_std_mps[0],
                 num_sats=int(_float(gga.num_sats) or 0),
-            ),
-        )
+                fix_type=fix_type,
+                hdop=hdop if hdop is not None and 0.0 < hdop <= 100.0 else None,
+            )
+        except ValueError:
+            stats["implausible"] = stats.get("implausible", 0) + 1
+            continue
+        yield Event(t, suffix, fix)

@@ -1,10 +1,12 @@
-"""Adapter slot: RINEX observation + navigation files -> GnssRaw events.
+"""RINEX observation + navigation files -> GnssRaw events.
 
-The RINEX reader and the satellite/atmosphere models are built in ``simulators/gnss/`` by the
-raw-GNSS work (``simulators.gnss.rinex_raw.iter_gnss_raw(obs_path, nav_paths, **options)``,
-yielding ``(t_gps_s, GnssRaw)``). This module only calls it: when that module is not importable
-(not merged yet), a ``rinex`` stream is refused with a plain message, before anything is published.
-The stream's ``rinex_options`` table is passed to it as keyword arguments (see its documentation).
+The RINEX readers and the satellite models live in ``simulators/gnss/`` (docs/real_rinex.md):
+``simulators.gnss.rinex_raw.iter_gnss_raw(obs_path, nav_paths, **options)`` yields
+``(t_gps_s, GnssRaw)`` per observation epoch and this module only calls it, with the mapping's
+``rinex_nav`` files and the stream's ``rinex_options`` table as keyword arguments (systems,
+pseudorange_sigma_m, range_rate_sigma_mps, start_gps_s, stop_gps_s, max_age_s). In a build
+without that module (a trimmed install), a ``rinex`` stream is refused with a plain message
+before anything is published. End to end over Zenoh: tests/test_replay_rinex_zenoh.py.
 """
 
 from __future__ import annotations

@@ -5,7 +5,10 @@ Topics: sensor_msgs/Imu (rates: angular_velocity rad/s, linear_acceleration m/s^
 the mapping's ``axes`` names; REP-103 says FLU), sensor_msgs/NavSatFix (latitude/longitude deg,
 altitude m above the WGS-84 ellipsoid, position_covariance ENU m^2) paired with
 geometry_msgs/TwistWithCovarianceStamped on ``twist_topic`` (linear velocity in ``twist_frame``,
-ENU or NED). Stamps are the message headers' (sensor time), not the bag's receive time.
+ENU or NED) when there is one within 0.05 s: a 3-D velocity fix; a NavSatFix without a Twist
+(no ``twist_topic``, or none near its stamp: counted as ``no_velocity``) is published as a
+position-only fix, never with an invented velocity. Stamps are the message headers' (sensor
+time), not the bag's receive time.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ IMU_TYPES = ("sensor_msgs/msg/Imu",)
 FIX_TYPES = ("sensor_msgs/msg/NavSatFix",)
 TWIST_TYPES = ("geometry_msgs/msg/TwistWithCovarianceStamped",)
 TWIST_MATCH_S = 0.05  # a twist is paired with a fix whose stamp is within this, s
+#: NavSatStatus.status -> GnssFix.fix_type (STATUS_FIX 0, STATUS_SBAS_FIX 1, STATUS_GBAS_FIX 2)
+NAVSAT_FIX_TYPE = {0: "single", 1: "sbas", 2: "dgnss"}
 
 
 class SourceError(ValueError):
@@ -86,20 +91,24 @@ def events(
                 stats["no_fix"] = stats.get("no_fix", 0) + 1
             continue
         ts = _stamp(m)
-        if not twists:
-            raise SourceError(
-                f"{path} {stream.topic}: the current GnssFix needs a velocity: set twist_topic "
-                "(geometry_msgs/TwistWithCovarianceStamped)"
-            )
-        i = int(np.argmin(np.abs(tw_t - ts)))
-        if abs(tw_t[i] - ts) > TWIST_MATCH_S:
-            if stats is not None:
-                stats["no_velocity"] = stats.get("no_velocity", 0) + 1
-            continue  # no velocity at this epoch
-        _, vel, vstd = twists[i]
         cov = np.asarray(m.position_covariance, float).reshape(3, 3)
         known = m.position_covariance_type > 0 and np.all(np.diag(cov) > 0)
-        pstd = np.sqrt(np.diag(cov)) if known else np.array(stream.pos_std_m)
-        vstd = vstd if np.all(vstd > 0) else np.array(stream.vel_std_mps)
+        pstd = np.sqrt(np.diag(cov)) if known else stream.pos_std_m  # None: GnssFix's defaults
+        ftype = NAVSAT_FIX_TYPE.get(int(m.status.status), "single")
         t = to_gps_s(ts, stream, leap)
-        yield Event(t, suffix, gnss_fix_to_wire(t, m.latitude, m.longitude, m.altitude, vel, pstd, vstd))
+        vel = vstd = None
+        if twists:
+            i = int(np.argmin(np.abs(tw_t - ts)))
+            if abs(tw_t[i] - ts) <= TWIST_MATCH_S:
+                _, vel, vstd = twists[i]
+                if not np.all(vstd > 0):
+                    vstd = stream.vel_std_mps  # None: GnssFix's default for the fix type
+            elif stats is not None:  # published as position only
+                stats["no_velocity"] = stats.get("no_velocity", 0) + 1
+        try:
+            fix = gnss_fix_to_wire(t, m.latitude, m.longitude, m.altitude, vel, pstd, vstd, fix_type=ftype)
+        except ValueError:
+            if stats is not None:
+                stats["implausible"] = stats.get("implausible", 0) + 1
+            continue
+        yield Event(t, suffix, fix)

@@ -81,7 +81,13 @@ def events(
             pstd = (h_std, h_std, max(m.vAcc * 1e-3, 1e-3))
             s_std = max(m.sAcc * 1e-3, 1e-3)
             vel = (m.velE * 1e-3, m.velN * 1e-3, -m.velD * 1e-3)
-            fix = gnss_fix_to_wire(t, m.lat, m.lon, m.height * 1e-3, vel, pstd, (s_std,) * 3, m.numSV)
+            # the 3-D velocity is the receiver's own (velD is measured, not invented); fix type
+            # from the carrier-phase and differential flags (only labels it: the sigmas are given)
+            carr = int(getattr(m, "carrSoln", 0) or 0)
+            ftype = {1: "float", 2: "fixed"}.get(carr, "dgnss" if getattr(m, "diffSoln", 0) else "single")
+            fix = gnss_fix_to_wire(
+                t, m.lat, m.lon, m.height * 1e-3, vel, pstd, (s_std,) * 3, m.numSV, fix_type=ftype
+            )
             yield Event(t, suffix, fix)
         return
     if stream.tick_s is None:

@@ -201,13 +201,5 @@ class Ros2Config(_Model):
                     f"inputs: the Twist topic {i.topic} has sensor_id {i.sensor_id!r} but no NavSatFix topic "
                     "has it (a Twist is the velocity of a NavSatFix)"
                 )
-        for i in self.inputs:
-            if i.type == "sensor_msgs/msg/NavSatFix" and not any(
-                j.type == "geometry_msgs/msg/TwistWithCovarianceStamped" and j.sensor_id == i.sensor_id
-                for j in self.inputs
-            ):
-                raise ValueError(
-                    f"inputs: the NavSatFix topic {i.topic} needs a TwistWithCovarianceStamped topic with "
-                    f"sensor_id {i.sensor_id!r}: fednav's GnssFix carries position and velocity"
-                )
+        # a NavSatFix without a Twist topic is fine: it gives position-only GnssFix messages
         return self

@@ -15,7 +15,13 @@ from replay.__main__ import main as replay_main
 from replay.events import ImuBuilder, merge, nmea_fix_to_wire
 from replay.mapping import MappingError, axes_matrix, from_dict, to_gps_s
 from replay.sources import stream_events
-from service.messages import GnssFix, ImuSample
+from service.messages import (
+    DEFAULT_H_STD_M,
+    DEFAULT_SPEED_STD_MPS,
+    VERTICAL_TO_HORIZONTAL,
+    GnssFix,
+    ImuSample,
+)
 
 from . import replay_files as rf
 
@@ -167,10 +173,13 @@ def test_each_format_reads_back_what_was_written(case, files, drive):
             r.lon_deg, abs=2e-7
         )
         assert f.height_m == pytest.approx(r.height_m, abs=2e-3)
-        if case == "nmea_csv":  # speed + course: horizontal velocity; no vertical (see nmea_fix_to_wire)
-            assert np.allclose(f.vel_enu_mps[:2], r.vel_enu_mps[:2], atol=1e-3)
-            assert f.vel_enu_mps[2] == 0.0 and f.vel_std_enu_mps[2] == 5.0
+        if case == "nmea_csv":  # the speed + course variant: no vertical velocity is invented
+            assert f.variant == "speed_course" and f.vel_enu_mps is None
+            assert f.vertical_rate_mps is None and f.vel_std_enu_mps is None
+            assert np.allclose(f.velocity()[:2], r.vel_enu_mps[:2], atol=1e-3)
+            assert f.speed_std_mps is None and f.speed_std() == DEFAULT_SPEED_STD_MPS["single"]
             assert np.allclose(f.pos_std_enu_m, r.pos_std_enu_m, atol=1e-3)  # from GST
+            assert f.fix_type == "single" and f.hdop is not None
         else:
             assert np.allclose(f.vel_enu_mps, r.vel_enu_mps, atol=1e-3)
             assert np.allclose(f.pos_std_enu_m, r.pos_std_enu_m, atol=2e-3)
@@ -195,14 +204,82 @@ def test_nmea_without_rmc_needs_a_date_and_takes_it_from_the_mapping(tmp_path, d
     fixes = list(nmea_source.events(m.streams[0], tmp_path, m, stats=stats))
     assert stats == {"bad_sentence": 1} and len(fixes) == len(drive.fixes)
     assert fixes[5].t_gps_s == pytest.approx(drive.fixes[5].t, abs=1e-6)
-    f = fixes[5].msg  # no GST, no RMC: the mapping's sigmas, velocity unknown
-    assert f.pos_std_enu_m == (2.0, 2.0, 4.0) and f.vel_std_enu_mps == (100.0, 100.0, 100.0)
+    f = fixes[5].msg  # no GST, no RMC: position only, sigmas the documented defaults from GGA
+    assert f.variant == "position" and f.velocity() is None and f.vel_std() is None
+    assert f.pos_std_enu_m is None and f.fix_type == "single"
+    gga = pynmea2.parse(lines[6], check=True)  # lines[3] is the garbage one
+    assert f.hdop == pytest.approx(float(gga.horizontal_dil))
+    h = DEFAULT_H_STD_M["single"] * f.hdop
+    assert f.pos_std() == pytest.approx((h, h, VERTICAL_TO_HORIZONTAL * h))
+    # the mapping's pos_std_m, when given, overrides the defaults
+    m = from_dict({"streams": [{**base, "date": date, "pos_std_m": [2.0, 2.0, 4.0]}]})
+    f = list(nmea_source.events(m.streams[0], tmp_path, m))[5].msg
+    assert f.pos_std_enu_m == (2.0, 2.0, 4.0) and f.variant == "position"
+
+
+def test_navsatfix_without_twist_is_position_only(files):
+    # the same bag without twist_topic: position-only fixes, the bag's covariance as sigmas
+    m, base = mapping.load_mapping(_with(files["ros2"], 'twist_topic = "/gnss/vel"\n', ""))
+    fix_stream = next(s for s in m.streams if s.kind == "gnss_fix")
+    out = [e.msg for e in stream_events(fix_stream, base, m)]
+    assert out and all(f.variant == "position" and f.vel_std_enu_mps is None for f in out)
+    assert all(f.fix_type == "single" and f.pos_std_enu_m == pytest.approx((1.0, 1.0, 2.0)) for f in out)
+    # with the twist: the 3-D velocity variant (the receiver's own velocity)
+    m, base = mapping.load_mapping(files["ros2"])
+    fix_stream = next(s for s in m.streams if s.kind == "gnss_fix")
+    out3 = [e.msg for e in stream_events(fix_stream, base, m)]
+    assert len(out3) == len(out) and all(f.variant == "velocity" for f in out3)
+
+
+def test_ubx_nav_pvt_keeps_its_measured_3d_velocity(files):
+    m, base = mapping.load_mapping(files["ubx"])
+    fix_stream = next(s for s in m.streams if s.kind == "gnss_fix")
+    out = [e.msg for e in stream_events(fix_stream, base, m)]
+    assert out and all(f.variant == "velocity" and f.vel_std_enu_mps is not None for f in out)
+    assert all(f.fix_type == "single" for f in out)
 
 
 def test_nmea_fix_to_wire_speed_and_course():
     f = nmea_fix_to_wire(1.0, 10.0, 20.0, 5.0, 10.0, 90.0, (1.0, 1.0, 2.0), 0.2, num_sats=7)
-    assert np.allclose(f.vel_enu_mps, [10.0, 0.0, 0.0], atol=1e-12)
-    assert f.vel_std_enu_mps == (0.2, 0.2, 5.0) and f.num_sats == 7
+    assert f.variant == "speed_course" and f.vel_enu_mps is None and f.vertical_rate_mps is None
+    assert np.allclose(f.velocity(), [10.0, 0.0, 0.0], atol=1e-12)  # east at course 90 deg
+    assert f.speed_std_mps == 0.2 and f.course_std_deg is None and f.num_sats == 7
+    assert f.pos_std_enu_m == (1.0, 1.0, 2.0)
+    # no speed or no course: position only, nothing invented; sigmas default from fix type/HDOP
+    for speed, course in ((None, None), (3.0, None), (None, 45.0)):
+        g = nmea_fix_to_wire(1.0, 10.0, 20.0, 5.0, speed, course, None, 0.2, fix_type="dgnss", hdop=2.0)
+        assert g.variant == "position" and g.speed_mps is None and g.speed_std_mps is None
+        h = DEFAULT_H_STD_M["dgnss"] * 2.0
+        assert g.pos_std() == pytest.approx((h, h, VERTICAL_TO_HORIZONTAL * h))
+    # without a speed sigma: the fix type's documented default
+    g = nmea_fix_to_wire(1.0, 10.0, 20.0, 5.0, 2.0, 10.0, None, None, fix_type="float")
+    assert g.speed_std() == DEFAULT_SPEED_STD_MPS["float"]
+
+
+@pytest.mark.parametrize(
+    ("qual", "fix_type"), [(1, "single"), (2, "dgnss"), (4, "fixed"), (5, "float"), (9, "sbas")]
+)
+def test_nmea_fix_type_from_gga_quality(tmp_path, drive, qual, fix_type):
+    import pynmea2
+
+    src = [ln for ln in rf.nmea_lines(drive) if ln.startswith("$GPGGA")][:3]
+    lines = []
+    for ln in src:
+        f = ln[1 : ln.index("*")].split(",")
+        f[6] = str(qual)
+        body = ",".join(f)
+        lines.append(f"${body}*{pynmea2.NMEASentence.checksum(body):02X}")
+    (tmp_path / "q.nmea").write_text("\n".join(lines) + "\n")
+    date = rf.gps_to_utc(drive.fixes[0].t).date().isoformat()
+    m = from_dict(
+        {
+            "streams": [
+                {"source": "q.nmea", "kind": "gnss_fix", "sensor_id": "rx", "time_base": "utc", "date": date}
+            ]
+        }
+    )
+    out = [e.msg for e in stream_events(m.streams[0], tmp_path, m)]
+    assert len(out) == 3 and {f.fix_type for f in out} == {fix_type}
 
 
 def test_rinex_slot_says_plainly_when_it_is_not_available(tmp_path, monkeypatch):
@@ -323,12 +400,29 @@ def test_example_mappings_and_service_config_are_valid():
 
     root = Path(__file__).resolve().parents[1] / "replay" / "examples"
     names = sorted(p.name for p in root.glob("*.toml"))
-    assert names == ["nmea_imu_csv.toml", "ros2_bag.toml", "service.toml"]
-    for name in ("nmea_imu_csv.toml", "ros2_bag.toml"):
+    assert names == [
+        "nmea_imu_csv.toml",
+        "nmea_service.toml",
+        "rinex.toml",
+        "rinex_service.toml",
+        "ros2_bag.toml",
+        "service.toml",
+    ]
+    for name, service, kinds in (
+        ("nmea_imu_csv.toml", "nmea_service.toml", {"imu", "gnss_fix"}),
+        ("ros2_bag.toml", "service.toml", {"imu", "gnss_fix"}),
+        ("rinex.toml", "rinex_service.toml", {"imu", "gnss_raw"}),
+    ):
         m, _ = mapping.load_mapping(root / name)
-        assert {s.kind for s in m.streams} == {"imu", "gnss_fix"}
-    cfg = load(root / "service.toml")
-    assert cfg.vehicles == [m.vehicle]
+        assert {s.kind for s in m.streams} == kinds
+        cfg = load(root / service)
+        assert cfg.vehicles == [m.vehicle]
+    nmea = load(root / "nmea_service.toml")
+    assert nmea.imu.grade == "consumer_mems" and nmea.pipelines[0].gnss_correlated_error is not None
+    tc = load(root / "rinex_service.toml")
+    assert tc.init.mode == "message" and tc.pipelines[0].kind == "tightly_coupled"
+    rinex = mapping.load_mapping(root / "rinex.toml")[0]
+    assert [s.resolved_format() for s in rinex.streams] == ["csv", "rinex"]
 
 
 def test_progress_bar_draws_only_when_enabled():

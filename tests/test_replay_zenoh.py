@@ -1,6 +1,7 @@
 """fednav-replay over real processes: one fednav-service (all vehicles, static alignment, loosely
 coupled, recording to an .rrd) and one ``fednav-replay`` process per input format (ROS 2 bag,
-ROS 1 bag, MCAP, NMEA + IMU CSV, UBX NAV-PVT + ESF-RAW), each under its own vehicle name, over
+ROS 1 bag, MCAP, NMEA + IMU CSV, UBX NAV-PVT + ESF-RAW, and the ROS 2 bag without its Twist
+topic: position-only fixes), each under its own vehicle name, over
 loopback Zenoh with explicit endpoints. A plain Zenoh client receives the solutions; they are
 compared with the simulation's truth; the recording reads back with Rerun's reader.
 """
@@ -22,7 +23,7 @@ from . import replay_files as rf
 from .plain_zenoh import client
 
 pytestmark = pytest.mark.integration
-CASES = ("ros2", "ros1", "mcap", "nmea_csv", "ubx")
+CASES = ("ros2", "ros1", "mcap", "nmea_csv", "ubx", "ros2_pos")
 DURATION_S = 32.0
 ALIGN_S = 8.0
 
@@ -34,6 +35,10 @@ def replayed(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("replay_zenoh")
     drive = rf.simulate_drive(tmp, duration_s=DURATION_S)
     mappings = rf.write_all(tmp / "logs", drive)
+    # the same ROS 2 bag with its NavSatFix alone: position-only GnssFix (no velocity invented)
+    text = mappings["ros2"].read_text().replace('twist_topic = "/gnss/vel"\n', "")
+    mappings["ros2_pos"] = mappings["ros2"].with_name("ros2_pos.toml")
+    mappings["ros2_pos"].write_text(text.replace('vehicle = "ros2"', 'vehicle = "ros2_pos"'))
     port = free_port()
     rrd = tmp / "replay.rrd"
     svc = start_service(port, config=rf.service_config(tmp, align_s=ALIGN_S), rrd=rrd)

@@ -235,6 +235,32 @@ def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
     assert g.vel_std_enu_mps == pytest.approx((0.2, 0.1, 0.3))
 
 
+def test_navsatfix_without_twist_topic_gives_position_only_fixes():
+    # the configuration takes a NavSatFix topic alone (no Twist of its sensor_id)
+    only = {"topic": "/gnss/fix", "type": "sensor_msgs/msg/NavSatFix", "sensor_id": "rx"}
+    c = cfg(inputs=[only])
+    ok = {"vehicles": ["v1"], "ros2": c.model_dump()}
+    assert config_mod.from_dict(ok).ros2.inputs[0].sensor_id == "rx"
+    rin = ros2.RosInput(c)
+    cov = np.diag([4.0, 9.0, 16.0]).ravel()
+    [(kind, sid, p)] = rin.decode(
+        FIX_KEY, cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov=cov, status=1))
+    )
+    g = GnssFix.model_validate_json(p)
+    assert (kind, sid) == ("gnss_fix", "rx") and g.variant == "position"
+    assert g.vel_enu_mps is None and g.vel_std_enu_mps is None and g.speed_mps is None
+    assert g.pos_std_enu_m == pytest.approx((2.0, 3.0, 4.0)) and g.fix_type == "sbas"
+    assert g.t == pytest.approx(ros2.stamp_to_t(T0_UNIX + 1, 0, "unix", 18), abs=1e-6)
+    # the pure function: None twist -> position only; with a twist -> 3-D velocity
+    fix = {"t": 1.0, "lat_deg": 1.0, "lon_deg": 2.0, "height_m": 3.0, "pos_std_enu_m": [1.0, 1.0, 2.0]}
+    assert GnssFix.model_validate_json(json.dumps(ros2.gnss_fix_from_ros(fix, None))).variant == "position"
+    tw = {"t": 1.0, "vel_enu_mps": [1.0, 2.0, 0.1], "vel_std_enu_mps": [0.1, 0.1, 0.2]}
+    g3 = GnssFix.model_validate_json(json.dumps(ros2.gnss_fix_from_ros(fix, tw)))
+    assert g3.variant == "velocity" and g3.vel_enu_mps == (1.0, 2.0, 0.1)
+    # a receiver with a Twist topic still waits for its pair (no position-only fix in between)
+    assert ros2.RosInput(cfg()).decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0))) == []
+
+
 def test_bad_cdr_and_no_fix_are_counted_rejections_not_exceptions():
     rin = ros2.RosInput(cfg())
     good = cdr(imu_msg(T0_UNIX, (0, 0, 0), (0, 0, 9.8)))

@@ -202,25 +202,28 @@ def _diag_std(cov, idx: tuple[int, int, int], default: float) -> list[float]:
 def gnss_fix_from_ros(fix: dict, twist: dict | None) -> dict | None:
     """The one place a NavSatFix (and the Twist paired with it) becomes a fednav GnssFix (JSON dict).
 
-    ``fix``: t, lat_deg, lon_deg, height_m, pos_std_enu_m; ``twist``: t, vel_enu_mps,
-    vel_std_enu_mps. fednav's GnssFix carries position and 3-D velocity, so a fix without a Twist
-    gives nothing here (when position-only GnssFix variants exist, return one instead of None).
+    ``fix``: t, lat_deg, lon_deg, height_m, pos_std_enu_m (optional fix_type, constellation);
+    ``twist``: t, vel_enu_mps, vel_std_enu_mps. With a Twist: the 3-D velocity variant; without
+    one (``twist is None``): the position-only variant, no velocity invented.
     """
-    if twist is None:
-        return None
-    return {
+    out = {
         "t": fix["t"],
         "lat_deg": fix["lat_deg"],
         "lon_deg": fix["lon_deg"],
         "height_m": fix["height_m"],
-        "vel_enu_mps": twist["vel_enu_mps"],
         "pos_std_enu_m": fix["pos_std_enu_m"],
-        "vel_std_enu_mps": twist["vel_std_enu_mps"],
+        "fix_type": fix.get("fix_type", "single"),
         "constellation": fix.get("constellation", "GPS"),
     }
+    if twist is not None:
+        out["vel_enu_mps"] = twist["vel_enu_mps"]
+        out["vel_std_enu_mps"] = twist["vel_std_enu_mps"]
+    return out
 
 
 _SERVICE_CONSTELLATION = {1: "GPS", 2: "GLO", 4: "BDS", 8: "GAL"}
+#: NavSatStatus.status -> GnssFix.fix_type (STATUS_FIX 0, STATUS_SBAS_FIX 1, STATUS_GBAS_FIX 2)
+_NAVSAT_FIX_TYPE = {0: "single", 1: "sbas", 2: "dgnss"}
 
 
 @dataclass
@@ -245,6 +248,9 @@ class RosInput:
 
     def __post_init__(self):
         self.store = typestore(self.cfg.distro)
+        self._with_twist = {
+            i.sensor_id for i in self.cfg.inputs if i.type == "geometry_msgs/msg/TwistWithCovarianceStamped"
+        }
         for i in self.cfg.inputs:
             self._by_key[self._match_key(topic_key(self.cfg, i.topic, i.type, any_hash=True))] = i
 
@@ -322,8 +328,11 @@ class RosInput:
             "lon_deg": float(msg.longitude),
             "height_m": float(msg.altitude),
             "pos_std_enu_m": std,
+            "fix_type": _NAVSAT_FIX_TYPE.get(int(msg.status.status), "single"),
             "constellation": _SERVICE_CONSTELLATION.get(int(msg.status.service), "MULTI"),
         }
+        if inp.sensor_id not in self._with_twist:  # no Twist topic for this receiver: position only
+            return [("gnss_fix", inp.sensor_id, _dumps(gnss_fix_from_ros(fix, None)))]
         return self._pair(inp.sensor_id, fix, self._fix, self._twist, fix_first=True)
 
     def _twist_in(self, inp: Ros2Input, msg) -> list[tuple[str, str, bytes]]:
