@@ -31,6 +31,9 @@ Initialisation (``[init] mode``):
   scatter small), static coarse alignment (levelling + gyrocompassing) at the latest GNSS fix
   position; else, in motion with a GNSS fix faster than ``min_speed_mps``: position and
   velocity from the fix, heading and pitch from the velocity track, roll 0, wide sigmas.
+  A vehicle with a raw receiver and no fix stream uses the snapshot least-squares fix of each raw
+  epoch instead (:func:`service.estimation.snapshot.snapshot_fix`), also to confirm an InitialNav
+  start and to restart failed pipelines.
 - ``static`` / ``gnss_motion`` force the respective fallback.
 The alignment maths and its thresholds are in :mod:`service.ins.alignment`.
 """
@@ -46,6 +49,7 @@ from typing import Protocol
 import numpy as np
 
 from service.config import ServiceConfig
+from service.estimation import snapshot
 from service.evaluation import errors_against_truth
 from service.ins import alignment
 from service.ins.mechanisation import NavState, Preintegrator
@@ -55,6 +59,7 @@ from service.messages import (
     MAX_SPEED_MPS,
     MIN_HEIGHT_M,
     GnssFix,
+    GnssRaw,
     ImuSample,
     InitialNav,
     Solution,
@@ -133,6 +138,7 @@ class VehicleEngine:
         self.rules = AcceptanceRules(config.intake)
         self._truth: dict[int, Truth] = {}
         self._last_fix: GnssFix | None = None
+        self._fix_from_raw = False  # _last_fix is a snapshot solution of a raw epoch (snapshot.py)
         self._align = alignment.ImuAccumulator()
         self._last_out_k = -1
         self._lost = False
@@ -174,6 +180,9 @@ class VehicleEngine:
             return self._on_imu(msg, verdict)
         if kind == "gnss_fix" and verdict.in_sequence:
             self._last_fix = msg  # the newest fix, also when not applied (alignment uses it)
+            self._fix_from_raw = False
+        elif kind == "gnss_raw" and verdict.in_sequence and not self.initialised:
+            self._snapshot_reference(msg)  # a raw receiver without a fix stream aligns like one with it
         if verdict.reason == "not_initialised":
             self._try_initialise_from_aiding()  # this message may complete an alignment
             if self.initialised:
@@ -384,6 +393,12 @@ class VehicleEngine:
             if self._check_first_fix:
                 self._confirm_start(msg)
             self._restart_failed(msg)
+        elif kind == "gnss_raw" and (self._check_first_fix or any(p.failed for p in self.pipelines)):
+            fix = self._snapshot_reference(msg)
+            if fix is not None:
+                if self._check_first_fix:
+                    self._confirm_start(fix)
+                self._restart_failed(fix)
         for p in self.pipelines:
             p.sync()
             try:
@@ -490,6 +505,17 @@ class VehicleEngine:
         self._start(nav, std)
         self._check_first_fix = True
         return True
+
+    def _snapshot_reference(self, raw: GnssRaw) -> GnssFix | None:
+        """The snapshot least-squares fix of a raw epoch (``snapshot.snapshot_fix``) as the latest
+        fix, unless a receiver's own fix is current (that one is better: it models the atmosphere)."""
+        own = self._last_fix
+        if own is not None and not self._fix_from_raw and alignment.fix_is_current(own, raw.t):
+            return None
+        fix = snapshot.snapshot_fix(raw)
+        if fix is not None:
+            self._last_fix, self._fix_from_raw = fix, True
+        return fix
 
     def _reference_state(self, t: float) -> tuple[NavState, np.ndarray] | None:
         """An independent position/velocity at ``t`` and its 6x6 covariance: the latest GNSS fix if

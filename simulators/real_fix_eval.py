@@ -47,11 +47,11 @@ import numpy as np
 from service import earth
 from service.config import GnssCorrelatedError, ImuModel, LooselyCoupledConfig
 from service.estimation.measurements import atmosphere as atm
+from service.estimation.snapshot import solve_position, solve_velocity
 from service.ins.alignment import InitStd
 from service.ins.mechanisation import NavState
 from service.messages import GnssFix
 from service.pipelines.loosely_coupled import LooselyCoupled
-from simulators.gnss.raw_sensor import solve_position, solve_velocity
 from simulators.gnss.rinex_raw import iter_gnss_raw
 from simulators.rinex_eval import enu, find_files, spp, static_segments
 

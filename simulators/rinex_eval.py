@@ -34,11 +34,11 @@ import numpy as np
 
 from service import earth
 from service.config import ClockModel, ImuModel, TightlyCoupledConfig
+from service.estimation.snapshot import solve_position, solve_velocity
 from service.ins.alignment import InitStd
 from service.ins.mechanisation import NavState
 from service.messages import GnssRaw, Integrity
 from service.pipelines.tightly_coupled import TightlyCoupled
-from simulators.gnss.raw_sensor import solve_position, solve_velocity
 from simulators.gnss.rinex import read_rinex2_nav
 from simulators.gnss.rinex_raw import ConversionStats, iter_gnss_raw, read_observations
 

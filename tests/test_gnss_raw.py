@@ -15,6 +15,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 from service.earth import C_MPS, ecef_to_enu, ecef_to_llh, llh_to_ecef, mat_en
+from service.estimation.snapshot import solve_position, solve_velocity
 from service.messages import GnssRaw
 from simulators.gnss.constellation import az_el, dop, dop_batch, los_enu, select_satellites
 from simulators.gnss.orbits import NOMINAL_EPOCH_GPS_S, NominalConstellation, gps_seconds, range_geometry
@@ -25,8 +26,6 @@ from simulators.gnss.raw_sensor import (
     ReceiverClockSpec,
     clock_transition,
     iono_obliquity,
-    solve_position,
-    solve_velocity,
     tropo_delay_m,
     tropo_mapping,
 )

@@ -420,7 +420,7 @@ def test_example_mappings_and_service_config_are_valid():
     nmea = load(root / "nmea_service.toml")
     assert nmea.imu.grade == "consumer_mems" and nmea.pipelines[0].gnss_correlated_error is not None
     tc = load(root / "rinex_service.toml")
-    assert tc.init.mode == "message" and tc.pipelines[0].kind == "tightly_coupled"
+    assert tc.init.mode == "auto" and tc.pipelines[0].kind == "tightly_coupled"
     rinex = mapping.load_mapping(root / "rinex.toml")[0]
     assert [s.resolved_format() for s in rinex.streams] == ["csv", "rinex"]
 

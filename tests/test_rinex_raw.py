@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from service.earth import llh_to_ecef
+from service.estimation.snapshot import solve_position, solve_velocity
 from simulators.gnss.orbits import gps_seconds
-from simulators.gnss.raw_sensor import solve_position, solve_velocity
 from simulators.gnss.rinex import gps_broadcast_states, read_rinex2_nav
 from simulators.gnss.rinex_raw import (
     BDS_GEO,

@@ -10,7 +10,7 @@ rinex          RINEX 2 GPS navigation reader + IS-GPS-200 ephemeris (``Broadcast
 rinex_raw      RINEX 2/3 observation + GPS/Galileo/BeiDou navigation -> GnssRaw (``iter_gnss_raw``).
 constellation  azimuth/elevation, DOPs, satellite selection rules (``select_satellites``).
 raw_sensor     ``GnssRawSpec`` / ``GnssRawSensor`` producing ``service.messages.GnssRaw``, receiver
-               clock model, atmosphere models, single-point position/velocity solvers.
+               clock model, atmosphere models (the single-point solvers are service.estimation.snapshot).
 """
 
 from simulators.gnss.constellation import (
@@ -42,8 +42,6 @@ from simulators.gnss.raw_sensor import (
     GnssRawTruth,
     ReceiverClockSpec,
     clock_transition,
-    solve_position,
-    solve_velocity,
 )
 from simulators.gnss.rinex import BroadcastEphemeris, read_rinex2_nav, read_rinex2_obs
 from simulators.gnss.sp3 import Sp3Orbits, read_sp3
@@ -77,7 +75,5 @@ __all__ = [
     "read_sp3",
     "resolve_sat_id",
     "select_satellites",
-    "solve_position",
-    "solve_velocity",
     "visible",
 ]

@@ -33,9 +33,8 @@ With ``reselect="on_loss"`` (default) the set is kept until one of its satellite
 invalid, then chosen again; ``"every_epoch"`` re-chooses each epoch; ``"never"`` keeps the first
 set, dropping satellites as they set.
 
-Also here: atmosphere models (:func:`tropo_delay_m`, Saastamoinen with a standard atmosphere) and
-single-epoch least-squares position/velocity solvers (:func:`solve_position`,
-:func:`solve_velocity`) used by tests and tools.
+Also here: atmosphere models (:func:`tropo_delay_m`, Saastamoinen with a standard atmosphere). The
+single-epoch least-squares solvers are the service's (:mod:`service.estimation.snapshot`).
 
 References: Groves 2nd ed. ch. 9 (pseudo-range and rate models, receiver clock), Brown & Hwang,
 *Introduction to Random Signals and Applied Kalman Filtering*, 4th ed., section 9.3 (clock PSDs
@@ -54,7 +53,7 @@ import numpy as np
 import scipy.linalg
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.earth import A_M, C_MPS, ecef_to_llh
+from service.earth import A_M, C_MPS
 from service.messages import GnssRaw, SatObservation
 from simulators.gnss.constellation import SELECTION_RULES, az_el, dop, select_satellites
 from simulators.gnss.orbits import (
@@ -64,7 +63,6 @@ from simulators.gnss.orbits import (
     SatStates,
     constellation_of,
     light_time_states,
-    range_geometry,
     resolve_sat_id,
 )
 
@@ -508,110 +506,3 @@ class GnssRawSensor:
             visible_ids=tuple(vis),
         )
         return GnssRawEpoch(msg, truth, st, geo)
-
-
-# --- single-epoch least squares ----------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PositionSolution:
-    """Least-squares single-point solution. ``residuals_m`` (N,) = measured - predicted at the solution."""
-
-    pos_ecef_m: np.ndarray
-    clock_bias_m: float
-    residuals_m: np.ndarray
-    iterations: int
-    converged: bool
-    cov: np.ndarray  # (4, 4) (G' W G)^-1: x, y, z, clock (unit weights: in units of the ranging variance)
-
-    @property
-    def llh(self) -> np.ndarray:
-        return ecef_to_llh(self.pos_ecef_m)
-
-
-def solve_position(
-    pseudorange_m: np.ndarray,
-    sat_pos_ecef_m: np.ndarray,
-    sat_clock_m: np.ndarray | None = None,
-    x0_ecef_m: np.ndarray | None = None,
-    weights: np.ndarray | None = None,
-    delay_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-    max_iter: int = 15,
-    tol_m: float = 1e-7,
-) -> PositionSolution:
-    """Gauss-Newton single-point positioning with the shared ranging model.
-
-    Model: ``pseudorange = range_geometry(x, sat).range_m + b - sat_clock_m + delay_fn(x, sat_rx_frame)``.
-
-    Parameters
-    ----------
-    pseudorange_m : (N,), N >= 4.
-    sat_pos_ecef_m : (N, 3) satellite positions at transmit time (ECEF of the transmit time).
-    sat_clock_m : (N,) satellite clocks x c (default zero).
-    x0_ecef_m : (3,) initial position (default the earth's centre).
-    weights : (N,) inverse variances (default ones).
-    delay_fn : optional ``(rx_ecef (3,), sat_rx_frame (N, 3)) -> (N,)`` extra modelled delay (e.g. tropo).
-    """
-    pr = np.asarray(pseudorange_m, dtype=float)
-    sat = np.asarray(sat_pos_ecef_m, dtype=float)
-    n = len(pr)
-    if n < 4:
-        raise ValueError(f"solve_position needs >= 4 satellites, got {n}")
-    clk = np.zeros(n) if sat_clock_m is None else np.asarray(sat_clock_m, dtype=float)
-    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
-    x = np.zeros(4)
-    if x0_ecef_m is not None:
-        x[:3] = x0_ecef_m
-    sw = np.sqrt(w)
-    converged = False
-    iterations = 0
-    for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        g = range_geometry(x[:3], sat)
-        pred = g.range_m + x[3] - clk
-        if delay_fn is not None:
-            pred = pred + delay_fn(x[:3], g.sat_pos_rx_frame_m)
-        res = pr - pred
-        h = np.concatenate([-g.los_ecef, np.ones((n, 1))], axis=1)
-        dx, *_ = np.linalg.lstsq(h * sw[:, None], res * sw, rcond=None)
-        x = x + dx
-        if np.linalg.norm(dx) < tol_m:
-            converged = True
-            break
-    g = range_geometry(x[:3], sat)
-    pred = g.range_m + x[3] - clk
-    if delay_fn is not None:
-        pred = pred + delay_fn(x[:3], g.sat_pos_rx_frame_m)
-    h = np.concatenate([-g.los_ecef, np.ones((n, 1))], axis=1)
-    cov = np.linalg.inv(h.T @ (h * w[:, None]))
-    return PositionSolution(x[:3].copy(), float(x[3]), pr - pred, iterations, converged, cov)
-
-
-@dataclass(frozen=True)
-class VelocitySolution:
-    vel_ecef_mps: np.ndarray
-    clock_drift_mps: float
-    residuals_mps: np.ndarray
-
-
-def solve_velocity(
-    range_rate_mps: np.ndarray,
-    rx_pos_ecef_m: np.ndarray,
-    sat_pos_ecef_m: np.ndarray,
-    sat_vel_ecef_mps: np.ndarray,
-    sat_clock_drift_mps: np.ndarray | None = None,
-    weights: np.ndarray | None = None,
-) -> VelocitySolution:
-    """Receiver ECEF velocity and clock drift from range rates at a known position (exact linear LS:
-    the model of ``range_geometry`` is linear in the receiver velocity)."""
-    rr = np.asarray(range_rate_mps, dtype=float)
-    n = len(rr)
-    if n < 4:
-        raise ValueError(f"solve_velocity needs >= 4 satellites, got {n}")
-    drift_s = np.zeros(n) if sat_clock_drift_mps is None else np.asarray(sat_clock_drift_mps, dtype=float)
-    w = np.ones(n) if weights is None else np.asarray(weights, dtype=float)
-    g = range_geometry(rx_pos_ecef_m, sat_pos_ecef_m, np.zeros(3), sat_vel_ecef_mps)
-    assert g.range_rate_mps is not None and g.doppler_factor is not None
-    r0 = g.range_rate_mps  # range rate of a receiver at rest
-    h = np.concatenate([-g.los_ecef * g.doppler_factor[:, None], np.ones((n, 1))], axis=1)
-    sw = np.sqrt(w)
-    x, *_ = np.linalg.lstsq(h * sw[:, None], (rr - r0 + drift_s) * sw, rcond=None)
-    res = rr - (r0 + h @ x - drift_s)
-    return VelocitySolution(x[:3], float(x[3]), res)
