@@ -10,7 +10,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from service import earth
 from service.ins.error_model import ImuNoise
@@ -423,6 +423,21 @@ class InitConfig(Model):
     min_speed_mps: float = Field(5.0, gt=0, description="GNSS speed needed for in-motion initialisation")
 
 
+#: Recording streams that can be decimated (``ServiceConfig.rrd_decimation``) and their default
+#: shortest interval in seconds of sensor time: ``navigation`` (solution states and 1-sigma),
+#: ``errors`` (errors and 3-sigma bounds), ``faults`` (test statistics and thresholds),
+#: ``sharing`` (sharing coefficients), ``integrity_sat`` (per-satellite statistics), ``ellipses``
+#: (covariance ellipses of the ENU trajectory view).
+RRD_DECIMATION_DEFAULTS: dict[str, float] = {
+    "navigation": 0.5,
+    "errors": 0.2,
+    "faults": 1.0,
+    "sharing": 1.0,
+    "integrity_sat": 1.0,
+    "ellipses": 10.0,
+}
+
+
 class OutputConfig(Model):
     solution_rate_hz: float = Field(10.0, gt=0, le=1000)
     health_period_s: float = Field(1.0, gt=0)
@@ -449,6 +464,33 @@ class ServiceConfig(Model):
         "Each send is one chunk per entity: shorter means a bigger file and more memory for its footer",
     )
     viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
+    rrd_decimation: dict[str, float] = Field(
+        default_factory=lambda: dict(RRD_DECIMATION_DEFAULTS),
+        description="Recording: shortest sensor-time interval (s) between two recorded rows of each "
+        "diagnostic stream (0 = every row). Streams: " + ", ".join(RRD_DECIMATION_DEFAULTS) + ". Fault "
+        "tests keep every row while something is flagged; state changes are always recorded",
+    )
+    rrd_slow_flush_interval_s: float = Field(
+        10.0,
+        gt=0,
+        le=300,
+        description="Diagnostic recording streams (fault tests, sharing, 1-sigma, health, per-satellite "
+        "tests) are sent this often (at least rrd_flush_interval_s): fewer chunks, a smaller file; "
+        "a crash loses up to this much of them",
+    )
+    rrd_optimize: bool = Field(
+        False, description="Compact the recording when the service stops (rerun rrd optimize, ~10x smaller)"
+    )
+
+    @field_validator("rrd_decimation")
+    @classmethod
+    def _known_streams(cls, v: dict[str, float]) -> dict[str, float]:
+        bad = sorted(set(v) - set(RRD_DECIMATION_DEFAULTS))
+        if bad:
+            raise ValueError(f"unknown recording streams {bad}; known: {sorted(RRD_DECIMATION_DEFAULTS)}")
+        if any(not (x >= 0.0 and x < 3600.0) for x in v.values()):
+            raise ValueError("decimation intervals must be in [0, 3600) s")
+        return {**RRD_DECIMATION_DEFAULTS, **v}
 
 
 class ConfigError(ValueError):
