@@ -429,11 +429,11 @@ class InitConfig(Model):
 #: ``sharing`` (sharing coefficients), ``integrity_sat`` (per-satellite statistics), ``ellipses``
 #: (covariance ellipses of the ENU trajectory view).
 RRD_DECIMATION_DEFAULTS: dict[str, float] = {
-    "navigation": 0.5,
-    "errors": 0.2,
-    "faults": 1.0,
-    "sharing": 1.0,
-    "integrity_sat": 1.0,
+    "navigation": 1.0,
+    "errors": 0.5,
+    "faults": 2.0,
+    "sharing": 5.0,
+    "integrity_sat": 2.0,
     "ellipses": 10.0,
 }
 
