@@ -424,13 +424,16 @@ class InitConfig(Model):
 
 
 #: Recording streams that can be decimated (``ServiceConfig.rrd_decimation``) and their default
-#: shortest interval in seconds of sensor time: ``navigation`` (solution states and 1-sigma),
-#: ``errors`` (errors and 3-sigma bounds), ``faults`` (test statistics and thresholds),
-#: ``sharing`` (sharing coefficients), ``integrity_sat`` (per-satellite statistics), ``ellipses``
-#: (covariance ellipses of the ENU trajectory view).
+#: shortest interval in seconds of sensor time: ``navigation`` (solution and truth states, map and
+#: ENU points, raw fixes: every solution by default, it is the product), ``std`` (solution 1-sigma
+#: and biases), ``errors`` (errors against truth and 3-sigma bounds), ``faults`` (test statistics,
+#: thresholds, flags), ``sharing`` (sharing coefficients), ``integrity_sat`` (per-satellite
+#: statistics), ``ellipses`` (covariance ellipses of the ENU trajectory view). A long evaluation
+#: recording (seed000_faults) raises ``navigation`` and ``errors`` in its ``[service]`` table.
 RRD_DECIMATION_DEFAULTS: dict[str, float] = {
-    "navigation": 1.0,
-    "errors": 0.5,
+    "navigation": 0.0,
+    "std": 1.0,
+    "errors": 0.0,
     "faults": 2.0,
     "sharing": 5.0,
     "integrity_sat": 2.0,

@@ -372,6 +372,9 @@ class RerunSink:
                 sol.vel_enu_mps,
                 sol.rpy_deg,
             )
+            if not self._due("std", vehicle, p, sol.t):
+                self._maybe_flush()
+                return
             std = (*sol.pos_std_enu_m, *sol.vel_std_enu_mps, *sol.rpy_std_deg)
             for name, v in zip(paths.STD_SCALARS, std, strict=True):
                 path = paths.solution_std(vehicle, p, name)
