@@ -213,30 +213,29 @@ def _isolation_view(v: str, fault_pipes: Sequence[str]) -> rrb.StateTimelineView
     return _states(
         "subsystem in use / isolated, per pipeline",
         paths.vehicle_root(v),
-        [f"{paths.faults(v, p)}/*/subsystem_isolated" for p in fault_pipes],
+        [f"{paths.isolation(v, p)}/**" for p in fault_pipes],
     )
 
 
-def _faults_detail(v: str, p: str, with_sharing: bool) -> rrb.Grid:
+def _faults_detail(v: str, p: str, family: str) -> rrb.Grid:
     views: list[rrb.View] = [
-        _ts(f"{p}: test statistic / threshold (flag above 1)", f"{paths.faults(v, p)}/*/*/ratio"),
-        _states(
-            f"{p}: flags per observation (ok / flagged / isolated)", paths.faults(v, p), "$origin/*/*/flagged"
-        ),
+        _ts(f"{p}: test statistic / threshold (flag above 1)", f"{paths.fault_test(v, p)}/**"),
+        _states(f"{p}: flags per observation (ok / flagged / isolated)", paths.faults(v, p), "$origin/**"),
     ]
-    if with_sharing:
+    if family in ("federated", "underwater"):
         views.append(_ts(f"{p}: sharing coefficients (local state)", f"{paths.sharing(v, p)}/**"))
-    views.append(
-        rrb.TextLogView(
-            name=f"{p}: reconfiguration",
-            origin=paths.pipeline_root(v, p),
-            contents=[paths.reconfiguration(v, p)],
+    if family == "underwater":  # locals leaving / rejoining the fusion (seed 004)
+        views.append(
+            rrb.TextLogView(
+                name=f"{p}: reconfiguration",
+                origin=paths.pipeline_root(v, p),
+                contents=[paths.reconfiguration(v, p)],
+            )
         )
-    )
     return rrb.Grid(*views, grid_columns=2, name=p)
 
 
-def _faults_tab(v: str, fault_pipes: Mapping[str, bool]) -> rrb.Vertical:
+def _faults_tab(v: str, fault_pipes: Mapping[str, str]) -> rrb.Vertical:
     """Faults and sharing: the isolation timeline of every fault-tolerant pipeline compared, the
     injected faults (truth), then per pipeline the normalised test statistics, flags per
     observation and sharing coefficients."""
@@ -252,7 +251,7 @@ def _faults_tab(v: str, fault_pipes: Mapping[str, bool]) -> rrb.Vertical:
         ),
         column_shares=[2, 1],
     )
-    detail = rrb.Tabs(*[_faults_detail(v, p, sh) for p, sh in fault_pipes.items()], active_tab=0)
+    detail = rrb.Tabs(*[_faults_detail(v, p, fam) for p, fam in fault_pipes.items()], active_tab=0)
     return rrb.Vertical(top, detail, row_shares=[1, 2], name="Faults & sharing")
 
 
@@ -274,7 +273,7 @@ def _integrity_grid(v: str, p: str, name: str | None = None) -> rrb.Grid:
                 [i("hal_m"), i("val_m"), i("excluded_count")],
             ),
         ),
-        _ts(f"{p}: per-satellite statistic / threshold", f"{paths.integrity_sat(v, p)}/*/ratio"),
+        _ts(f"{p}: per-satellite statistic / threshold", f"{paths.integrity_sat_ratio(v, p)}/**"),
         rrb.Spatial2DView(
             name=f"{p}: Stanford, horizontal (log-log, m)",
             origin=paths.stanford(v, p),
@@ -448,11 +447,7 @@ def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
     names = list(pipelines)
     fam = {p: family_of(k) for p, k in pipelines.items()}
     integ = [p for p in names if fam[p] == "integrity"]
-    faults = {
-        p: fam[p] in ("federated", "underwater")
-        for p in names
-        if fam[p] in ("federated", "loosely_coupled", "underwater")
-    }
+    faults = {p: fam[p] for p in names if fam[p] in ("federated", "loosely_coupled", "underwater")}
     tabs: list[rrb.Container | rrb.View] = [
         _overview_tab(vehicle, names, list(faults), integ),
         _trajectory_tab(vehicle, names),

@@ -35,8 +35,9 @@ share one definition. Paths mirror the Zenoh keys of ``service/keys.py`` without
     /{vehicle}/{truth|pipeline}/markers                     Points2D + labels (fault onset, isolation, alarm)
     /{vehicle}/service/inputs/{sensor}/enu                  Points2D (raw GNSS fixes received)
     /{vehicle}/{pipeline}/integrity/{availability, alarm_state}   StateChange (on every epoch)
-    /{vehicle}/{pipeline}/faults/{subsystem}/{label}/ratio  Scalars, statistic / threshold (1 = threshold)
-    /{vehicle}/{pipeline}/integrity/sat/{id}/ratio          Scalars, statistic / threshold (1 = threshold)
+    /{vehicle}/{pipeline}/fault_tests/{subsystem}/{label}   Scalars, statistic / threshold (1 = threshold)
+    /{vehicle}/{pipeline}/isolation/{subsystem}             StateChange in use|isolated (on change)
+    /{vehicle}/{pipeline}/integrity/sat_ratio/{id}          Scalars, statistic / threshold (1 = threshold)
     /{vehicle}/{pipeline}/integrity/stanford/labels_{h, v}  Points2D labels (ticks, regions), static
 
 Timelines (every entity carries all three):
@@ -332,7 +333,7 @@ def input_fix(vehicle: str, sensor_id: str) -> str:
     return f"/{part(vehicle)}/{SERVICE}/inputs/{part(sensor_id)}/enu"
 
 
-_SLOW = re.compile(r"/(faults|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat")
+_SLOW = re.compile(r"/(faults|fault_tests|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat")
 
 
 def is_slow_stream(entity_path: str) -> bool:
@@ -378,6 +379,24 @@ INTEGRITY_COLORS = {
     "v_error_m": 0xFF7F0EFF,
     "excluded_count": 0x7F7F7FFF,
 }
+
+
+def fault_test(vehicle: str, pipeline: str, subsystem: str | None = None, label: str | None = None) -> str:
+    """``.../fault_tests[/{subsystem}/{label}]``: test statistic / threshold (Rerun view filters
+    only take ``/**`` at the end, so the normalised tests have their own root)."""
+    base = f"{pipeline_root(vehicle, pipeline)}/fault_tests"
+    return base if subsystem is None else f"{base}/{part(subsystem)}/{part(label or '_')}"
+
+
+def isolation(vehicle: str, pipeline: str, subsystem: str | None = None) -> str:
+    """``.../isolation[/{subsystem}]``: in use / isolated lanes, one row per change."""
+    base = f"{pipeline_root(vehicle, pipeline)}/isolation"
+    return base if subsystem is None else f"{base}/{part(subsystem)}"
+
+
+def integrity_sat_ratio(vehicle: str, pipeline: str, sat_id: str | None = None) -> str:
+    base = integrity(vehicle, pipeline, "sat_ratio")
+    return base if sat_id is None else f"{base}/{part(sat_id)}"
 
 
 def state_name(index: int, n: int) -> str:

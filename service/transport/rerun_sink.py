@@ -509,6 +509,12 @@ class RerunSink:
                     self._marker(paths.enu_markers(vehicle, p), tn, at, label, _RED)
             keep_faults = self._due("faults", vehicle, p, faults.t, force=busy or changed)
             keep_sharing = self._due("sharing", vehicle, p, faults.t, force=busy or changed)
+            for sub in faults.subsystems:  # isolation lanes: every change, never decimated
+                state = "isolated" if sub.isolated else "in use"
+                path = paths.isolation(vehicle, p, sub.name)
+                if self._state_last.get(path) != state:
+                    self._state_last[path] = state
+                    self._add(path, "state", tn, state)
             for sub in faults.subsystems if keep_faults else ():
                 self._add(
                     paths.faults(vehicle, p, sub.name, "subsystem_isolated"),
@@ -530,7 +536,7 @@ class RerunSink:
                         obs.threshold,
                     )
                     if obs.threshold > 0 and math.isfinite(obs.statistic):
-                        path = paths.faults(vehicle, p, sub.name, obs.label, "ratio")
+                        path = paths.fault_test(vehicle, p, sub.name, obs.label)
                         self._style_series(path, [f"{sub.name}/{obs.label}"])
                         self._add(path, "scalar", tn, obs.statistic / obs.threshold)
                     state = "isolated" if obs.isolated else ("flagged" if obs.flagged else "ok")
@@ -605,7 +611,7 @@ class RerunSink:
             keep_sats = self._due("integrity_sat", vehicle, p, integ.t, force=busy)
             for sat in integ.satellites if keep_sats else ():
                 if sat.threshold_m > 0 and math.isfinite(sat.statistic_m):
-                    path = paths.integrity_sat(vehicle, p, sat.id, "ratio")
+                    path = paths.integrity_sat_ratio(vehicle, p, sat.id)
                     self._style_series(path, [sat.id])
                     self._add(path, "scalar", tn, sat.statistic_m / sat.threshold_m)
                 self._add(
