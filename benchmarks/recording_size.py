@@ -71,8 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         minutes = max(r["scenario_s"], 1e-9) / 60.0
         print(
             f"{label:<28} {r['bytes'] / 1e6:9.1f} {r['bytes'] / 1e6 / minutes:8.2f} "
-            f"{len(ents):9d} {wall:9.1f}"
-            + (f"   MISSING {len(missing)}: {missing[:5]}" if missing else ""),
+            f"{len(ents):9d} {wall:9.1f}" + (f"   MISSING {len(missing)}: {missing[:5]}" if missing else ""),
             flush=True,
         )
         if not args.keep and i < len(variants) - 1:

@@ -117,6 +117,65 @@ def recorded_entities(rrd: Path) -> set[str]:
     return {ch.entity_path for ch in r.stream(store=r.recordings()[0])}
 
 
+# --- reading a screenshot back --------------------------------------------------------------------
+def png_rgb(path: Path):
+    """Decode an 8-bit RGB / RGBA non-interlaced PNG (what Chromium writes) to an (h, w, 3) array."""
+    import struct
+    import zlib
+
+    import numpy as np
+
+    data = Path(path).read_bytes()
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise ValueError(f"{path}: not a PNG")
+    pos, idat, hdr = 8, b"", None
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        body = data[pos + 8 : pos + 8 + n]
+        if kind == b"IHDR":
+            hdr = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    w, h, depth, ctype, _, _, interlace = hdr
+    if depth != 8 or ctype not in (2, 6) or interlace:
+        raise ValueError(f"{path}: unsupported PNG (depth {depth}, colour type {ctype})")
+    bpp = 3 if ctype == 2 else 4
+    raw = np.frombuffer(zlib.decompress(idat), dtype=np.uint8).reshape(h, 1 + w * bpp)
+    out = np.zeros((h, w * bpp), dtype=np.int32)
+    prev = np.zeros(w * bpp, dtype=np.int32)
+    for y in range(h):
+        f, line = raw[y, 0], raw[y, 1:].astype(np.int32)
+        if f == 0:
+            cur = line
+        elif f == 2:
+            cur = (line + prev) & 0xFF
+        else:  # 1 (sub), 3 (average), 4 (Paeth) depend on the left pixel: byte loop
+            cur = np.zeros_like(line)
+            for x in range(line.size):
+                a = cur[x - bpp] if x >= bpp else 0
+                b = prev[x]
+                c = prev[x - bpp] if x >= bpp else 0
+                if f == 1:
+                    pred = a
+                elif f == 3:
+                    pred = (a + b) // 2
+                else:
+                    pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - 2 * c)
+                    pred = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
+                cur[x] = (line[x] + pred) & 0xFF
+        out[y], prev = cur, cur
+    return out.reshape(h, w, bpp)[:, :, :3].astype(np.uint8)
+
+
+def coloured_fraction(path: Path) -> float:
+    """Share of pixels with a saturated colour (plot lines, state lanes, markers): a viewer with
+    no data shown is grey and white."""
+    img = png_rgb(path).astype(int)
+    sat = img.max(axis=2) - img.min(axis=2)
+    return float((sat > 60).mean())
+
+
 # --- capture --------------------------------------------------------------------------------------
 def _free_port() -> int:
     import socket

@@ -333,7 +333,9 @@ def input_fix(vehicle: str, sensor_id: str) -> str:
     return f"/{part(vehicle)}/{SERVICE}/inputs/{part(sensor_id)}/enu"
 
 
-_SLOW = re.compile(r"/(faults|fault_tests|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat")
+_SLOW = re.compile(
+    r"/(faults|fault_tests|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat"
+)
 
 
 def is_slow_stream(entity_path: str) -> bool:
