@@ -5,19 +5,23 @@ service). The service embeds a blueprint in each recording through ``blueprint_f
 
     sink = RerunSink(path, blueprint=blueprint_factory({"fed": "federated", "mhss": "integrity"}))
 
-so that ``rerun file.rrd`` opens ready to read. Tabs of one vehicle:
+so that ``rerun file.rrd`` opens ready to read, on the ``mission_time`` timeline, every time
+series showing the whole run. One tab per question, pipelines compared inside a tab:
 
-* Map: truth and every solution (points and decimated tracks) on a map;
-* Position / Velocity / Attitude error: all pipelines compared, then per pipeline E/N/U (or about
-  E/N/U) errors with their ±3σ covariance bounds;
-* Navigation: truth vs solutions (9 states), status lanes, injected faults log;
-* Covariance: 1σ of each state per pipeline, estimated sensor biases;
-* per family: federated / loosely coupled -> fault test statistics vs thresholds, flags per
-  observation, sharing coefficients; integrity -> HPL/VPL vs HAL/VAL vs true error, alarms, per
-  satellite statistics vs thresholds, events log, Stanford diagrams; imm -> model probabilities;
-  transfer alignment -> lever arm and misalignment; underwater -> DVL/USBL states;
-* Health: queue depth, latency, message counters.
+* Overview (opening tab): ENU trajectory, east error of every pipeline, subsystem isolation lanes,
+  HPL vs horizontal error, pipeline status;
+* Trajectory: offline 2D ENU view (truth, solutions, raw fixes, 3-sigma ellipses, fault / isolation /
+  alarm markers) beside the map (online tiles) and the injected-faults log;
+* Errors: all pipelines compared (3x3), then per pipeline with ±3σ bounds;
+* Integrity (MHSS): HPL / VPL with the true error on their own axes, HAL / VAL, availability and
+  alarm lanes, per-satellite statistic / threshold, log-log Stanford diagrams, events;
+* Faults & sharing: isolation lanes of every fault-tolerant pipeline, injected faults; per pipeline
+  normalised test statistics, flags per observation, named sharing coefficients;
+* family tabs: IMM (seed 003), alignment (seed 002), underwater (seed 004);
+* States & covariance: truth vs solutions, 1σ, biases;
+* Health: status lanes, queue depth, latency, message counters.
 
+Rerun view filters take ``/**`` only at the end of a path: every panel's data has its own root.
 Built with the rerun-sdk 0.41 ``rerun.blueprint`` API.
 """
 
