@@ -31,6 +31,7 @@ import logging
 from collections.abc import Callable, Mapping, Sequence
 
 import rerun.blueprint as rrb
+import rerun.encodings as rre
 
 from service.transport import rerun_paths as paths
 
@@ -105,6 +106,11 @@ WHOLE_RUN = [
     rrb.VisibleTimeRange(tl, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
     for tl in (paths.MISSION_TIMELINE, paths.TIMELINE, paths.UTC_TIMELINE)
 ]
+#: The time axis of every plot spans the whole run (not a window around the time cursor).
+WHOLE_RUN_AXIS = rrb.TimeAxis(
+    link="Independent",
+    view_range=rre.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()),
+)
 #: Histories drawn in 2D views (trajectory, Stanford points): everything up to the time cursor.
 UP_TO_CURSOR = [
     rrb.VisibleTimeRange(
@@ -120,6 +126,7 @@ def _ts(name: str, contents: list[str] | str, origin: str = "/", legend: bool = 
         origin=origin,
         contents=contents,
         time_ranges=WHOLE_RUN,
+        axis_x=WHOLE_RUN_AXIS,
         plot_legend=rrb.PlotLegend(corner="LeftTop", visible=legend),
     )
 
@@ -259,51 +266,51 @@ def _faults_tab(v: str, fault_pipes: Mapping[str, str]) -> rrb.Vertical:
     return rrb.Vertical(top, detail, row_shares=[1, 2], name="Faults & sharing")
 
 
-def _integrity_grid(v: str, p: str, name: str | None = None) -> rrb.Grid:
+def _integrity_grid(v: str, p: str, name: str | None = None) -> rrb.Vertical:
     def i(leaf: str) -> str:
         return paths.integrity(v, p, leaf)
 
-    return rrb.Grid(
-        _ts(f"{p}: HPL and horizontal error (m)", [i("hpl_m"), i("h_error_m")]),
-        _ts(f"{p}: VPL and vertical error (m)", [i("vpl_m"), i("v_error_m")]),
-        rrb.Vertical(
-            _states(
-                f"{p}: availability / alarm",
-                paths.integrity(v, p),
-                ["$origin/availability", "$origin/alarm_state"],
-            ),
-            _ts(
-                f"{p}: alert limits HAL / VAL (m), excluded satellites",
-                [i("hal_m"), i("val_m"), i("excluded_count")],
-            ),
-        ),
-        _ts(f"{p}: per-satellite statistic / threshold", f"{paths.integrity_sat_ratio(v, p)}/**"),
+    stanford = [
         rrb.Spatial2DView(
-            name=f"{p}: Stanford, horizontal (log-log, m)",
+            name=f"{p}: Stanford, {axis_name} (log-log, m)",
             origin=paths.stanford(v, p),
             contents=[
-                paths.stanford(v, p, "h"),
-                paths.stanford(v, p, "frame_h"),
-                paths.stanford(v, p, "labels_h"),
+                paths.stanford(v, p, a),
+                paths.stanford(v, p, f"frame_{a}"),
+                paths.stanford(v, p, f"labels_{a}"),
             ],
             time_ranges=UP_TO_CURSOR,
+        )
+        for a, axis_name in (("h", "horizontal"), ("v", "vertical"))
+    ]
+    return rrb.Vertical(
+        rrb.Horizontal(
+            _ts(f"{p}: HPL and horizontal error (m)", [i("hpl_m"), i("h_error_m")]),
+            _ts(f"{p}: VPL and vertical error (m)", [i("vpl_m"), i("v_error_m")]),
         ),
-        rrb.Spatial2DView(
-            name=f"{p}: Stanford, vertical (log-log, m)",
-            origin=paths.stanford(v, p),
-            contents=[
-                paths.stanford(v, p, "v"),
-                paths.stanford(v, p, "frame_v"),
-                paths.stanford(v, p, "labels_v"),
-            ],
-            time_ranges=UP_TO_CURSOR,
+        rrb.Horizontal(
+            rrb.Vertical(
+                _states(
+                    f"{p}: availability / alarm",
+                    paths.integrity(v, p),
+                    ["$origin/availability", "$origin/alarm_state"],
+                ),
+                _ts(
+                    f"{p}: HAL / VAL (m), excluded satellites", [i("hal_m"), i("val_m"), i("excluded_count")]
+                ),
+            ),
+            _ts(f"{p}: per-satellite statistic / threshold", f"{paths.integrity_sat_ratio(v, p)}/**"),
         ),
-        rrb.TextLogView(
-            name=f"{p}: integrity events",
-            origin=paths.integrity(v, p),
-            contents=[paths.integrity_events(v, p)],
+        rrb.Horizontal(
+            *stanford,
+            rrb.TextLogView(
+                name=f"{p}: integrity events",
+                origin=paths.integrity(v, p),
+                contents=[paths.integrity_events(v, p)],
+            ),
+            column_shares=[2, 2, 1],
         ),
-        grid_columns=2,
+        row_shares=[2, 2, 3],
         name=name or f"{p}: integrity",
     )
 

@@ -472,12 +472,6 @@ def stanford_frame(
     pos.append([(lo + hi) / 2 + 0.35, -(lo + hi) / 2 + 0.35])
     texts.append("PL = error")
     tcol.append(_DIAG)
-    pos.append([(lo + hi) / 2, -lo + 0.3])
-    texts.append("|error| (log scale)")
-    tcol.append(_TEXT)
-    pos.append([lo - 0.3, -hi - 0.25])
-    texts.append("protection level (log scale)")
-    tcol.append(_TEXT)
     a = None if al_m is None or al_m <= 0 else math.log10(al_m)
     top = hi if a is None else a
     pos += [
@@ -490,7 +484,7 @@ def stanford_frame(
         strips += [[[a, -lo], [a, -hi]], [[lo, -a], [hi, -a]]]
         colors += [_LIMIT, _LIMIT]
         pos += [[a, -hi - 0.1], [hi + 0.1, -a]]
-        texts += [f"{al_name} {al_m:g} m", f"{al_name}"]
+        texts += [f"{al_name} {al_m:.0f} m", f"{al_name}"]
         tcol += [_LIMIT, _LIMIT]
         pos += [[(a + hi) / 2, -(lo + 0.5 * (a - lo))], [lo + 0.35 * (a - lo), -(a + hi) / 2]]
         texts += ["HMI (error > AL, no alarm)", "unavailable (PL > AL)"]

@@ -299,6 +299,7 @@ class RerunSink:
         self._enu_ref: dict[str, tuple[float, float, float]] = {}  # vehicle -> (lat_rad, lon_rad, h_m)
         self._enu_last: dict[tuple[str, str], tuple[float, float]] = {}  # (vehicle, source) -> (e, n)
         self._state_last: dict[str, str] = {}
+        self._marker_last: dict[tuple[str, str], int] = {}
         self._vehicles: list[str] = []
         # A Rerun blueprint (Blueprint, Container or View) has to_blueprint(); anything else callable
         # is a factory of the vehicles seen so far.
@@ -958,6 +959,11 @@ class RerunSink:
         self._add(path, "strip", tn, pts)
 
     def _marker(self, path: str, tn: int, en: tuple[float, float], label: str, color: int) -> None:
+        # one marker per label and 30 s at most: an isolation that toggles each epoch is one label
+        key = (path, label)
+        if tn - self._marker_last.get(key, -(10**20)) < 30_000_000_000:
+            return
+        self._marker_last[key] = tn
         self._add(path, "marker", tn, ((en[0], -en[1]), label, color))
 
     def _maybe_flush(self) -> None:
