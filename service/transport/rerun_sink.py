@@ -508,7 +508,10 @@ class RerunSink:
                 if at is not None:
                     label = f"{p}: isolated {','.join(sorted(iso - prev))}"
                     self._marker(paths.enu_markers(vehicle, p), tn, at, label, _RED)
-            keep_faults = self._due("faults", vehicle, p, faults.t, force=busy or changed)
+            # decimated per set of subsystems: subsystems reported in separate messages (different
+            # rates) each keep their rows
+            subs = p + "|" + ",".join(sub.name for sub in faults.subsystems)
+            keep_faults = self._due("faults", vehicle, subs, faults.t, force=busy or changed)
             keep_sharing = self._due("sharing", vehicle, p, faults.t, force=busy or changed)
             for sub in faults.subsystems:  # isolation lanes: every change, never decimated
                 state = "isolated" if sub.isolated else "in use"
