@@ -132,7 +132,7 @@ def _ts(name: str, contents: list[str] | str, origin: str = "/", legend: bool = 
 
 
 def _states(name: str, origin: str, contents: list[str] | str) -> rrb.StateTimelineView:
-    return rrb.StateTimelineView(name=name, origin=origin, contents=contents)
+    return rrb.StateTimelineView(name=name, origin=origin, contents=contents, time_view=WHOLE_RUN_AXIS)
 
 
 def _map_view(v: str, pipelines: Sequence[str]) -> rrb.MapView:

@@ -245,12 +245,16 @@ def capture(
             page.goto(url)
             rec.send_blueprint(blueprint_for_tab(0), make_active=True, make_default=False)
             _wait_stable(page, load_timeout_s)
+            last = page.screenshot()
             for i, name in enumerate(tab_names):
                 rec.send_blueprint(blueprint_for_tab(i), make_active=True, make_default=False)
                 rec.flush(timeout_sec=5.0)
-                _wait_stable(page, 60.0, period_s=3.0)
+                deadline = time.monotonic() + 60.0  # first wait for the new tab to show...
+                while i > 0 and page.screenshot() == last and time.monotonic() < deadline:
+                    time.sleep(1.0)
+                _wait_stable(page, 60.0, period_s=3.0)  # ...then for it to finish drawing
                 path = out_dir / f"{prefix}-{_slug(name)}.png"
-                page.screenshot(path=str(path))
+                last = page.screenshot(path=str(path))
                 saved.append(path)
             browser.close()
         rec.disconnect()
