@@ -511,7 +511,14 @@ class RerunSink:
             # decimated per set of subsystems: subsystems reported in separate messages (different
             # rates) each keep their rows
             subs = p + "|" + ",".join(sub.name for sub in faults.subsystems)
-            keep_faults = self._due("faults", vehicle, subs, faults.t, force=busy or changed)
+            flags = tuple(
+                (sub.isolated, tuple((o.flagged, o.isolated) for o in sub.observations))
+                for sub in faults.subsystems
+            )
+            fkey = (vehicle, subs, "flags")
+            flags_changed = self._integ_prev.get(fkey) != flags  # a flag clearing is kept too
+            self._integ_prev[fkey] = flags
+            keep_faults = self._due("faults", vehicle, subs, faults.t, force=busy or changed or flags_changed)
             keep_sharing = self._due("sharing", vehicle, p, faults.t, force=busy or changed)
             for sub in faults.subsystems:  # isolation lanes: every change, never decimated
                 state = "isolated" if sub.isolated else "in use"
