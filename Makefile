@@ -6,12 +6,12 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench lint schemas clean
+.PHONY: demo test bench lint schemas screenshots clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip==25.3
-	$(PY) -m pip install --quiet -e '.[dev,ros,replay]'
+	$(PY) -m pip install --quiet -e '.[dev,ros,replay,screenshots]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -26,6 +26,11 @@ bench: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+
+# every recording family in Rerun's web viewer, each tab captured by headless system chromium
+# (apt-get install -y chromium); PNGs in docs/images/
+screenshots: $(STAMP)
+	$(PY) -m dashboards.screenshots --out docs/images
 
 schemas: $(STAMP)
 	$(PY) -m service.messages --write docs/schemas

@@ -5,19 +5,23 @@ service). The service embeds a blueprint in each recording through ``blueprint_f
 
     sink = RerunSink(path, blueprint=blueprint_factory({"fed": "federated", "mhss": "integrity"}))
 
-so that ``rerun file.rrd`` opens ready to read. Tabs of one vehicle:
+so that ``rerun file.rrd`` opens ready to read, on the ``mission_time`` timeline, every time
+series showing the whole run. One tab per question, pipelines compared inside a tab:
 
-* Map: truth and every solution (points and decimated tracks) on a map;
-* Position / Velocity / Attitude error: all pipelines compared, then per pipeline E/N/U (or about
-  E/N/U) errors with their ±3σ covariance bounds;
-* Navigation: truth vs solutions (9 states), status lanes, injected faults log;
-* Covariance: 1σ of each state per pipeline, estimated sensor biases;
-* per family: federated / loosely coupled -> fault test statistics vs thresholds, flags per
-  observation, sharing coefficients; integrity -> HPL/VPL vs HAL/VAL vs true error, alarms, per
-  satellite statistics vs thresholds, events log, Stanford diagrams; imm -> model probabilities;
-  transfer alignment -> lever arm and misalignment; underwater -> DVL/USBL states;
-* Health: queue depth, latency, message counters.
+* Overview (opening tab): ENU trajectory, east error of every pipeline, subsystem isolation lanes,
+  HPL vs horizontal error, pipeline status;
+* Trajectory: offline 2D ENU view (truth, solutions, raw fixes, 3-sigma ellipses, fault / isolation /
+  alarm markers) beside the map (online tiles) and the injected-faults log;
+* Errors: all pipelines compared (3x3), then per pipeline with ±3σ bounds;
+* Integrity (MHSS): HPL / VPL with the true error on their own axes, HAL / VAL, availability and
+  alarm lanes, per-satellite statistic / threshold, log-log Stanford diagrams, events;
+* Faults & sharing: isolation lanes of every fault-tolerant pipeline, injected faults; per pipeline
+  normalised test statistics, flags per observation, named sharing coefficients;
+* family tabs: IMM (seed 003), alignment (seed 002), underwater (seed 004);
+* States & covariance: truth vs solutions, 1σ, biases;
+* Health: status lanes, queue depth, latency, message counters.
 
+Rerun view filters take ``/**`` only at the end of a path: every panel's data has its own root.
 Built with the rerun-sdk 0.41 ``rerun.blueprint`` API.
 """
 
@@ -27,6 +31,7 @@ import logging
 from collections.abc import Callable, Mapping, Sequence
 
 import rerun.blueprint as rrb
+import rerun.encodings as rre
 
 from service.transport import rerun_paths as paths
 
@@ -96,127 +101,255 @@ def _check(pipelines: Mapping[str, str]) -> None:
         paths.pipeline_root("v", name)  # raises on reserved names (truth, service)
 
 
-def _ts(name: str, contents: list[str] | str, origin: str = "/") -> rrb.TimeSeriesView:
-    return rrb.TimeSeriesView(name=name, origin=origin, contents=contents)
+#: Every time series and 2D history opens on the whole run, on each of the three timelines.
+WHOLE_RUN = [
+    rrb.VisibleTimeRange(tl, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
+    for tl in (paths.MISSION_TIMELINE, paths.TIMELINE, paths.UTC_TIMELINE)
+]
+#: The time axis of every plot spans the whole run (not a window around the time cursor).
+WHOLE_RUN_AXIS = rrb.TimeAxis(
+    link="Independent",
+    view_range=rre.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()),
+)
+#: Histories drawn in 2D views (trajectory, Stanford points): everything up to the time cursor.
+UP_TO_CURSOR = [
+    rrb.VisibleTimeRange(
+        tl, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+    )
+    for tl in (paths.MISSION_TIMELINE, paths.TIMELINE, paths.UTC_TIMELINE)
+]
 
 
-def _map_tab(v: str, pipelines: Sequence[str]) -> rrb.MapView:
+def _ts(name: str, contents: list[str] | str, origin: str = "/", legend: bool = True) -> rrb.TimeSeriesView:
+    return rrb.TimeSeriesView(
+        name=name,
+        origin=origin,
+        contents=contents,
+        time_ranges=WHOLE_RUN,
+        axis_x=WHOLE_RUN_AXIS,
+        plot_legend=rrb.PlotLegend(corner="LeftTop", visible=legend),
+    )
+
+
+def _states(name: str, origin: str, contents: list[str] | str) -> rrb.StateTimelineView:
+    return rrb.StateTimelineView(name=name, origin=origin, contents=contents, time_view=WHOLE_RUN_AXIS)
+
+
+def _map_view(v: str, pipelines: Sequence[str]) -> rrb.MapView:
     contents = [paths.truth(v, "position"), paths.truth(v, "track")]
     for p in pipelines:
         contents += [paths.solution(v, p, "position"), paths.solution(v, p, "track")]
-    return rrb.MapView(name="Map", origin=paths.vehicle_root(v), contents=contents)
+    return rrb.MapView(name="Map (online tiles)", origin=paths.vehicle_root(v), contents=contents)
 
 
-def _error_tab(v: str, pipelines: Sequence[str], title: str) -> rrb.Horizontal:
-    names, labels = _AXES[title]
-    columns: list[rrb.Vertical] = []
-    if len(pipelines) > 1:
-        columns.append(
-            rrb.Vertical(
-                *[
-                    _ts(f"all: {lab}", [paths.error(v, p, n) for p in pipelines])
-                    for n, lab in zip(names, labels, strict=True)
-                ],
-                name="all pipelines",
-            )
-        )
+def _enu_view(
+    v: str, pipelines: Sequence[str], name: str = "Trajectory, ENU (m): x east, y = -north"
+) -> rrb.Spatial2DView:
+    contents = [
+        paths.enu(v, paths.TRUTH),
+        paths.enu_markers(v, paths.TRUTH),
+        f"/{paths.part(v)}/service/inputs/**",
+    ]
     for p in pipelines:
-        columns.append(
-            rrb.Vertical(
-                *[
-                    _ts(f"{p}: {lab} ±3σ", [paths.error(v, p, n), paths.bound(v, p, n)])
-                    for n, lab in zip(names, labels, strict=True)
-                ],
-                name=p,
-            )
-        )
-    return rrb.Horizontal(*columns, name=title)
+        contents += [paths.enu(v, p), paths.enu_ellipse(v, p), paths.enu_markers(v, p)]
+    return rrb.Spatial2DView(
+        name=name, origin=paths.vehicle_root(v), contents=contents, time_ranges=UP_TO_CURSOR
+    )
 
 
-def _navigation_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
-    grid = rrb.Grid(
+def _trajectory_tab(v: str, pipelines: Sequence[str]) -> rrb.Horizontal:
+    """Offline ENU view (truth black, solutions in pipeline colours, raw fixes grey, 3-sigma
+    ellipses, fault / isolation / alarm markers) beside the map and the injected-fault log."""
+    side = rrb.Vertical(
+        _map_view(v, pipelines),
+        rrb.TextLogView(
+            name="injected faults (truth)", origin=paths.vehicle_root(v), contents=[paths.truth(v, "faults")]
+        ),
+        row_shares=[3, 1],
+    )
+    return rrb.Horizontal(_enu_view(v, pipelines), side, column_shares=[3, 2], name="Trajectory")
+
+
+def _error_grid(v: str, pipelines: Sequence[str], with_bounds: bool) -> rrb.Grid:
+    views = []
+    for title, (names, labels) in _AXES.items():
+        what = title.split()[0].lower()
+        for n, lab in zip(names, labels, strict=True):
+            contents = [paths.error(v, p, n) for p in pipelines]
+            if with_bounds:
+                contents += [paths.bound(v, p, n) for p in pipelines]
+            views.append(_ts(f"{what} {lab}{' ±3σ' if with_bounds else ''}", contents))
+    return rrb.Grid(*views, grid_columns=3)
+
+
+def _errors_tab(v: str, pipelines: Sequence[str]) -> rrb.Tabs:
+    """Errors against truth: every pipeline compared, then each pipeline with its ±3σ bounds."""
+    inner: list[rrb.Container] = []
+    if len(pipelines) > 1:
+        inner.append(rrb.Vertical(_error_grid(v, pipelines, False), name="all pipelines"))
+    for p in pipelines:
+        inner.append(rrb.Vertical(_error_grid(v, [p], True), name=f"{p} ±3σ"))
+    return rrb.Tabs(*inner, name="Errors", active_tab=0)
+
+
+def _states_tab(v: str, pipelines: Sequence[str]) -> rrb.Tabs:
+    """Truth vs solutions (9 states) and each state's 1-sigma (named series), biases."""
+    nav = rrb.Grid(
         *[
             _ts(title, [paths.truth(v, n)] + [paths.solution(v, p, n) for p in pipelines])
             for n, title in zip(paths.SOLUTION_SCALARS, _STATE_TITLES, strict=True)
         ],
         grid_columns=3,
+        name="navigation states",
     )
-    status = rrb.StateTimelineView(
-        name="status",
-        origin=paths.vehicle_root(v),
-        contents=[paths.solution(v, p, "status") for p in pipelines],
-    )
-    truth_faults = rrb.TextLogView(
-        name="injected faults (truth)", origin=paths.vehicle_root(v), contents=[paths.truth(v, "faults")]
-    )
-    return rrb.Vertical(grid, rrb.Horizontal(status, truth_faults), row_shares=[4, 1], name="Navigation")
-
-
-def _covariance_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
-    grid = rrb.Grid(
-        *[
-            _ts(title, [paths.solution_std(v, p, n) for p in pipelines])
-            for n, title in zip(paths.STD_SCALARS, _STD_TITLES, strict=True)
-        ],
-        grid_columns=3,
-    )
-    biases = rrb.Horizontal(
-        _ts("gyro bias (deg/h)", [paths.solution(v, p, "gyro_bias_dph") for p in pipelines]),
-        _ts("accelerometer bias (µg)", [paths.solution(v, p, "accel_bias_ug") for p in pipelines]),
-    )
-    return rrb.Vertical(grid, biases, row_shares=[3, 1], name="Covariance")
-
-
-def _faults_tab(v: str, p: str, with_sharing: bool) -> rrb.Vertical:
-    views: list[rrb.View] = [
-        _ts(f"{p}: test statistics vs thresholds", f"{paths.faults(v, p)}/**"),
-        rrb.StateTimelineView(
-            name=f"{p}: fault flags per observation", origin=paths.faults(v, p), contents="$origin/**"
+    cov = rrb.Vertical(
+        rrb.Grid(
+            *[
+                _ts(title, [paths.solution_std(v, p, n) for p in pipelines])
+                for n, title in zip(paths.STD_SCALARS, _STD_TITLES, strict=True)
+            ],
+            grid_columns=3,
         ),
+        rrb.Horizontal(
+            _ts("gyro bias (deg/h)", [paths.solution(v, p, "gyro_bias_dph") for p in pipelines]),
+            _ts("accelerometer bias (µg)", [paths.solution(v, p, "accel_bias_ug") for p in pipelines]),
+        ),
+        row_shares=[3, 1],
+        name="covariance (1σ) and biases",
+    )
+    return rrb.Tabs(nav, cov, name="States & covariance", active_tab=0)
+
+
+def _isolation_view(v: str, fault_pipes: Sequence[str]) -> rrb.StateTimelineView:
+    return _states(
+        "subsystem in use / isolated, per pipeline",
+        paths.vehicle_root(v),
+        [f"{paths.isolation(v, p)}/**" for p in fault_pipes],
+    )
+
+
+def _faults_detail(v: str, p: str, family: str) -> rrb.Grid:
+    views: list[rrb.View] = [
+        _ts(f"{p}: test statistic / threshold (flag above 1)", f"{paths.fault_test(v, p)}/**"),
+        _states(f"{p}: flags per observation (ok / flagged / isolated)", paths.faults(v, p), "$origin/**"),
     ]
-    if with_sharing:
-        views.append(_ts(f"{p}: sharing coefficients", f"{paths.sharing(v, p)}/**"))
-    return rrb.Vertical(*views, name=f"{p}: faults")
+    if family in ("federated", "underwater"):
+        views.append(_ts(f"{p}: sharing coefficients (local state)", f"{paths.sharing(v, p)}/**"))
+    if family == "underwater":  # locals leaving / rejoining the fusion (seed 004)
+        views.append(
+            rrb.TextLogView(
+                name=f"{p}: reconfiguration",
+                origin=paths.pipeline_root(v, p),
+                contents=[paths.reconfiguration(v, p)],
+            )
+        )
+    return rrb.Grid(*views, grid_columns=2, name=p)
 
 
-def _integrity_tab(v: str, p: str) -> rrb.Grid:
+def _faults_tab(v: str, fault_pipes: Mapping[str, str]) -> rrb.Vertical:
+    """Faults and sharing: the isolation timeline of every fault-tolerant pipeline compared, the
+    injected faults (truth), then per pipeline the normalised test statistics, flags per
+    observation and sharing coefficients."""
+    top = rrb.Horizontal(
+        _isolation_view(v, list(fault_pipes)),
+        rrb.Vertical(
+            _ts("injected fault channels (truth)", [paths.truth(v, "fault_channels")], legend=False),
+            rrb.TextLogView(
+                name="injected faults (truth)",
+                origin=paths.vehicle_root(v),
+                contents=[paths.truth(v, "faults")],
+            ),
+        ),
+        column_shares=[2, 1],
+    )
+    detail = rrb.Tabs(*[_faults_detail(v, p, fam) for p, fam in fault_pipes.items()], active_tab=0)
+    return rrb.Vertical(top, detail, row_shares=[1, 2], name="Faults & sharing")
+
+
+def _integrity_grid(v: str, p: str, name: str | None = None) -> rrb.Vertical:
     def i(leaf: str) -> str:
         return paths.integrity(v, p, leaf)
 
-    everything = rrb.VisibleTimeRange(
-        paths.TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
-    )
-    return rrb.Grid(
-        _ts(f"{p}: HPL vs HAL vs horizontal error (m)", [i("hpl_m"), i("hal_m"), i("h_error_m")]),
-        _ts(f"{p}: VPL vs VAL vs vertical error (m)", [i("vpl_m"), i("val_m"), i("v_error_m")]),
-        _ts(
-            f"{p}: alarm / available / detected / excluded",
-            [i("alarm"), i("available"), i("detected"), i("excluded_count")],
-        ),
-        _ts(
-            f"{p}: per-satellite statistic vs threshold (m)",
-            [f"{paths.integrity_sat(v, p)}/**", f"{paths.integrity_sat(v, p, vertical=True)}/**"],
-        ),
-        rrb.TextLogView(
-            name=f"{p}: integrity events",
-            origin=paths.integrity(v, p),
-            contents=[paths.integrity_events(v, p)],
-        ),
+    stanford = [
         rrb.Spatial2DView(
-            name=f"{p}: Stanford (x: |error|, y: -HPL)",
+            name=f"{p}: Stanford, {axis_name} (log-log, m)",
             origin=paths.stanford(v, p),
-            contents=[paths.stanford(v, p, "h"), paths.stanford(v, p, "frame_h")],
-            time_ranges=everything,
+            contents=[
+                paths.stanford(v, p, a),
+                paths.stanford(v, p, f"frame_{a}"),
+                paths.stanford(v, p, f"labels_{a}"),
+            ],
+            time_ranges=UP_TO_CURSOR,
+        )
+        for a, axis_name in (("h", "horizontal"), ("v", "vertical"))
+    ]
+    return rrb.Vertical(
+        rrb.Horizontal(
+            _ts(f"{p}: HPL and horizontal error (m)", [i("hpl_m"), i("h_error_m")]),
+            _ts(f"{p}: VPL and vertical error (m)", [i("vpl_m"), i("v_error_m")]),
         ),
-        rrb.Spatial2DView(
-            name=f"{p}: Stanford (x: |error|, y: -VPL)",
-            origin=paths.stanford(v, p),
-            contents=[paths.stanford(v, p, "v"), paths.stanford(v, p, "frame_v")],
-            time_ranges=everything,
+        rrb.Horizontal(
+            rrb.Vertical(
+                _states(
+                    f"{p}: availability / alarm",
+                    paths.integrity(v, p),
+                    ["$origin/availability", "$origin/alarm_state"],
+                ),
+                _ts(
+                    f"{p}: HAL / VAL (m), excluded satellites", [i("hal_m"), i("val_m"), i("excluded_count")]
+                ),
+            ),
+            _ts(f"{p}: per-satellite statistic / threshold", f"{paths.integrity_sat_ratio(v, p)}/**"),
         ),
-        grid_columns=2,
-        name=f"{p}: integrity",
+        rrb.Horizontal(
+            *stanford,
+            rrb.TextLogView(
+                name=f"{p}: integrity events",
+                origin=paths.integrity(v, p),
+                contents=[paths.integrity_events(v, p)],
+            ),
+            column_shares=[2, 2, 1],
+        ),
+        row_shares=[2, 2, 3],
+        name=name or f"{p}: integrity",
     )
+
+
+def _integrity_tab(v: str, pipes: Sequence[str]) -> rrb.Container:
+    """HPL / VPL against the true error on their own axes, the alert limits in a small panel with
+    the availability and alarm lanes, per-satellite tests normalised by their thresholds, the
+    Stanford diagrams (log-log) and the events log; one sub-tab per pipeline when several."""
+    if len(pipes) == 1:
+        return _integrity_grid(v, pipes[0], name="Integrity")
+    return rrb.Tabs(*[_integrity_grid(v, p) for p in pipes], name="Integrity", active_tab=0)
+
+
+def _overview_tab(
+    v: str, pipelines: Sequence[str], fault_pipes: Sequence[str], integ_pipes: Sequence[str]
+) -> rrb.Grid:
+    """What a first look needs: trajectory, horizontal error of every pipeline, the fault
+    isolation timeline and the protection level against the error."""
+    views: list[rrb.View] = [
+        _enu_view(v, pipelines, name="Trajectory, ENU (m)"),
+        _ts(
+            "position error east (m), all pipelines",
+            [paths.error(v, p, paths.POSITION_ERRORS[0]) for p in pipelines],
+        ),
+    ]
+    if fault_pipes:
+        views.append(_isolation_view(v, fault_pipes))
+    if integ_pipes:
+        p = integ_pipes[0]
+        views.append(
+            _ts(
+                f"{p}: HPL and horizontal error (m)",
+                [paths.integrity(v, p, "hpl_m"), paths.integrity(v, p, "h_error_m")],
+            )
+        )
+    views.append(
+        _states("pipeline status", paths.vehicle_root(v), [paths.solution(v, p, "status") for p in pipelines])
+    )
+    return rrb.Grid(*views, grid_columns=2, name="Overview")
 
 
 def _underwater_tab(v: str, p: str) -> rrb.Grid:
@@ -285,43 +418,72 @@ def _alignment_tab(v: str, p: str) -> rrb.Grid:
     )
 
 
-def _health_tab(v: str) -> rrb.Grid:
+def _health_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
     def h(leaf: str) -> str:
         return paths.health(v, leaf)
 
-    return rrb.Grid(
+    grid = rrb.Grid(
         _ts("queue depth", [h("queue_depth")]),
         _ts("latency intake -> publish (ms)", [h("latency_p50_ms"), h("latency_p99_ms")]),
         _ts("messages received / accepted", [h("received"), h("accepted")]),
         _ts("messages rejected / dropped (overload)", [h("rejected_total"), h("dropped_overload")]),
         grid_columns=2,
-        name="Health",
     )
+    status = _states(
+        "pipeline status", paths.vehicle_root(v), [paths.solution(v, p, "status") for p in pipelines]
+    )
+    return rrb.Vertical(status, grid, row_shares=[1, 4], name="Health")
+
+
+def _family_tab(v: str, pipes: Sequence[str], family: str) -> rrb.Container:
+    make = {"imm": _imm_tab, "transfer_alignment": _alignment_tab, "underwater": _underwater_tab}.get(family)
+    if make is None:
+        views = [_group_tab(v, p, family) for p in pipes]
+        title = _GROUP_OF_FAMILY.get(family, (family, family))[0]
+        return rrb.Tabs(*views, name=title, active_tab=0) if len(views) > 1 else views[0]
+    if len(pipes) == 1:
+        return make(v, pipes[0])
+    title = {"imm": "IMM", "transfer_alignment": "Alignment", "underwater": "Underwater"}[family]
+    return rrb.Tabs(*[make(v, p) for p in pipes], name=title, active_tab=0)
 
 
 def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
-    """The tab container of one vehicle (see the module docstring for the tabs)."""
+    """The tab container of one vehicle: one tab per question, pipelines compared inside a tab.
+
+    Overview (opening tab), Trajectory, Errors, Integrity (MHSS pipelines), Faults & sharing
+    (federated / loosely coupled / underwater), the family tabs (IMM, alignment, underwater states),
+    States & covariance, Health.
+    """
     _check(pipelines)
     names = list(pipelines)
-    tabs: list[rrb.Container | rrb.View] = [_map_tab(vehicle, names)]
-    tabs += [_error_tab(vehicle, names, title) for title in _AXES]
-    tabs += [_navigation_tab(vehicle, names), _covariance_tab(vehicle, names)]
-    for p, kind in pipelines.items():
-        family = family_of(kind)
-        if family in ("federated", "loosely_coupled"):
-            tabs.append(_faults_tab(vehicle, p, with_sharing=family == "federated"))
-        elif family == "integrity":
-            tabs.append(_integrity_tab(vehicle, p))
-        elif family == "transfer_alignment":
-            tabs.append(_alignment_tab(vehicle, p))
-        elif family == "underwater":
-            tabs.append(_underwater_tab(vehicle, p))
-        elif family == "imm":
-            tabs.append(_imm_tab(vehicle, p))
-        else:
-            tabs.append(_group_tab(vehicle, p, family))
-    tabs.append(_health_tab(vehicle))
+    fam = {p: family_of(k) for p, k in pipelines.items()}
+    integ = [p for p in names if fam[p] == "integrity"]
+    faults = {p: fam[p] for p in names if fam[p] in ("federated", "loosely_coupled", "underwater")}
+    tabs: list[rrb.Container | rrb.View] = [
+        _overview_tab(vehicle, names, list(faults), integ),
+        _trajectory_tab(vehicle, names),
+        _errors_tab(vehicle, names),
+    ]
+    if integ:
+        tabs.append(_integrity_tab(vehicle, integ))
+    if faults:
+        tabs.append(_faults_tab(vehicle, faults))
+    for family in ("imm", "transfer_alignment", "underwater"):
+        pipes = [p for p in names if fam[p] == family]
+        if pipes:
+            tabs.append(_family_tab(vehicle, pipes, family))
+    tabs += [_states_tab(vehicle, names), _health_tab(vehicle, names)]
     return rrb.Tabs(*tabs, name=vehicle, active_tab=0)
+
+
+def _blueprint(*parts) -> rrb.Blueprint:
+    return rrb.Blueprint(
+        *parts,
+        rrb.TimePanel(timeline=paths.MISSION_TIMELINE),
+        auto_views=False,
+        auto_layout=False,
+        collapse_panels=False,
+    )
 
 
 def build_blueprint(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Blueprint:
@@ -334,7 +496,7 @@ def build_blueprint(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Blueprint
     pipelines
         Pipeline name -> family, one of ``FAMILIES`` (or a configuration kind of ``FAMILY_ALIASES``).
     """
-    return rrb.Blueprint(vehicle_tabs(vehicle, pipelines), auto_views=False, auto_layout=False)
+    return _blueprint(vehicle_tabs(vehicle, pipelines))
 
 
 def build_fleet_blueprint(vehicles: Sequence[str], pipelines: Mapping[str, str]) -> rrb.Blueprint:
@@ -344,11 +506,7 @@ def build_fleet_blueprint(vehicles: Sequence[str], pipelines: Mapping[str, str])
         return rrb.Blueprint(auto_views=True, auto_layout=True)
     if len(vehicles) == 1:
         return build_blueprint(vehicles[0], pipelines)
-    return rrb.Blueprint(
-        rrb.Tabs(*[vehicle_tabs(v, pipelines) for v in vehicles], active_tab=0),
-        auto_views=False,
-        auto_layout=False,
-    )
+    return _blueprint(rrb.Tabs(*[vehicle_tabs(v, pipelines) for v in vehicles], active_tab=0))
 
 
 def blueprint_factory(pipelines: Mapping[str, str]) -> Callable[[Sequence[str]], rrb.Blueprint]:

@@ -252,6 +252,8 @@ class VehicleWorker:
         if ok:
             self.accepted += 1
             self.arrivals[f"{kind}/{sensor_id}" if sensor_id else kind] = wall
+            if kind == "gnss_fix" and self.rr is not None:  # raw fixes on the ENU trajectory view
+                self.rr.log_fix(self.vehicle, sensor_id, msg)
         self.latency_s.append(time.monotonic() - wall)
 
     def _run(self) -> None:
@@ -378,6 +380,9 @@ class Service:
                 viewer_addr=self.viewer,
                 blueprint=blueprint,
                 flush_interval_s=cfg.rrd_flush_interval_s,
+                decimation=cfg.rrd_decimation,
+                slow_flush_interval_s=cfg.rrd_slow_flush_interval_s,
+                optimize_on_close=cfg.rrd_optimize,
             )
         self.session = zenoh.open(
             zenoh_io.make_config(

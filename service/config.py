@@ -10,7 +10,7 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from service import earth
 from service.ins.error_model import ImuNoise
@@ -514,6 +514,24 @@ class InitConfig(Model):
     min_speed_mps: float = Field(5.0, gt=0, description="GNSS speed needed for in-motion initialisation")
 
 
+#: Recording streams that can be decimated (``ServiceConfig.rrd_decimation``) and their default
+#: shortest interval in seconds of sensor time: ``navigation`` (solution and truth states, map and
+#: ENU points, raw fixes: every solution by default, it is the product), ``std`` (solution 1-sigma
+#: and biases), ``errors`` (errors against truth and 3-sigma bounds), ``faults`` (test statistics,
+#: thresholds, flags), ``sharing`` (sharing coefficients), ``integrity_sat`` (per-satellite
+#: statistics), ``ellipses`` (covariance ellipses of the ENU trajectory view). A long evaluation
+#: recording (seed000_faults) raises ``navigation`` and ``errors`` in its ``[service]`` table.
+RRD_DECIMATION_DEFAULTS: dict[str, float] = {
+    "navigation": 0.0,
+    "std": 1.0,
+    "errors": 0.0,
+    "faults": 2.0,
+    "sharing": 5.0,
+    "integrity_sat": 2.0,
+    "ellipses": 10.0,
+}
+
+
 class OutputConfig(Model):
     solution_rate_hz: float = Field(10.0, gt=0, le=1000)
     health_period_s: float = Field(1.0, gt=0)
@@ -539,6 +557,23 @@ class ServiceConfig(Model):
         description="Recording rows are sent to the file this often: about what a crash (kill -9) loses. "
         "Each send is one chunk per entity: shorter means a bigger file and more memory for its footer",
     )
+    rrd_decimation: dict[str, float] = Field(
+        default_factory=lambda: dict(RRD_DECIMATION_DEFAULTS),
+        description="Recording: shortest sensor-time interval (s) between two recorded rows of each "
+        "diagnostic stream (0 = every row). Streams: " + ", ".join(RRD_DECIMATION_DEFAULTS) + ". Fault "
+        "tests keep every row while something is flagged; state changes are always recorded",
+    )
+    rrd_slow_flush_interval_s: float = Field(
+        10.0,
+        gt=0,
+        le=300,
+        description="Diagnostic recording streams (fault tests, sharing, 1-sigma, health, per-satellite "
+        "tests) are sent this often (at least rrd_flush_interval_s): fewer chunks, a smaller file; "
+        "a crash loses up to this much of them",
+    )
+    rrd_optimize: bool = Field(
+        False, description="Compact the recording when the service stops (rerun rrd optimize, ~10x smaller)"
+    )
     viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
     ros2: Ros2Config | None = Field(None, description="ROS 2 bridge over Zenoh (docs/ros2.md); None: off")
 
@@ -560,6 +595,16 @@ class ServiceConfig(Model):
         ):
             raise ValueError(f"ros2.outputs.tf_pipeline: {out.tf_pipeline!r} is not a republished pipeline")
         return self
+
+    @field_validator("rrd_decimation")
+    @classmethod
+    def _known_streams(cls, v: dict[str, float]) -> dict[str, float]:
+        bad = sorted(set(v) - set(RRD_DECIMATION_DEFAULTS))
+        if bad:
+            raise ValueError(f"unknown recording streams {bad}; known: {sorted(RRD_DECIMATION_DEFAULTS)}")
+        if any(not (x >= 0.0 and x < 3600.0) for x in v.values()):
+            raise ValueError("decimation intervals must be in [0, 3600) s")
+        return {**RRD_DECIMATION_DEFAULTS, **v}
 
 
 class ConfigError(ValueError):

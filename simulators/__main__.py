@@ -117,21 +117,23 @@ def main(argv: list[str] | None = None) -> int:
         result = transfer_eval.evaluate(scenario, runs=args.runs, seed=seed)
         print(json.dumps(result, indent=2) if args.json else transfer_eval.format_table(result))
         return 0
+    from simulators.progress import EvalProgress
+
+    bar = EvalProgress(scenario, args.runs, enabled=not args.json and sys.stderr.isatty())
     try:
         result = evaluate(
             scenario,
             runs=args.runs,
             seed=args.seed,
             window=tuple(args.window) if args.window else None,
-            progress=lambda i, n, wall: print(
-                f"fednav-sim eval {scenario.name}: run {i}/{n} done, {wall:.1f} s",
-                file=sys.stderr,
-                flush=True,
-            ),
+            progress=bar.run_done,
+            on_time=bar.at,
         )
     except ConfigError as exc:
         print(exc, file=sys.stderr)
         return 2
+    finally:
+        bar.close()
     print(json.dumps(result, indent=2) if args.json else format_table(result))
     return 0
 

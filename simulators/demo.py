@@ -1,4 +1,5 @@
-"""``make demo``: fednav-service and fednav-sim as separate processes on the demo scenario.
+"""``make demo``: fednav-service and fednav-sim as separate processes on the demo scenario
+(demo_product: loosely coupled, federated with a GNSS fault, MHSS integrity with a ramp).
 
 Writes recordings/<scenario>-<time>.rrd, prints the headless inspection summary and the command
 that opens the recording in the Rerun viewer.
@@ -15,7 +16,7 @@ from pathlib import Path
 from simulators.processes import free_port, start_service, start_sim, wait_idle
 from simulators.scenario import scenario_path
 
-DEFAULT = Path(__file__).resolve().parent / "scenarios" / "demo_aircraft.toml"
+DEFAULT = Path(__file__).resolve().parent / "scenarios" / "demo_product.toml"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -90,14 +90,21 @@ def run_once(
     trajectory=None,
     keep_solutions: bool = False,
     vehicle: str = "v1",
+    on_time=None,
 ) -> tuple[CollectingSink, Simulation]:
+    """One seeded run. ``on_time(t_s)``: called with the sensor time about once a second of
+    scenario time (progress bars)."""
     cfg = cfg or service_config(scenario)
     sink = CollectingSink(keep_solutions)
     engine = VehicleEngine(vehicle, cfg, sink)
     sim = Simulation(scenario, seed=seed, vehicle=vehicle, trajectory=trajectory, prefix=cfg.prefix)
+    next_tick = -math.inf
     for key, msg in sim:
         pk = keys.parse_input(key, cfg.prefix)
         engine.handle(pk.kind, pk.sensor_id, msg)
+        if on_time is not None and engine.last_t is not None and engine.last_t >= next_tick:
+            next_tick = engine.last_t + 1.0
+            on_time(engine.last_t)
     return sink, sim
 
 
@@ -107,9 +114,11 @@ def evaluate(
     seed: int | None = None,
     window: tuple[float, float] | None = None,
     progress=None,
+    on_time=None,
 ) -> dict:
     """Monte Carlo evaluation; returns the JSON-ready result dict. ``progress(i, runs, wall_s)``
-    is called after each run (the command line prints it on stderr)."""
+    is called after each run; ``on_time(run_index, t_s)`` about once a second of scenario time
+    (the command line's progress bar)."""
     seed = scenario.seed if seed is None else seed
     cfg = service_config(scenario)
     traj = scenario.build_trajectory()
@@ -118,7 +127,8 @@ def evaluate(
     wall0 = time.perf_counter()
     integ_runs: dict[str, list] = {}
     for i in range(runs):
-        sink, sim = run_once(scenario, seed + i, cfg, trajectory=traj)
+        tick = None if on_time is None else (lambda t, i=i: on_time(i, t))
+        sink, sim = run_once(scenario, seed + i, cfg, trajectory=traj, on_time=tick)
         if progress is not None:
             progress(i + 1, runs, time.perf_counter() - wall0)
         collect_integrity(integ_runs, sink)

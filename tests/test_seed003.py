@@ -87,7 +87,7 @@ def test_imm_pipelines_get_the_imm_dashboard():
     assert family_of("imm_tightly_coupled") == "imm"
     tabs = vehicle_tabs("v1", {"tc": "tightly_coupled", "tc_imm": "imm_tightly_coupled"})
     names = [getattr(t, "name", None) for t in tabs.contents]
-    assert "tc_imm: IMM" in names and "tc: integrity" in names
+    assert "tc_imm: IMM" in names and "Integrity" in names
     build_blueprint("v1", {"tc_imm": "imm_tightly_coupled"})
 
 

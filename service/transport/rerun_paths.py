@@ -30,8 +30,25 @@ share one definition. Paths mirror the Zenoh keys of ``service/keys.py`` without
     /{vehicle}/{pipeline}/{group}/{name}                    Scalars from ``log_scalars`` (GROUPS)
     /{vehicle}/{pipeline}/imm/{prob, downweighted}/{model}, /rejected_rows     Scalars (IMM)
     /{vehicle}/service/health/{queue_depth, ...}            Scalars (HEALTH_SCALARS)
+    /{vehicle}/truth/enu, /{vehicle}/{pipeline}/solution/enu  Points2D (x = east, y = -north, m)
+    /{vehicle}/{pipeline}/solution/ellipse                  LineStrips2D (3-sigma horizontal, decimated)
+    /{vehicle}/{truth|pipeline}/markers                     Points2D + labels (fault onset, isolation, alarm)
+    /{vehicle}/service/inputs/{sensor}/enu                  Points2D (raw GNSS fixes received)
+    /{vehicle}/{pipeline}/integrity/{availability, alarm_state}   StateChange (on every epoch)
+    /{vehicle}/{pipeline}/fault_tests/{subsystem}/{label}   Scalars, statistic / threshold (1 = threshold)
+    /{vehicle}/{pipeline}/isolation/{subsystem}             StateChange in use|isolated (on change)
+    /{vehicle}/{pipeline}/integrity/sat_ratio/{id}          Scalars, statistic / threshold (1 = threshold)
+    /{vehicle}/{pipeline}/integrity/stanford/labels_{h, v}  Points2D labels (ticks, regions), static
 
-Timeline ``sensor_time``: a duration timeline holding ``t`` (seconds of GPS time) in nanoseconds.
+Timelines (every entity carries all three):
+
+* ``sensor_time``: a duration timeline holding ``t`` (seconds of GPS time) in nanoseconds: the
+  exact key readers join on (``dashboards/inspect.py``);
+* ``mission_time``: a duration timeline, seconds since the first message of the recording (the
+  blueprints open on it: "+2m 13s" instead of "+15046d 7h");
+* ``utc``: a timestamp timeline, GPS time converted to UTC with the leap seconds of
+  :data:`LEAP_SECONDS` (:func:`gps_to_utc_ns`), so the viewer shows wall-clock dates.
+
 Path parts are restricted to ``[A-Za-z0-9_.-]`` (the Zenoh key chunk alphabet of ``keys.py``); any
 other character is replaced by ``_`` so that every path parses the same way in the reader.
 """
@@ -43,9 +60,54 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 
-from service.ins.error_model import NAV_ERRORS
+from service.ins.error_model import NAV_ERRORS, STATE_LABELS
 
 TIMELINE = "sensor_time"
+MISSION_TIMELINE = "mission_time"
+UTC_TIMELINE = "utc"
+
+#: Unix time (s) of the GPS epoch 1980-01-06T00:00:00 UTC.
+GPS_EPOCH_UNIX_S = 315_964_800
+#: (GPS seconds at which it takes effect, GPS - UTC in s): IERS Bulletin C leap seconds since 1980.
+#: The GPS second of a leap second inserted at the end of UTC day D is D+1 00:00:00 UTC converted
+#: with the previous offset.
+_LEAP_DATES_UTC = (
+    (1981, 7, 1), (1982, 7, 1), (1983, 7, 1), (1985, 7, 1), (1988, 1, 1), (1990, 1, 1),
+    (1991, 1, 1), (1992, 7, 1), (1993, 7, 1), (1994, 7, 1), (1996, 1, 1), (1997, 7, 1),
+    (1999, 1, 1), (2006, 1, 1), (2009, 1, 1), (2012, 7, 1), (2015, 7, 1), (2017, 1, 1),
+)  # fmt: skip
+
+
+def _leap_table() -> tuple[tuple[float, int], ...]:
+    import calendar
+
+    table = []
+    for n, (y, m, d) in enumerate(_LEAP_DATES_UTC, start=1):
+        unix = calendar.timegm((y, m, d, 0, 0, 0))
+        table.append((float(unix - GPS_EPOCH_UNIX_S + n), n))
+    return tuple(table)
+
+
+LEAP_SECONDS = _leap_table()
+
+
+def gps_minus_utc_s(t_gps_s: float) -> int:
+    """GPS - UTC (leap seconds, whole s) at GPS time ``t_gps_s``: 0 before mid-1981, 18 since 2017."""
+    off = 0
+    for start, n in LEAP_SECONDS:
+        if t_gps_s >= start:
+            off = n
+        else:
+            break
+    return off
+
+
+def gps_to_utc_ns(t_gps_s: float) -> int:
+    """GPS seconds (since 1980-01-06) -> UTC as integer nanoseconds since the Unix epoch."""
+    whole = math.floor(t_gps_s)
+    frac_ns = round((t_gps_s - whole) * 1e9)
+    return (int(whole) + GPS_EPOCH_UNIX_S - gps_minus_utc_s(t_gps_s)) * 1_000_000_000 + frac_ns
+
 
 TRUTH = "truth"
 SERVICE = "service"
@@ -252,6 +314,99 @@ def parse(entity_path: str) -> ParsedPath | None:
     return ParsedPath(parts[0], parts[1], tuple(parts[2:]))
 
 
+def enu(vehicle: str, source: str) -> str:
+    """ENU trajectory points of ``truth`` or a pipeline's solution (2D view, y = -north)."""
+    return truth(vehicle, "enu") if source == TRUTH else solution(vehicle, source, "enu")
+
+
+def enu_ellipse(vehicle: str, pipeline: str) -> str:
+    return solution(vehicle, pipeline, "ellipse")
+
+
+def enu_markers(vehicle: str, source: str) -> str:
+    """Labelled markers on the ENU view: injected fault changes (truth), isolations and alarms."""
+    return truth(vehicle, "markers") if source == TRUTH else f"{pipeline_root(vehicle, source)}/markers"
+
+
+def input_fix(vehicle: str, sensor_id: str) -> str:
+    """Raw GNSS fixes the service received, on the ENU view."""
+    return f"/{part(vehicle)}/{SERVICE}/inputs/{part(sensor_id)}/enu"
+
+
+_SLOW = re.compile(
+    r"/(faults|fault_tests|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat"
+)
+
+
+def is_slow_stream(entity_path: str) -> bool:
+    """Diagnostic streams the sink may send less often (``slow_flush_interval_s``): fault tests,
+    sharing coefficients, 1-sigma, health, private states, family groups, per-satellite tests."""
+    return _SLOW.search(entity_path) is not None
+
+
+#: Series names of the solution 1-sigma entities (legend: "<pipeline> 1σ east").
+STD_LABELS = dict(
+    zip(
+        STD_SCALARS,
+        (
+            "1σ east",
+            "1σ north",
+            "1σ up",
+            "1σ v east",
+            "1σ v north",
+            "1σ v up",
+            "1σ roll",
+            "1σ pitch",
+            "1σ heading",
+        ),
+        strict=True,
+    )
+)
+#: Legend names and colours (RGBA) of the integrity scalars: PL solid blue, error orange, limits red.
+INTEGRITY_LABELS = {
+    "hpl_m": "HPL",
+    "vpl_m": "VPL",
+    "hal_m": "HAL",
+    "val_m": "VAL",
+    "h_error_m": "horizontal error",
+    "v_error_m": "vertical error",
+    "excluded_count": "excluded satellites",
+}
+INTEGRITY_COLORS = {
+    "hpl_m": 0x1F77B4FF,
+    "vpl_m": 0x1F77B4FF,
+    "hal_m": 0xD62728FF,
+    "val_m": 0xD62728FF,
+    "h_error_m": 0xFF7F0EFF,
+    "v_error_m": 0xFF7F0EFF,
+    "excluded_count": 0x7F7F7FFF,
+}
+
+
+def fault_test(vehicle: str, pipeline: str, subsystem: str | None = None, label: str | None = None) -> str:
+    """``.../fault_tests[/{subsystem}/{label}]``: test statistic / threshold (Rerun view filters
+    only take ``/**`` at the end, so the normalised tests have their own root)."""
+    base = f"{pipeline_root(vehicle, pipeline)}/fault_tests"
+    return base if subsystem is None else f"{base}/{part(subsystem)}/{part(label or '_')}"
+
+
+def isolation(vehicle: str, pipeline: str, subsystem: str | None = None) -> str:
+    """``.../isolation[/{subsystem}]``: in use / isolated lanes, one row per change."""
+    base = f"{pipeline_root(vehicle, pipeline)}/isolation"
+    return base if subsystem is None else f"{base}/{part(subsystem)}"
+
+
+def integrity_sat_ratio(vehicle: str, pipeline: str, sat_id: str | None = None) -> str:
+    base = integrity(vehicle, pipeline, "sat_ratio")
+    return base if sat_id is None else f"{base}/{part(sat_id)}"
+
+
+def state_name(index: int, n: int) -> str:
+    """Name of entry ``index`` of an ``n``-long sharing / covariance vector: the INS error-state
+    labels (dp_e ... nab_z) for the 15 common states, ``x<index>`` beyond."""
+    return STATE_LABELS[index] if index < len(STATE_LABELS) else f"x{index}"
+
+
 # --- Stanford-diagram regions (integrity) ---------------------------------------------------------
 STANFORD_REGIONS = ("normal", "mi", "hmi", "alarm", "unavailable", "unavailable_mi")
 
@@ -275,3 +430,63 @@ def stanford_region(error_m: float, pl_m: float, al_m: float | None, alarm: bool
     if error_m <= al:
         return "mi"
     return "alarm" if alarm else "hmi"
+
+
+# --- Stanford-diagram drawing (log10 axes, metres) --------------------------------------------------
+#: Smallest error / PL drawn (m): smaller values sit on the diagram's lower edge.
+STANFORD_FLOOR_M = 0.01
+_GRID, _DIAG, _LIMIT, _TEXT = 0xD0D0D0FF, 0x555555FF, 0xD62728FF, 0x333333FF
+
+
+def stanford_xy(error_m: float, pl_m: float) -> tuple[float, float]:
+    """Point of one epoch: x = log10 |error|, y = -log10 PL (2D views point y down: PL grows up)."""
+    x = math.log10(max(abs(error_m), STANFORD_FLOOR_M))
+    y = -math.log10(max(pl_m, STANFORD_FLOOR_M))
+    return x, y
+
+
+def _metres(decade: int) -> str:
+    v = 10.0**decade
+    return f"{v:g} m" if v >= 1 else f"{v * 100:g} cm"
+
+
+def stanford_frame(
+    lo: int, hi: int, al_m: float | None, al_name: str | None
+) -> tuple[list, list[int], tuple[list, list[str], list[int]]]:
+    """Static frame of a log-log Stanford diagram spanning decades ``lo..hi``: (strips, colours,
+    (label positions, label texts, label colours)). Grid lines at each decade, the PL = error
+    diagonal, the alert-limit lines and the region names (normal / MI / HMI / unavailable)."""
+    strips: list[list[list[float]]] = []
+    colors: list[int] = []
+    pos: list[list[float]] = []
+    texts: list[str] = []
+    tcol: list[int] = []
+    for d in range(lo, hi + 1):
+        strips += [[[d, -lo], [d, -hi]], [[lo, -d], [hi, -d]]]
+        colors += [_GRID, _GRID]
+        pos += [[d, -lo + 0.12], [lo - 0.12, -d]]
+        texts += [_metres(d), _metres(d)]
+        tcol += [_TEXT, _TEXT]
+    strips.append([[lo, -lo], [hi, -hi]])
+    colors.append(_DIAG)
+    pos.append([(lo + hi) / 2 + 0.35, -(lo + hi) / 2 + 0.35])
+    texts.append("PL = error")
+    tcol.append(_DIAG)
+    a = None if al_m is None or al_m <= 0 else math.log10(al_m)
+    top = hi if a is None else a
+    pos += [
+        [lo + 0.25 * (top - lo), -(lo + 0.75 * (top - lo))],
+        [lo + 0.75 * (top - lo), -(lo + 0.25 * (top - lo))],
+    ]
+    texts += ["normal", "MI (error > PL)"]
+    tcol += [0x2CA02CFF, 0xB8860BFF]
+    if a is not None and a < hi:
+        strips += [[[a, -lo], [a, -hi]], [[lo, -a], [hi, -a]]]
+        colors += [_LIMIT, _LIMIT]
+        pos += [[a, -hi - 0.1], [hi + 0.1, -a]]
+        texts += [f"{al_name} {al_m:.0f} m", f"{al_name}"]
+        tcol += [_LIMIT, _LIMIT]
+        pos += [[(a + hi) / 2, -(lo + 0.5 * (a - lo))], [lo + 0.35 * (a - lo), -(a + hi) / 2]]
+        texts += ["HMI (error > AL, no alarm)", "unavailable (PL > AL)"]
+        tcol += [_LIMIT, 0x7F7F7FFF]
+    return strips, colors, (pos, texts, tcol)

@@ -2,8 +2,9 @@
 
 The service hands plain wire messages (``service.messages``) to a :class:`RerunSink`; the sink
 records them to an ``.rrd`` file and/or streams them to a live viewer, under the entity paths of
-``service.transport.rerun_paths`` on the ``sensor_time`` duration timeline (``t`` in seconds of
-GPS time, stored in nanoseconds).
+``service.transport.rerun_paths`` on three timelines: ``sensor_time`` (duration, ``t`` in seconds
+of GPS time, stored in nanoseconds), ``mission_time`` (duration since the first message of the
+recording) and ``utc`` (timestamp: GPS time converted to UTC with leap seconds).
 
 Efficiency: rows are accumulated per entity in memory and sent column-wise with
 ``RecordingStream.send_columns`` when ``flush_interval_s`` of wall time has passed since the last
@@ -54,7 +55,8 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from service.messages import Faults, Health, ImmModels, Integrity, Solution, Truth
+from service import earth
+from service.messages import Faults, GnssFix, Health, ImmModels, Integrity, Solution, Truth
 from service.transport import rerun_paths as paths
 
 log = logging.getLogger(__name__)
@@ -84,6 +86,26 @@ _REGION_COLOR = {
     "unavailable": 0x7F7F7FFF,
     "unavailable_mi": 0x9467BDFF,
 }
+#: Colours of every state lane (StateConfiguration): the same meaning in every panel. Neutral for
+#: "working as intended", amber for "watch", red for "isolated / failed / alarm".
+_NEUTRAL, _AMBER, _RED, _GREY = 0xB8C4D0FF, 0xFFBF00FF, 0xD62728FF, 0x7F7F7FFF
+STATE_COLORS = {
+    "ok": _NEUTRAL,
+    "in use": _NEUTRAL,
+    "aided": _NEUTRAL,
+    "available": _NEUTRAL,
+    "no alarm": _NEUTRAL,
+    "flagged": _AMBER,
+    "degraded": _AMBER,
+    "coasting": _AMBER,
+    "unaided": _AMBER,
+    "initialising": _GREY,
+    "detection": _AMBER,
+    "isolated": _RED,
+    "failed": _RED,
+    "alarm": _RED,
+    "unavailable": _GREY,
+}
 _STATUS_LEVEL = {"failed": "ERROR", "coasting": "WARN", "degraded": "WARN", "unaided": "WARN"}
 
 
@@ -96,12 +118,32 @@ def seconds_to_ns(t_s: float) -> int:
     return int(whole) * 1_000_000_000 + round((t_s - whole) * 1e9)
 
 
+_GPS_EPOCH_UNIX_NS = paths.GPS_EPOCH_UNIX_S * 1_000_000_000
+#: GPS nanoseconds at which each leap second takes effect (offset = number of entries passed).
+_LEAP_STARTS_NS = np.array([seconds_to_ns(t) for t, _ in paths.LEAP_SECONDS], dtype=np.int64)
+
+
+def time_columns(t_ns: np.ndarray, t0_ns: int) -> list[rr.TimeColumn]:
+    """The three timelines of rows stamped ``t_ns`` (GPS nanoseconds): sensor time, mission time
+    (since ``t0_ns``) and UTC (``rerun_paths.gps_to_utc_ns``, vectorised)."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    leap_ns = np.searchsorted(_LEAP_STARTS_NS, t_ns, side="right").astype(np.int64) * 1_000_000_000
+    utc_ns = t_ns + _GPS_EPOCH_UNIX_NS - leap_ns
+    return [
+        rr.TimeColumn(paths.TIMELINE, duration=t_ns.astype("timedelta64[ns]")),
+        rr.TimeColumn(paths.MISSION_TIMELINE, duration=(t_ns - t0_ns).astype("timedelta64[ns]")),
+        rr.TimeColumn(paths.UTC_TIMELINE, timestamp=utc_ns.astype("datetime64[ns]")),
+    ]
+
+
 @dataclass
 class _Series:
     """Rows waiting to be sent for one entity: ``kind`` selects the archetype."""
 
-    kind: str  # scalar | multi | geo | state | text | point2d
+    kind: str  # scalar | multi | geo | state | text | point2d | xy | strip | marker
     rows: list[tuple[int, Any]] = field(default_factory=list)  # (t_ns, value); append is atomic
+    slow: bool = False  # a diagnostic stream sent every ``slow_flush_interval_s``
+    since: float = 0.0  # sink clock when its oldest waiting row came
 
 
 @dataclass
@@ -132,6 +174,17 @@ def _columns(kind: str, values: list[Any]):
         pos, colors = zip(*values, strict=True)
         return rr.Points2D.columns(
             positions=np.asarray(pos, dtype=np.float64), colors=np.asarray(colors, dtype=np.uint32)
+        )
+    if kind == "xy":  # one 2-D point per row, style (colour, radius) logged static
+        return rr.Points2D.columns(positions=np.asarray(values, dtype=np.float64))
+    if kind == "strip":  # one closed line strip (an ellipse) per row
+        return rr.LineStrips2D.columns(strips=[np.asarray(v, dtype=np.float64) for v in values])
+    if kind == "marker":  # one labelled point per row
+        pos, labels, colors = zip(*values, strict=True)
+        return rr.Points2D.columns(
+            positions=np.asarray(pos, dtype=np.float64),
+            labels=list(labels),
+            colors=np.asarray(colors, dtype=np.uint32),
         )
     raise ValueError(f"unknown series kind {kind!r}")
 
@@ -171,6 +224,17 @@ class RerunSink:
         Wall clock for the flush cadence (monotonic seconds); injectable for tests.
     background_flush
         Run the thread that sends rows older than ``flush_interval_s`` without a logging call.
+    decimation
+        Per diagnostic stream, the shortest sensor-time interval (s) between recorded rows
+        (``service.config.RRD_DECIMATION_DEFAULTS`` names the streams; absent or 0: every row).
+        Fault statistics, sharing coefficients and per-satellite statistics keep every row while
+        a test flags or isolates something; state changes are always recorded.
+    slow_flush_interval_s
+        Diagnostic streams (fault tests, sharing coefficients, per-satellite statistics, 1-sigma,
+        health: ``rerun_paths.is_slow_stream``) are sent this often instead of every
+        ``flush_interval_s`` (None: same as ``flush_interval_s``). Each send is one chunk per entity,
+        so this divides their chunk count (file size) by the ratio; what a crash loses of them
+        grows to this interval.
 
     With neither ``rrd_path`` nor ``viewer_addr`` the sink is disabled: every call is a cheap no-op.
     """
@@ -193,6 +257,8 @@ class RerunSink:
         flush_timeout_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
         background_flush: bool = True,
+        decimation: Mapping[str, float] | None = None,
+        slow_flush_interval_s: float | None = None,
     ) -> None:
         if flush_interval_s is None:
             flush_interval_s = 1.0
@@ -207,6 +273,7 @@ class RerunSink:
         self.recording_id = recording_id or str(uuid.uuid4())
         self.enabled = self.rrd_path is not None or viewer_addr is not None
         self._flush_interval_s = flush_interval_s
+        self._slow_interval_s = max(flush_interval_s, slow_flush_interval_s or 0.0)
         self._max_rows = max_buffered_rows
         self._track_interval_s = track_interval_s
         self._max_track_points = max_track_points
@@ -226,6 +293,13 @@ class RerunSink:
         self._frames: dict[str, tuple[float, float]] = {}
         self._colors: dict[tuple[str, str], int] = {}
         self._last_t: dict[str, float] = {}
+        self._t0_ns: int | None = None
+        self._decimation = {k: float(v) for k, v in (decimation or {}).items() if v and v > 0}
+        self._last_kept: dict[tuple[str, str, str], float] = {}
+        self._enu_ref: dict[str, tuple[float, float, float]] = {}  # vehicle -> (lat_rad, lon_rad, h_m)
+        self._enu_last: dict[tuple[str, str], tuple[float, float]] = {}  # (vehicle, source) -> (e, n)
+        self._state_last: dict[str, str] = {}
+        self._marker_last: dict[tuple[str, str], int] = {}
         self._vehicles: list[str] = []
         # A Rerun blueprint (Blueprint, Container or View) has to_blueprint(); anything else callable
         # is a factory of the vehicles seen so far.
@@ -273,6 +347,20 @@ class RerunSink:
             if self._closed:
                 return
             tn = self._time(vehicle, sol.t)
+            key = (vehicle, p)
+            if self._status.get(key) != sol.status:
+                self._status[key] = sol.status
+                self._add(paths.solution(vehicle, p, "status"), "state", tn, sol.status)
+            self._track(
+                paths.solution(vehicle, p, "track"), sol.t, sol.lat_deg, sol.lon_deg, self._color(vehicle, p)
+            )
+            en = self._enu(vehicle, p, sol.lat_deg, sol.lon_deg, sol.height_m)
+            if self._due("ellipses", vehicle, p, sol.t):
+                self._ellipse(vehicle, p, tn, en, sol.pos_std_enu_m[0], sol.pos_std_enu_m[1])
+            if not self._due("navigation", vehicle, p, sol.t):
+                self._maybe_flush()
+                return
+            self._xy(paths.enu(vehicle, p), tn, en, self._color(vehicle, p), 1.5)
             self._geo(
                 paths.solution(vehicle, p, "position"), tn, sol.lat_deg, sol.lon_deg, self._color(vehicle, p)
             )
@@ -285,21 +373,19 @@ class RerunSink:
                 sol.vel_enu_mps,
                 sol.rpy_deg,
             )
+            if not self._due("std", vehicle, p, sol.t):
+                self._maybe_flush()
+                return
             std = (*sol.pos_std_enu_m, *sol.vel_std_enu_mps, *sol.rpy_std_deg)
             for name, v in zip(paths.STD_SCALARS, std, strict=True):
-                self._add(paths.solution_std(vehicle, p, name), "scalar", tn, v)
+                path = paths.solution_std(vehicle, p, name)
+                self._style_series(path, [f"{p} {paths.STD_LABELS[name]}"], [self._color(vehicle, p)])
+                self._add(path, "scalar", tn, v)
             for leaf, bias in (("gyro_bias_dph", sol.gyro_bias_dph), ("accel_bias_ug", sol.accel_bias_ug)):
                 path = paths.solution(vehicle, p, leaf)
                 if any(bias) or path in self._styled:
                     self._style_series(path, [f"{p} {a}" for a in paths.BIAS_SERIES])
                     self._add(path, "multi", tn, tuple(bias))
-            key = (vehicle, p)
-            if self._status.get(key) != sol.status:
-                self._status[key] = sol.status
-                self._add(paths.solution(vehicle, p, "status"), "state", tn, sol.status)
-            self._track(
-                paths.solution(vehicle, p, "track"), sol.t, sol.lat_deg, sol.lon_deg, self._color(vehicle, p)
-            )
             self._maybe_flush()
 
     def log_truth(self, vehicle: str, truth: Truth) -> None:
@@ -310,6 +396,21 @@ class RerunSink:
             if self._closed:
                 return
             tn = self._time(vehicle, truth.t)
+            en = self._enu(vehicle, paths.TRUTH, truth.lat_deg, truth.lon_deg, truth.height_m)
+            desc = "; ".join(f"{f.sensor} {f.kind} [{','.join(f.channels)}]" for f in truth.faults)
+            desc = desc or "no active faults"
+            changed = self._truth_faults.get(vehicle, "no active faults") != desc
+            if changed:
+                self._truth_faults[vehicle] = desc
+                level = "WARN" if truth.faults else "INFO"
+                self._add(paths.truth(vehicle, "faults"), "text", tn, (desc, level))
+                label = f"fault: {desc}" if truth.faults else "faults end"
+                self._marker(paths.enu_markers(vehicle, paths.TRUTH), tn, en, label, _AMBER)
+            self._track(paths.truth(vehicle, "track"), truth.t, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
+            if not self._due("navigation", vehicle, paths.TRUTH, truth.t, force=changed):
+                self._maybe_flush()
+                return
+            self._xy(paths.enu(vehicle, paths.TRUTH), tn, en, _TRUTH_COLOR, 1.0)
             self._geo(paths.truth(vehicle, "position"), tn, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
             self._state_scalars(
                 lambda n: paths.truth(vehicle, n),
@@ -320,15 +421,23 @@ class RerunSink:
                 truth.vel_enu_mps,
                 truth.rpy_deg,
             )
-            desc = "; ".join(f"{f.sensor} {f.kind} [{','.join(f.channels)}]" for f in truth.faults)
-            desc = desc or "no active faults"
-            if self._truth_faults.get(vehicle, "no active faults") != desc:
-                self._truth_faults[vehicle] = desc
-                level = "WARN" if truth.faults else "INFO"
-                self._add(paths.truth(vehicle, "faults"), "text", tn, (desc, level))
             n_ch = float(sum(len(f.channels) for f in truth.faults))
             self._add(paths.truth(vehicle, "fault_channels"), "scalar", tn, n_ch)
-            self._track(paths.truth(vehicle, "track"), truth.t, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
+            self._maybe_flush()
+
+    def log_fix(self, vehicle: str, sensor_id: str, fix: GnssFix) -> None:
+        """A raw GNSS position fix (service input) on the ENU trajectory view (decimated as
+        ``navigation``)."""
+        if self._closed:
+            return
+        with self._lock:
+            if self._closed:
+                return
+            tn = self._time(vehicle, fix.t)
+            if not self._due("navigation", vehicle, f"fix/{sensor_id}", fix.t):
+                return
+            en = self._enu(vehicle, f"fix/{sensor_id}", fix.lat_deg, fix.lon_deg, fix.height_m)
+            self._xy(paths.input_fix(vehicle, sensor_id), tn, en, 0x9E9E9E99, 1.0)
             self._maybe_flush()
 
     def log_errors(
@@ -360,6 +469,8 @@ class RerunSink:
             if self._closed:
                 return
             tn = self._time(vehicle, t)
+            if not self._due("errors", vehicle, pipeline, t):
+                return
             color = self._color(vehicle, pipeline)
             for name, v in errors.items():
                 if math.isfinite(v):
@@ -383,7 +494,39 @@ class RerunSink:
             if self._closed:
                 return
             tn = self._time(vehicle, faults.t)
-            for sub in faults.subsystems:
+            busy = any(
+                sub.isolated or any(o.flagged or o.isolated for o in sub.observations)
+                for sub in faults.subsystems
+            )
+            iso = frozenset(s.name for s in faults.subsystems if s.isolated)
+            key = (vehicle, p, "isolated")
+            prev = self._integ_prev.get(key, frozenset())
+            self._integ_prev[key] = iso
+            changed = iso != prev or bool(faults.reconfiguration)
+            if iso - prev:
+                at = self._enu_last.get((vehicle, p))
+                if at is not None:
+                    label = f"{p}: isolated {','.join(sorted(iso - prev))}"
+                    self._marker(paths.enu_markers(vehicle, p), tn, at, label, _RED)
+            # decimated per set of subsystems: subsystems reported in separate messages (different
+            # rates) each keep their rows
+            subs = p + "|" + ",".join(sub.name for sub in faults.subsystems)
+            flags = tuple(
+                (sub.isolated, tuple((o.flagged, o.isolated) for o in sub.observations))
+                for sub in faults.subsystems
+            )
+            fkey = (vehicle, subs, "flags")
+            flags_changed = self._integ_prev.get(fkey) != flags  # a flag clearing is kept too
+            self._integ_prev[fkey] = flags
+            keep_faults = self._due("faults", vehicle, subs, faults.t, force=busy or changed or flags_changed)
+            keep_sharing = self._due("sharing", vehicle, p, faults.t, force=busy or changed)
+            for sub in faults.subsystems:  # isolation lanes: every change, never decimated
+                state = "isolated" if sub.isolated else "in use"
+                path = paths.isolation(vehicle, p, sub.name)
+                if self._state_last.get(path) != state:
+                    self._state_last[path] = state
+                    self._add(path, "state", tn, state)
+            for sub in faults.subsystems if keep_faults else ():
                 self._add(
                     paths.faults(vehicle, p, sub.name, "subsystem_isolated"),
                     "state",
@@ -403,11 +546,17 @@ class RerunSink:
                         tn,
                         obs.threshold,
                     )
+                    if obs.threshold > 0 and math.isfinite(obs.statistic):
+                        path = paths.fault_test(vehicle, p, sub.name, obs.label)
+                        self._style_series(path, [f"{sub.name}/{obs.label}"])
+                        self._add(path, "scalar", tn, obs.statistic / obs.threshold)
                     state = "isolated" if obs.isolated else ("flagged" if obs.flagged else "ok")
                     self._add(paths.faults(vehicle, p, sub.name, obs.label, "flagged"), "state", tn, state)
-            for local, coeffs in faults.sharing.items():
+            for local, coeffs in faults.sharing.items() if keep_sharing else ():
                 for i, c in enumerate(coeffs):
-                    self._add(paths.sharing(vehicle, p, local, i), "scalar", tn, c)
+                    path = paths.sharing(vehicle, p, local, i)
+                    self._style_series(path, [f"{local} {paths.state_name(i, len(coeffs))}"])
+                    self._add(path, "scalar", tn, c)
             for ev in faults.reconfiguration:  # seed 004: a local leaving or rejoining the fusion
                 stat = f"statistic {ev.statistic:.1f}, threshold {ev.threshold:.1f}"
                 text = f"{ev.action}: {ev.subsystem} ({stat})"
@@ -451,8 +600,31 @@ class RerunSink:
             }
             for name, v in values.items():
                 if v is not None and math.isfinite(v):
-                    self._add(paths.integrity(vehicle, p, name), "scalar", tn, float(v))
-            for sat in integ.satellites:
+                    path = paths.integrity(vehicle, p, name)
+                    if name in paths.INTEGRITY_LABELS:
+                        self._style_series(
+                            path, [paths.INTEGRITY_LABELS[name]], [paths.INTEGRITY_COLORS[name]]
+                        )
+                    self._add(path, "scalar", tn, float(v))
+            self._add(
+                paths.integrity(vehicle, p, "availability"),
+                "state",
+                tn,
+                "available" if integ.available else "unavailable",
+            )
+            alarm_state = "alarm" if integ.alarm else ("detection" if integ.detected else "no alarm")
+            self._add(paths.integrity(vehicle, p, "alarm_state"), "state", tn, alarm_state)
+            if integ.alarm and not self._integ_prev.get((vehicle, p), (False, False))[1]:
+                at = self._enu_last.get((vehicle, p))
+                if at is not None:
+                    self._marker(paths.enu_markers(vehicle, p), tn, at, f"{p}: integrity alarm", _RED)
+            busy = integ.detected or integ.alarm or bool(integ.excluded)
+            keep_sats = self._due("integrity_sat", vehicle, p, integ.t, force=busy)
+            for sat in integ.satellites if keep_sats else ():
+                if sat.threshold_m > 0 and math.isfinite(sat.statistic_m):
+                    path = paths.integrity_sat_ratio(vehicle, p, sat.id)
+                    self._style_series(path, [sat.id])
+                    self._add(path, "scalar", tn, sat.statistic_m / sat.threshold_m)
                 self._add(
                     paths.integrity_sat(vehicle, p, sat.id, "statistic_m"), "scalar", tn, sat.statistic_m
                 )
@@ -475,7 +647,7 @@ class RerunSink:
             self._integrity_events(vehicle, p, tn, integ)
             if h_error_m is not None and math.isfinite(h_error_m):
                 self._stanford(vehicle, p, "h", tn, h_error_m, integ.hpl_m, integ.hal_m, integ.alarm)
-            if v_error_m is not None and math.isfinite(v_error_m) and integ.val_m is not None:
+            if v_error_m is not None and math.isfinite(v_error_m) and math.isfinite(integ.vpl_m):
                 self._stanford(vehicle, p, "v", tn, v_error_m, integ.vpl_m, integ.val_m, integ.alarm)
             self._maybe_flush()
 
@@ -588,6 +760,8 @@ class RerunSink:
 
     # --- internals (lock held) ----------------------------------------------------------------------
     def _time(self, vehicle: str, t: float) -> int:
+        if self._t0_ns is None:  # mission time counts from the recording's first message
+            self._t0_ns = seconds_to_ns(t)
         if vehicle not in self._last_t:
             self._new_vehicle(vehicle)
         if t > self._last_t.get(vehicle, -math.inf):
@@ -605,6 +779,17 @@ class RerunSink:
                 return
             self.send_blueprint(bp)
 
+    def _due(self, stream: str, vehicle: str, pipeline: str, t: float, force: bool = False) -> bool:
+        """Decimation: True when a row of ``stream`` at ``t`` is to be recorded (``force``: always)."""
+        dt = self._decimation.get(stream)
+        if dt is None:
+            return True
+        key = (stream, vehicle, pipeline)
+        if force or t - self._last_kept.get(key, -math.inf) >= dt - 1e-9 or t < self._last_kept.get(key, t):
+            self._last_kept[key] = t
+            return True
+        return False
+
     def _color(self, vehicle: str, pipeline: str) -> int:
         key = (vehicle, pipeline)
         c = self._colors.get(key)
@@ -614,9 +799,17 @@ class RerunSink:
         return c
 
     def _add(self, path: str, kind: str, t_ns: int, value: Any) -> None:
+        if kind == "state" and path not in self._styled:
+            self._styled.add(path)
+            self._static(
+                path,
+                rr.StateConfiguration(values=list(STATE_COLORS), colors=list(STATE_COLORS.values())),
+            )
         s = self._series.get(path)
         if s is None:
-            s = self._series[path] = _Series(kind)
+            s = self._series[path] = _Series(kind, slow=paths.is_slow_stream(path))
+        if not s.rows:
+            s.since = self._clock()
         s.rows.append((t_ns, value))
         self._rows += 1
 
@@ -674,11 +867,11 @@ class RerunSink:
         if len(line) < 2:
             return
         tr.last_logged_t = tr.head_t
-        t = np.array([seconds_to_ns(tr.head_t)], dtype=np.int64).astype("timedelta64[ns]")
+        t = np.array([seconds_to_ns(tr.head_t)], dtype=np.int64)
         try:
             self._rec.send_columns(
                 tr.path,
-                indexes=[rr.TimeColumn(paths.TIMELINE, duration=t)],
+                indexes=time_columns(t, self._t0_ns),
                 columns=rr.GeoLineStrings.columns(line_strings=[np.asarray(line)]),
             )
         except Exception as exc:
@@ -705,26 +898,90 @@ class RerunSink:
             self._add(path, "text", tn, ("readmitted: " + ",".join(sorted(prev_excl - excluded)), "INFO"))
 
     def _stanford(
-        self, vehicle: str, p: str, axis: str, tn: int, err: float, pl: float, al: float, alarm: bool
+        self, vehicle: str, p: str, axis: str, tn: int, err: float, pl: float, al: float | None, alarm: bool
     ) -> None:
-        # Stanford diagram in a 2D view: x = |error|, y = -PL (2D views point y down), per-epoch points
-        # colored by region; static frame: PL = error diagonal and the alert limit lines.
+        # Stanford diagram in a 2D view, both axes log10 of metres so that errors of 1 m and an alert
+        # limit of 500 m are both readable: x = log10|error|, y = -log10 PL (2D views point y down,
+        # so PL grows upwards); per-epoch points coloured by region. A static frame (decade grid,
+        # PL = error diagonal, alert-limit lines, tick and region labels) follows the data's range.
         err = abs(err)
         region = paths.stanford_region(err, pl, al, alarm)
-        self._add(paths.stanford(vehicle, p, axis), "point2d", tn, ((err, -pl), _REGION_COLOR[region]))
-        frame_path = paths.stanford(vehicle, p, f"frame_{axis}")
-        span = 3.0 * max(al, 1e-3)
-        if self._frames.get(frame_path) != (al, span):
-            self._frames[frame_path] = (al, span)
-            strips = [[[0.0, 0.0], [span, -span]], [[al, 0.0], [al, -span]], [[0.0, -al], [span, -al]]]
-            name = "HAL" if axis == "h" else "VAL"
-            colors = np.array([0x555555FF, 0xD62728FF, 0xD62728FF], dtype=np.uint32)
-            labels = ["PL = error", name, name]
-            self._static(frame_path, rr.LineStrips2D(strips, labels=labels, colors=colors))
+        key = paths.stanford(vehicle, p, f"frame_{axis}")
+        lo_prev, hi_prev = self._frames.get(key, (math.inf, -math.inf))
+        lo = min(lo_prev, math.floor(math.log10(max(min(err, pl), paths.STANFORD_FLOOR_M))))
+        top = max(err, pl, al if al is not None else 0.0)
+        hi = max(
+            hi_prev, math.ceil(math.log10(max(top, paths.STANFORD_FLOOR_M))) + (1 if al is not None else 0)
+        )
+        hi = max(hi, lo + 1)
+        x, y = paths.stanford_xy(err, pl)
+        self._add(paths.stanford(vehicle, p, axis), "point2d", tn, ((x, y), _REGION_COLOR[region]))
+        if (lo, hi) != (lo_prev, hi_prev) or al != self._frames.get(key + "#al"):
+            self._frames[key] = (lo, hi)
+            self._frames[key + "#al"] = al
+            name = ("HAL" if axis == "h" else "VAL") if al is not None else None
+            strips, colors, labels = paths.stanford_frame(lo, hi, al, name)
+            self._static(key, rr.LineStrips2D(strips, colors=np.asarray(colors, dtype=np.uint32)))
+            pos, texts, tcolors = labels
+            self._static(
+                paths.stanford(vehicle, p, f"labels_{axis}"),
+                rr.Points2D(
+                    pos,
+                    labels=texts,
+                    colors=np.asarray(tcolors, dtype=np.uint32),
+                    radii=rr.Radius.ui_points(0.5),
+                    show_labels=True,
+                ),
+            )
+
+    # --- ENU trajectory view --------------------------------------------------------------------------
+    def _enu(
+        self, vehicle: str, source: str, lat_deg: float, lon_deg: float, h_m: float
+    ) -> tuple[float, float]:
+        """(east, north) m from the vehicle's first recorded position (local tangent plane)."""
+        ref = self._enu_ref.get(vehicle)
+        lat, lon = math.radians(lat_deg), math.radians(lon_deg)
+        if ref is None:
+            ref = self._enu_ref[vehicle] = (lat, lon, h_m)
+        d = earth.llh_delta_to_enu_m(np.array([lat - ref[0], lon - ref[1], h_m - ref[2]]), ref[0], ref[2])
+        en = (float(d[0]), float(d[1]))
+        self._enu_last[(vehicle, source)] = en
+        return en
+
+    def _xy(self, path: str, tn: int, en: tuple[float, float], color: int, radius_ui: float) -> None:
+        if path not in self._styled:
+            self._styled.add(path)
+            self._static(path, rr.Points2D.from_fields(colors=[color], radii=rr.Radius.ui_points(radius_ui)))
+        self._add(path, "xy", tn, (en[0], -en[1]))  # 2D views point y down: y = -north
+
+    def _ellipse(
+        self, vehicle: str, p: str, tn: int, en: tuple[float, float], sd_e: float, sd_n: float
+    ) -> None:
+        """3-sigma horizontal ellipse from the solution's east / north 1-sigma (the Solution message
+        carries the diagonal, so the ellipse is axis-aligned)."""
+        path = paths.enu_ellipse(vehicle, p)
+        if path not in self._styled:
+            self._styled.add(path)
+            faint = (self._color(vehicle, p) & 0xFFFFFF00) | 0x90
+            self._static(path, rr.LineStrips2D.from_fields(colors=[faint], radii=rr.Radius.ui_points(0.75)))
+        a = np.linspace(0.0, 2.0 * math.pi, 33)
+        pts = np.stack([en[0] + 3.0 * sd_e * np.cos(a), -(en[1] + 3.0 * sd_n * np.sin(a))], axis=1)
+        self._add(path, "strip", tn, pts)
+
+    def _marker(self, path: str, tn: int, en: tuple[float, float], label: str, color: int) -> None:
+        # one marker per label and 30 s at most: an isolation that toggles each epoch is one label
+        key = (path, label)
+        if tn - self._marker_last.get(key, -(10**20)) < 30_000_000_000:
+            return
+        self._marker_last[key] = tn
+        self._add(path, "marker", tn, ((en[0], -en[1]), label, color))
 
     def _maybe_flush(self) -> None:
-        if self._rows >= self._max_rows or self._clock() - self._last_flush >= self._flush_interval_s:
+        if self._rows >= self._max_rows:
             self._flush_locked()
+            self._sdk_flush_start()
+        elif self._clock() - self._last_flush >= self._flush_interval_s:
+            self._flush_locked(everything=False)
             self._sdk_flush_start()
 
     def _flusher(self) -> None:
@@ -735,7 +992,7 @@ class RerunSink:
                 if self._closed:
                     return
                 if self._rows and self._clock() - self._last_flush >= self._flush_interval_s:
-                    self._flush_locked()
+                    self._flush_locked(everything=False)
                     self._sdk_flush_start()
 
     def _sdk_flush_start(self) -> None:
@@ -746,19 +1003,29 @@ class RerunSink:
         except Exception as exc:
             log.warning("rerun sink: flush not started: %s", exc)
 
-    def _flush_locked(self) -> None:
-        series, self._series = self._series, {}
-        self._rows = 0
-        self._last_flush = self._clock()
+    def _flush_locked(self, everything: bool = True) -> None:
+        """Send the buffered rows: all of them, or (``everything`` False) those of the fast streams
+        and of the slow streams whose oldest row waited ``slow_flush_interval_s``."""
+        now = self._clock()
+        if everything or self._slow_interval_s <= self._flush_interval_s:
+            series, self._series = self._series, {}
+            self._rows = 0
+        else:
+            series = {}
+            for path, s in list(self._series.items()):
+                if s.rows and (not s.slow or now - s.since >= self._slow_interval_s):
+                    series[path] = self._series.pop(path)
+                    self._rows -= len(s.rows)
+        self._last_flush = now
         for path, s in series.items():
             rows = s.rows
             if not rows:
                 continue
-            t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows)).astype("timedelta64[ns]")
+            t = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
             try:
                 self._rec.send_columns(
                     path,
-                    indexes=[rr.TimeColumn(paths.TIMELINE, duration=t)],
+                    indexes=time_columns(t, self._t0_ns),
                     columns=_columns(s.kind, [r[1] for r in rows]),
                 )
             except Exception as exc:

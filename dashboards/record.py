@@ -1,0 +1,158 @@
+"""``fednav-record SCENARIO -o FILE.rrd``: record a scenario in-process, faster than real time.
+
+The same engine, pipelines, output sink and Rerun sink as ``fednav-service`` (no Zenoh): the
+simulator's message stream goes straight into :class:`service.engine.VehicleEngine` and every
+output into :class:`service.transport.rerun_sink.RerunSink` with the blueprint the service embeds.
+Used by ``make screenshots`` and ``benchmarks/recording_size.py``.
+
+Chunking as the live service: the sink's flush clock is the *sensor* time of the stream, so rows
+are sent every ``rrd_flush_interval_s`` of scenario time, exactly as a service fed in real time
+sends them every ``rrd_flush_interval_s`` of wall time (same chunk count, same file size).
+
+Health rows are those of the in-process run: message counters from the engine, latency = the
+processing time of each message in this process (no queue, no network), queue depth 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from service import keys
+from service.app import OutputSink
+from service.config import ServiceConfig
+from service.engine import VehicleEngine
+from service.messages import Health
+from service.transport.rerun_sink import RerunSink
+from simulators.evaluate import service_config
+from simulators.scenario import Scenario, load_scenario
+
+
+class _NoPublish:
+    """Publishers stand-in: the recorder records, it does not publish."""
+
+    def publish(self, key: str, msg) -> None:
+        return None
+
+
+def record(
+    scenario: Scenario | str,
+    out: str | Path,
+    *,
+    seed: int | None = None,
+    vehicle: str = "v1",
+    cfg: ServiceConfig | None = None,
+    optimize: bool | None = None,
+    duration_s: float | None = None,
+) -> dict:
+    """Record ``scenario`` to ``out``; returns figures (messages, wall time, file size).
+
+    ``cfg``: the service configuration (default: the scenario's ``[service]`` table), whose
+    ``rrd_*`` fields set the sink (flush interval, decimation, optimize on close). ``optimize``
+    overrides ``cfg.rrd_optimize``. ``duration_s``: stop after this much scenario time.
+    """
+    from dashboards.blueprints import blueprint_factory
+
+    sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
+    cfg = cfg or service_config(sc)
+    out = Path(out)
+    clock = [0.0]
+    sink = RerunSink(
+        out,
+        blueprint=blueprint_factory({p.name: p.kind for p in cfg.pipelines}),
+        recording_name=f"{sc.name} (fednav-record)",
+        flush_interval_s=cfg.rrd_flush_interval_s,
+        clock=lambda: clock[0],
+        background_flush=False,
+        decimation=cfg.rrd_decimation,
+        slow_flush_interval_s=cfg.rrd_slow_flush_interval_s,
+        optimize_on_close=cfg.rrd_optimize if optimize is None else optimize,
+    )
+    outputs = OutputSink(cfg.prefix, _NoPublish(), sink)
+    engine = VehicleEngine(vehicle, cfg, outputs)
+    if sc.wing is not None:  # transfer alignment (seed 002): wing nodes too
+        from simulators.wing import WingSimulation
+
+        sim = WingSimulation(sc, seed=seed, vehicle=vehicle, prefix=cfg.prefix)
+    else:
+        from simulators.stream import Simulation
+
+        sim = Simulation(sc, seed=seed, vehicle=vehicle, prefix=cfg.prefix)
+    wall0 = time.perf_counter()
+    received = accepted = 0
+    lat_ms: list[float] = []
+    t_first: float | None = None
+    next_health = -np.inf
+    for key, msg in sim:
+        pk = keys.parse_input(key, cfg.prefix)
+        t = getattr(msg, "t", None)
+        if t is not None:
+            clock[0] = float(t)
+            t_first = float(t) if t_first is None else t_first
+            if duration_s is not None and t - t_first > duration_s:
+                break
+        w = time.perf_counter()
+        received += 1
+        ok = bool(engine.handle(pk.kind, pk.sensor_id, msg))
+        accepted += ok
+        if ok and pk.kind == "gnss_fix":
+            sink.log_fix(vehicle, pk.sensor_id, msg)
+        lat_ms.append((time.perf_counter() - w) * 1e3)
+        if engine.last_t is not None and engine.last_t >= next_health:
+            next_health = engine.last_t + cfg.output.health_period_s
+            lat = np.asarray(lat_ms[-2000:])
+            sink.log_health(
+                vehicle,
+                Health(
+                    t=engine.last_t,
+                    uptime_s=time.perf_counter() - wall0,
+                    received=received,
+                    accepted=accepted,
+                    rejected=dict(engine.rejected),
+                    dropped_overload=0,
+                    queue_depth=0,
+                    latency_ms={
+                        "p50": float(np.percentile(lat, 50)),
+                        "p99": float(np.percentile(lat, 99)),
+                        "max": float(lat.max()),
+                    },
+                    pipelines={},
+                ),
+            )
+    sink.close()
+    t_span = 0.0 if t_first is None else clock[0] - t_first
+    return {
+        "scenario": sc.name,
+        "rrd": str(out),
+        "messages": received,
+        "scenario_s": t_span,
+        "wall_s": time.perf_counter() - wall0,
+        "bytes": out.stat().st_size if out.is_file() else 0,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fednav-record", description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenario", help="a scenario file or the name of a shipped one (e.g. seed000_faults)")
+    ap.add_argument("-o", "--out", type=Path, required=True, help="the .rrd to write")
+    ap.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
+    ap.add_argument("--duration", type=float, help="stop after this many seconds of scenario time")
+    ap.add_argument(
+        "--optimize", action=argparse.BooleanOptionalAction, default=None, help="compact the file at the end"
+    )
+    args = ap.parse_args(argv)
+    r = record(args.scenario, args.out, seed=args.seed, optimize=args.optimize, duration_s=args.duration)
+    print(
+        f"{r['rrd']}: {r['bytes'] / 1e6:.1f} MB, {r['scenario_s']:.0f} s of {r['scenario']}, "
+        f"{r['messages']} messages in {r['wall_s']:.1f} s",
+        file=sys.stderr,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
