@@ -8,14 +8,14 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: demo test bench lint schemas screenshots clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip==25.3
-	$(PY) -m pip install --quiet -e '.[dev,ros,replay,screenshots]'
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[dev,ros,replay,screenshots]'
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m simulators.demo
+	$(PY) -m fednav.simulators.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q
@@ -30,10 +30,10 @@ lint: $(STAMP)
 # every recording family in Rerun's web viewer, each tab captured by headless system chromium
 # (apt-get install -y chromium); PNGs in docs/images/
 screenshots: $(STAMP)
-	$(PY) -m dashboards.screenshots --out docs/images
+	$(PY) -m fednav.dashboards.screenshots --out docs/images
 
 schemas: $(STAMP)
-	$(PY) -m service.messages --write docs/schemas
+	$(PY) -m fednav.service.messages --write docs/schemas
 
 clean:
 	rm -rf $(VENV) build *.egg-info

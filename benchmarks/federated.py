@@ -12,8 +12,8 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from simulators.evaluate import evaluate  # noqa: E402
-from simulators.scenario import load_scenario  # noqa: E402
+from fednav.simulators.evaluate import evaluate  # noqa: E402
+from fednav.simulators.scenario import load_scenario  # noqa: E402
 
 PAPER = ["fed_fixed", "fed_scalar", "fed_vector", "fed_vector_sysiso", "centralized"]
 

@@ -24,12 +24,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from service import keys  # noqa: E402
-from service.engine import VehicleEngine  # noqa: E402
-from service.messages import GnssFix, ImuSample, InitialNav, StarAttitude  # noqa: E402
-from simulators.evaluate import CollectingSink, service_config  # noqa: E402
-from simulators.scenario import load_scenario  # noqa: E402
-from simulators.stream import Simulation  # noqa: E402
+from fednav.service import keys  # noqa: E402
+from fednav.service.engine import VehicleEngine  # noqa: E402
+from fednav.service.messages import GnssFix, ImuSample, InitialNav, StarAttitude  # noqa: E402
+from fednav.simulators.evaluate import CollectingSink, service_config  # noqa: E402
+from fednav.simulators.scenario import load_scenario  # noqa: E402
+from fednav.simulators.stream import Simulation  # noqa: E402
 
 ATTACK_AT_S = 100.0
 

@@ -26,14 +26,19 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from service import earth  # noqa: E402
-from service.config import ImuModel, TightlyCoupledConfig  # noqa: E402
-from service.estimation.integrity.mhss import MhssBank, cross_update  # noqa: E402
-from service.ins.mechanisation import NavState  # noqa: E402
-from service.pipelines.base import InitStd  # noqa: E402
-from service.pipelines.tightly_coupled import TightlyCoupled  # noqa: E402
-from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec  # noqa: E402
-from simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory  # noqa: E402
+from fednav.service import earth  # noqa: E402
+from fednav.service.config import ImuModel, TightlyCoupledConfig  # noqa: E402
+from fednav.service.estimation.integrity.mhss import MhssBank, cross_update  # noqa: E402
+from fednav.service.ins.mechanisation import NavState  # noqa: E402
+from fednav.service.pipelines.base import InitStd  # noqa: E402
+from fednav.service.pipelines.tightly_coupled import TightlyCoupled  # noqa: E402
+from fednav.simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec  # noqa: E402
+from fednav.simulators.trajectory import (  # noqa: E402
+    StartSpec,
+    StraightSegment,
+    TurnSegment,
+    build_trajectory,
+)
 
 T0 = 1_300_000_000.0
 N_SAT = 12

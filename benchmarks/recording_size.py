@@ -21,9 +21,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from dashboards.record import record
-from simulators.evaluate import service_config
-from simulators.scenario import load_scenario
+from fednav.dashboards.record import record
+from fednav.simulators.evaluate import service_config
+from fednav.simulators.scenario import load_scenario
 
 
 def entities(path: Path) -> set[str]:

@@ -28,9 +28,9 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from replay.mapping import load_mapping  # noqa: E402
-from replay.sources import all_events  # noqa: E402
-from simulators.processes import Proc, free_port, start_service, wait_idle  # noqa: E402
+from fednav.replay.mapping import load_mapping  # noqa: E402
+from fednav.replay.sources import all_events  # noqa: E402
+from fednav.simulators.processes import Proc, free_port, start_service, wait_idle  # noqa: E402
 from tests import replay_files as rf  # noqa: E402
 
 CASES = ("ros2", "ros1", "mcap", "nmea_csv", "ubx")
@@ -38,7 +38,7 @@ CASES = ("ros2", "ros1", "mcap", "nmea_csv", "ubx")
 
 def replay_proc(mapping: Path, port: int) -> tuple[int, dict]:
     p = Proc(
-        [sys.executable, "-m", "replay", str(mapping), "--connect", f"tcp/127.0.0.1:{port}", "--json"],
+        [sys.executable, "-m", "fednav.replay", str(mapping), "--connect", f"tcp/127.0.0.1:{port}", "--json"],
         "fednav-replay",
     )
     rc = p.wait(timeout=600)

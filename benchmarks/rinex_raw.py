@@ -18,8 +18,8 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from simulators.gnss.rinex_raw import ConversionStats, iter_gnss_raw  # noqa: E402
-from simulators.rinex_eval import find_files, run_ours, spp  # noqa: E402
+from fednav.simulators.gnss.rinex_raw import ConversionStats, iter_gnss_raw  # noqa: E402
+from fednav.simulators.rinex_eval import find_files, run_ours, spp  # noqa: E402
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "psins_wuhan_2015"
 

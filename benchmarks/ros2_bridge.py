@@ -21,12 +21,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=5000, help="messages per figure (default: %(default)s)")
     args = ap.parse_args()
-    from service import earth
-    from service.ins.mechanisation import NavState
-    from service.messages import Health, PipelineHealth
-    from service.transport import ros2
-    from simulators.ros2_publish import example_config, ros_samples
-    from simulators.scenario import load_scenario
+    from fednav.service import earth
+    from fednav.service.ins.mechanisation import NavState
+    from fednav.service.messages import Health, PipelineHealth
+    from fednav.service.transport import ros2
+    from fednav.simulators.ros2_publish import example_config, ros_samples
+    from fednav.simulators.scenario import load_scenario
 
     cfg = example_config(outputs={"tf": True})
     sc = load_scenario(ROOT / "simulators" / "scenarios" / "demo_aircraft.toml")

@@ -27,8 +27,8 @@ DEMO = ROOT / "simulators" / "scenarios" / "demo_aircraft.toml"
 
 
 def bench_eval_rtf(runs: int) -> dict:
-    from simulators.evaluate import evaluate
-    from simulators.scenario import load_scenario
+    from fednav.simulators.evaluate import evaluate
+    from fednav.simulators.scenario import load_scenario
 
     sc = load_scenario(DEMO)
     evaluate(sc, runs=1)  # warm-up
@@ -46,18 +46,18 @@ def bench_eval_rtf(runs: int) -> dict:
 
 
 def _client(port: int) -> zenoh.Session:
-    from service.config import ZenohConfig
-    from service.transport.zenoh_io import make_config
+    from fednav.service.config import ZenohConfig
+    from fednav.service.transport.zenoh_io import make_config
 
     return zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
 
 
 def bench_latency(duration_s: float) -> dict:
     """Nominal-rate publication (speed 1) and Solution receipt in this process."""
-    from service import keys
-    from simulators.processes import free_port, start_service
-    from simulators.scenario import load_scenario
-    from simulators.stream import Simulation
+    from fednav.service import keys
+    from fednav.simulators.processes import free_port, start_service
+    from fednav.simulators.scenario import load_scenario
+    from fednav.simulators.stream import Simulation
 
     port = free_port()
     svc = start_service(port, config=DEMO, table="service")
@@ -119,7 +119,7 @@ def bench_latency(duration_s: float) -> dict:
 
 
 def bench_throughput() -> dict:
-    from simulators.processes import free_port, start_service, start_sim, wait_idle
+    from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
     port = free_port()
     svc = start_service(port, config=DEMO, table="service")

@@ -22,8 +22,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from simulators.evaluate import evaluate  # noqa: E402
-from simulators.scenario import load_scenario  # noqa: E402
+from fednav.simulators.evaluate import evaluate  # noqa: E402
+from fednav.simulators.scenario import load_scenario  # noqa: E402
 
 M2, M1 = "fed_vector", "fed_vector_sysiso"
 CONTROL = [

@@ -25,9 +25,9 @@ import time
 
 import numpy as np
 
-from service.pipelines.tightly_coupled import TightlyCoupled
-from simulators.evaluate import evaluate
-from simulators.scenario import load_scenario, parse_scenario
+from fednav.service.pipelines.tightly_coupled import TightlyCoupled
+from fednav.simulators.evaluate import evaluate
+from fednav.simulators.scenario import load_scenario, parse_scenario
 
 DETECTORS = {"ss": (), "ss+res": TightlyCoupled.RESIDUAL_WINDOWS}
 

@@ -16,9 +16,9 @@ import argparse
 
 import numpy as np
 
-from service.config import TransferAlignmentConfig as T
-from simulators import transfer_eval as te
-from simulators.scenario import load_scenario
+from fednav.service.config import TransferAlignmentConfig as T
+from fednav.simulators import transfer_eval as te
+from fednav.simulators.scenario import load_scenario
 
 SEGMENTS = [(60, 100), (100, 160), (160, 220), (220, 260), (260, 300)]
 

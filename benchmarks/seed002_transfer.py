@@ -21,13 +21,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from service import keys  # noqa: E402
-from service.config import TransferAlignmentConfig  # noqa: E402
-from service.engine import VehicleEngine  # noqa: E402
-from service.pipelines.transfer_alignment import bank_from_config  # noqa: E402
-from simulators.evaluate import service_config  # noqa: E402
-from simulators.scenario import load_scenario, parse_scenario  # noqa: E402
-from simulators.wing import WingSimulation  # noqa: E402
+from fednav.service import keys  # noqa: E402
+from fednav.service.config import TransferAlignmentConfig  # noqa: E402
+from fednav.service.engine import VehicleEngine  # noqa: E402
+from fednav.service.pipelines.transfer_alignment import bank_from_config  # noqa: E402
+from fednav.simulators.evaluate import service_config  # noqa: E402
+from fednav.simulators.scenario import load_scenario, parse_scenario  # noqa: E402
+from fednav.simulators.wing import WingSimulation  # noqa: E402
 
 
 def scenario(seconds: float, pipelines: list[dict]):

@@ -18,11 +18,11 @@ import argparse
 import json
 import time
 
-from service import config as config_mod
-from service import keys
-from service.engine import VehicleEngine
-from simulators.scenario import load_scenario, parse_scenario
-from simulators.stream import Simulation
+from fednav.service import config as config_mod
+from fednav.service import keys
+from fednav.service.engine import VehicleEngine
+from fednav.simulators.scenario import load_scenario, parse_scenario
+from fednav.simulators.stream import Simulation
 
 PIPELINES = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},

@@ -29,9 +29,9 @@ import math
 
 import numpy as np
 
-from service import config as config_mod
-from simulators import evaluate as ev
-from simulators.scenario import load_scenario
+from fednav.service import config as config_mod
+from fednav.simulators import evaluate as ev
+from fednav.simulators.scenario import load_scenario
 
 MEMORYLESS = [[0.97, 0.01, 0.01, 0.01]] * 4
 DIAG_99 = [

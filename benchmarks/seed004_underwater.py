@@ -22,12 +22,12 @@ import time
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from service import config as config_mod  # noqa: E402
-from service import keys  # noqa: E402
-from service.engine import VehicleEngine  # noqa: E402
-from simulators.evaluate import CollectingSink, evaluate  # noqa: E402
-from simulators.scenario import load_scenario, parse_scenario  # noqa: E402
-from simulators.stream import Simulation  # noqa: E402
+from fednav.service import config as config_mod  # noqa: E402
+from fednav.service import keys  # noqa: E402
+from fednav.service.engine import VehicleEngine  # noqa: E402
+from fednav.simulators.evaluate import CollectingSink, evaluate  # noqa: E402
+from fednav.simulators.scenario import load_scenario, parse_scenario  # noqa: E402
+from fednav.simulators.stream import Simulation  # noqa: E402
 
 
 def scenario(duration_s: float):

@@ -33,7 +33,7 @@ from collections.abc import Callable, Mapping, Sequence
 import rerun.blueprint as rrb
 import rerun.encodings as rre
 
-from service.transport import rerun_paths as paths
+from fednav.service.transport import rerun_paths as paths
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from service.transport import rerun_paths as paths
+from fednav.service.transport import rerun_paths as paths
 
 _COMPONENTS = ("Scalars:scalars", "StateChange:state", "TextLog:text")
 

@@ -22,14 +22,14 @@ from pathlib import Path
 
 import numpy as np
 
-from service import keys
-from service.app import OutputSink
-from service.config import ServiceConfig
-from service.engine import VehicleEngine
-from service.messages import Health
-from service.transport.rerun_sink import RerunSink
-from simulators.evaluate import service_config
-from simulators.scenario import Scenario, load_scenario
+from fednav.service import keys
+from fednav.service.app import OutputSink
+from fednav.service.config import ServiceConfig
+from fednav.service.engine import VehicleEngine
+from fednav.service.messages import Health
+from fednav.service.transport.rerun_sink import RerunSink
+from fednav.simulators.evaluate import service_config
+from fednav.simulators.scenario import Scenario, load_scenario
 
 
 class _NoPublish:
@@ -55,7 +55,7 @@ def record(
     ``rrd_*`` fields set the sink (flush interval, decimation, optimize on close). ``optimize``
     overrides ``cfg.rrd_optimize``. ``duration_s``: stop after this much scenario time.
     """
-    from dashboards.blueprints import blueprint_factory
+    from fednav.dashboards.blueprints import blueprint_factory
 
     sc = load_scenario(scenario) if isinstance(scenario, str) else scenario
     cfg = cfg or service_config(sc)
@@ -75,11 +75,11 @@ def record(
     outputs = OutputSink(cfg.prefix, _NoPublish(), sink)
     engine = VehicleEngine(vehicle, cfg, outputs)
     if sc.wing is not None:  # transfer alignment (seed 002): wing nodes too
-        from simulators.wing import WingSimulation
+        from fednav.simulators.wing import WingSimulation
 
         sim = WingSimulation(sc, seed=seed, vehicle=vehicle, prefix=cfg.prefix)
     else:
-        from simulators.stream import Simulation
+        from fednav.simulators.stream import Simulation
 
         sim = Simulation(sc, seed=seed, vehicle=vehicle, prefix=cfg.prefix)
     wall0 = time.perf_counter()

@@ -17,8 +17,8 @@ Install (Debian/Ubuntu, as root): ``apt-get install -y chromium``; the Python si
 another executable. Software rendering (SwiftShader) is slow: loading a recording takes tens of
 seconds on a busy 2-core machine, hence the short recordings.
 
-    .venv/bin/python -m dashboards.screenshots --out docs/images            # every family
-    .venv/bin/python -m dashboards.screenshots --only demo --tabs Overview  # one family, one tab
+    .venv/bin/python -m fednav.dashboards.screenshots --out docs/images            # every family
+    .venv/bin/python -m fednav.dashboards.screenshots --only demo --tabs Overview  # one family, one tab
 """
 
 from __future__ import annotations
@@ -278,11 +278,11 @@ def screenshot_family(
     """Record, check and (with a browser) capture one family. Returns a report dict."""
     import rerun.blueprint as rrb
 
-    from dashboards.blueprints import vehicle_tabs
-    from dashboards.record import record
-    from service.transport import rerun_paths as paths
-    from simulators.evaluate import service_config
-    from simulators.scenario import load_scenario
+    from fednav.dashboards.blueprints import vehicle_tabs
+    from fednav.dashboards.record import record
+    from fednav.service.transport import rerun_paths as paths
+    from fednav.simulators.evaluate import service_config
+    from fednav.simulators.scenario import load_scenario
 
     scenario, default_s = FAMILIES[family]
     sc = load_scenario(scenario)

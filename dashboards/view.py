@@ -51,7 +51,7 @@ def has_display() -> bool:
 
 def guess_families(vehicle: str, pipelines: list[str], entity_paths: list[str]) -> dict[str, str]:
     """Pipeline -> family, guessed from the entities a recording holds (for ``--rebuild-blueprint``)."""
-    from service.transport import rerun_paths as paths
+    from fednav.service.transport import rerun_paths as paths
 
     out = {}
     for p in pipelines:
@@ -74,8 +74,8 @@ def guess_families(vehicle: str, pipelines: list[str], entity_paths: list[str]) 
 
 def rebuild_blueprint(file: Path, out: Path) -> Mapping[str, Mapping[str, str]]:
     """Write a blueprint (.rbl) rebuilt from the recording's entities; returns vehicle -> families."""
-    from dashboards.blueprints import build_fleet_blueprint
-    from dashboards.inspect import read_series, summarize
+    from fednav.dashboards.blueprints import build_fleet_blueprint
+    from fednav.dashboards.inspect import read_series, summarize
 
     info, data = read_series(file)
     summary = summarize(info, data, str(file))
@@ -91,7 +91,7 @@ def rebuild_blueprint(file: Path, out: Path) -> Mapping[str, Mapping[str, str]]:
 
 
 def _parse(entity: str):
-    from service.transport import rerun_paths as paths
+    from fednav.service.transport import rerun_paths as paths
 
     return paths.parse(entity)
 

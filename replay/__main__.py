@@ -18,7 +18,7 @@ import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from service.messages import WireModel
+from fednav.service.messages import WireModel
 
 from .checks import Report, run_checks
 from .mapping import MappingError, load_mapping
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2 if report.errors else 0
     import zenoh
 
-    from simulators.publisher import MatchTimeout, publish_stream
+    from fednav.simulators.publisher import MatchTimeout, publish_stream
 
     progress = Progress(report.total, enabled=not args.json and sys.stderr.isatty())
     try:

@@ -14,8 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from service import keys
-from service.messages import MAX_DT_S, GnssFix, ImuSample, WireModel
+from fednav.service import keys
+from fednav.service.messages import MAX_DT_S, GnssFix, ImuSample, WireModel
 
 
 class Event(NamedTuple):

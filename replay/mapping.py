@@ -27,7 +27,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from service.validation_errors import format_errors
+from fednav.service.validation_errors import format_errors
 
 GPS_EPOCH_UNIX_S = 315964800.0  # 1980-01-06T00:00:00Z as POSIX seconds
 LEAP_SECONDS_NOW = 18  # GPS - UTC since 2017-01-01 (IERS Bulletin C); older logs need their value

@@ -24,7 +24,7 @@ class SourceError(ValueError):
 
 def available() -> bool:
     try:
-        import simulators.gnss.rinex_raw  # noqa: F401
+        import fednav.simulators.gnss.rinex_raw  # noqa: F401
     except ImportError:
         return False
     return True
@@ -41,7 +41,7 @@ def events(
 ) -> Iterator[Event]:
     if not available():
         raise SourceError(NOT_AVAILABLE)
-    from simulators.gnss.rinex_raw import iter_gnss_raw
+    from fednav.simulators.gnss.rinex_raw import iter_gnss_raw
 
     if not mapping.rinex_nav:
         raise SourceError("a rinex stream needs 'rinex_nav' (navigation files) in the mapping")

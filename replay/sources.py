@@ -11,11 +11,11 @@ from .events import Event, merge
 from .mapping import ReplayMapping, StreamMapping
 
 MODULES = {
-    "ros": "replay.ros_source",
-    "nmea": "replay.nmea_source",
-    "ubx": "replay.ubx_source",
-    "csv": "replay.csv_source",
-    "rinex": "replay.rinex_source",
+    "ros": "fednav.replay.ros_source",
+    "nmea": "fednav.replay.nmea_source",
+    "ubx": "fednav.replay.ubx_source",
+    "csv": "fednav.replay.csv_source",
+    "rinex": "fednav.replay.rinex_source",
 }
 
 

@@ -9,7 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
-from service import config as config_mod
+from fednav.service import config as config_mod
 
 EXAMPLES = """examples:
   fednav-service --config service/configs/example.toml --rrd recordings/run.rrd
@@ -74,7 +74,7 @@ def zenoh_error_text(exc: BaseException) -> str:
 
 def _usage_error(args: argparse.Namespace) -> str | None:
     """A mistake in the command line, as one line (None if there is none)."""
-    from service.transport.zenoh_io import endpoint_error
+    from fednav.service.transport.zenoh_io import endpoint_error
 
     for ep in (args.listen or []) + (args.connect or []):
         err = endpoint_error(ep)
@@ -102,14 +102,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fednav-service: {exc}", file=sys.stderr)
         return 2
     if cfg.ros2 is not None:
-        from service.transport.ros2 import RosUnavailable, typestore
+        from fednav.service.transport.ros2 import RosUnavailable, typestore
 
         try:
             typestore(cfg.ros2.distro)
         except RosUnavailable as exc:
             print(f"fednav-service: [ros2] is configured but {exc}", file=sys.stderr)
             return 2
-    from service.app import Service
+    from fednav.service.app import Service
 
     listen = args.listen
     if args.connect and not args.listen:

@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from service import keys
-from service.config import ServiceConfig
-from service.engine import EstimateOutput, VehicleEngine
-from service.evaluation import recording_errors
-from service.messages import (
+from fednav.service import keys
+from fednav.service.config import ServiceConfig
+from fednav.service.engine import EstimateOutput, VehicleEngine
+from fednav.service.evaluation import recording_errors
+from fednav.service.messages import (
     SENSOR_MESSAGES,
     Alignment,
     Faults,
@@ -366,12 +366,12 @@ class Service:
     def start(self) -> None:
         import zenoh
 
-        from service.transport import zenoh_io
+        from fednav.service.transport import zenoh_io
 
         cfg = self.config
         self.rr = None
         if self.record:
-            from service.transport.rerun_sink import RerunSink
+            from fednav.service.transport.rerun_sink import RerunSink
 
             Path(self.rrd_path).parent.mkdir(parents=True, exist_ok=True)
             blueprint = _blueprint_plugin({p.name: p.kind for p in cfg.pipelines})
@@ -400,7 +400,7 @@ class Service:
         self.intake = zenoh_io.Intake(self.session, keys.inputs_selector("*", cfg.prefix), self._deliver)
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
-            from service.transport.ros2 import header_stamp_s
+            from fednav.service.transport.ros2 import header_stamp_s
 
             self.ros_intake = zenoh_io.Intake(
                 self.session, self.ros_in.key_exprs(), self._deliver_ros, order_key=header_stamp_s
@@ -427,7 +427,7 @@ class Service:
         """The ROS 2 bridge (docs/ros2.md): its input decoder and its output sink."""
         import hashlib
 
-        from service.transport import ros2
+        from fednav.service.transport import ros2
 
         cfg = self.config.ros2
         if "*" not in self.config.vehicles and cfg.vehicle not in self.config.vehicles:
@@ -446,7 +446,7 @@ class Service:
 
     def _deliver_ros(self, wall: float, key: str, payload: bytes) -> None:
         """A ROS 2 sample: decoded into fednav wire messages and handed to the same intake path."""
-        from service.transport.ros2 import RosDecodeError
+        from fednav.service.transport.ros2 import RosDecodeError
 
         w = self._worker(self.config.ros2.vehicle)
         if len(payload) > MAX_PAYLOAD_BYTES:
@@ -528,7 +528,7 @@ class Service:
     def _answer(self, query_ke) -> list[tuple[str, bytes, str]]:
         """Replies to a query: for each vehicle (served, or seen with ``*``) its status, its
         configuration and each pipeline's latest Solution whose key intersects the query."""
-        from service.transport.zenoh_io import intersects
+        from fednav.service.transport.zenoh_io import intersects
 
         prefix = self.config.prefix
         vehicles = sorted(self.workers) if "*" in self.config.vehicles else self.config.vehicles

@@ -12,9 +12,9 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from service import earth
-from service.ins.error_model import ImuNoise
-from service.ros2_config import Ros2Config
+from fednav.service import earth
+from fednav.service.ins.error_model import ImuNoise
+from fednav.service.ros2_config import Ros2Config
 
 
 class Model(BaseModel):
@@ -44,7 +44,7 @@ class ImuModel(Model):
     @classmethod
     def _preset(cls, data):
         if isinstance(data, dict) and data.get("grade") is not None:
-            from service.ins.imu_grades import PRESETS
+            from fednav.service.ins.imu_grades import PRESETS
 
             preset = PRESETS.get(data["grade"])
             if preset is not None:  # an unknown grade is refused by the Literal, naming it
@@ -612,7 +612,7 @@ class ConfigError(ValueError):
 
 
 def _format(err: ValidationError, source: str) -> str:
-    from service.validation_errors import format_errors
+    from fednav.service.validation_errors import format_errors
 
     return format_errors(err, ServiceConfig, f"invalid configuration in {source}:")
 
@@ -625,7 +625,7 @@ def from_dict(data: dict, source: str = "<dict>") -> ServiceConfig:
         cfg = ServiceConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(_format(err, source)) from None
-    from service.pipelines import config_errors  # the pipelines import this module
+    from fednav.service.pipelines import config_errors  # the pipelines import this module
 
     errors = config_errors(cfg)
     if errors:

@@ -48,13 +48,13 @@ from typing import Protocol
 
 import numpy as np
 
-from service.config import ServiceConfig
-from service.estimation import snapshot
-from service.evaluation import errors_against_truth
-from service.ins import alignment
-from service.ins.mechanisation import NavState, Preintegrator
-from service.intake_rules import AcceptanceRules, Verdict
-from service.messages import (
+from fednav.service.config import ServiceConfig
+from fednav.service.estimation import snapshot
+from fednav.service.evaluation import errors_against_truth
+from fednav.service.ins import alignment
+from fednav.service.ins.mechanisation import NavState, Preintegrator
+from fednav.service.intake_rules import AcceptanceRules, Verdict
+from fednav.service.messages import (
     MAX_HEIGHT_M,
     MAX_SPEED_MPS,
     MIN_HEIGHT_M,
@@ -66,8 +66,8 @@ from service.messages import (
     Truth,
     WireModel,
 )
-from service.pipelines import build_pipeline
-from service.pipelines.base import Estimate, InitStd, Pipeline
+from fednav.service.pipelines import build_pipeline
+from fednav.service.pipelines.base import Estimate, InitStd, Pipeline
 
 
 @dataclass

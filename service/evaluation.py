@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service import earth
-from service.estimation.integrity.monitor import limits
-from service.ins.error_model import NAV_ERRORS
-from service.ins.mechanisation import NavState
-from service.messages import Integrity, Truth
+from fednav.service import earth
+from fednav.service.estimation.integrity.monitor import limits
+from fednav.service.ins.error_model import NAV_ERRORS
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import Integrity, Truth
 
 #: eval report keys, in the order of the printed tables (north, east, up, then velocity, attitude)
 REPORT_KEYS = tuple(NAV_ERRORS[i].report for i in (1, 0, 2, 3, 4, 5, 6, 7, 8))

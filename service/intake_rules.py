@@ -34,8 +34,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from service.config import IntakeConfig
-from service.messages import WireModel
+from fednav.service.config import IntakeConfig
+from fednav.service.messages import WireModel
 
 #: reasons for which a message is out of sequence for its key or the INS (it is not used at all);
 #: other refusals (``not_initialised``, ``early``) still leave it the newest of its sensor

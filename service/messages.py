@@ -12,7 +12,7 @@ with heading clockwise from true north in [0, 360).
 
 Every frame and angle convention is stated once, in the README section "Conventions (one place)".
 
-``python -m service.messages --write docs/schemas`` regenerates the JSON Schemas shipped in docs/.
+``python -m fednav.service.messages --write docs/schemas`` regenerates the JSON Schemas shipped in docs/.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ EVAL_EXAMPLES = """examples:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    from service.__main__ import version
+    from fednav.service.__main__ import version
 
     raw = argparse.RawDescriptionHelpFormatter
     ap = argparse.ArgumentParser(
@@ -68,11 +68,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     rest = sys.argv[1:] if argv is None else argv
     if rest and rest[0] in ("rinex2raw", "eval-rinex"):  # real RINEX data (docs/real_rinex.md)
-        from simulators.rinex_eval import cli
+        from fednav.simulators.rinex_eval import cli
 
         return cli(rest)
     args = parse_args(argv)
-    from simulators.scenario import ScenarioError, load_scenario
+    from fednav.simulators.scenario import ScenarioError, load_scenario
 
     try:
         scenario = load_scenario(args.scenario)
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fednav-sim: {exc}", file=sys.stderr)
         return 2
     if args.cmd == "run":
-        from service.transport.zenoh_io import endpoint_error
+        from fednav.service.transport.zenoh_io import endpoint_error
 
         for ep in args.connect or []:
             if endpoint_error(ep):
@@ -89,9 +89,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.zenoh_config and not Path(args.zenoh_config).is_file():
             print(f"fednav-sim: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
             return 2
-        from simulators.publisher import MatchTimeout, publish_stream
-        from simulators.stream import Simulation
-        from simulators.wing import WingSimulation
+        from fednav.simulators.publisher import MatchTimeout, publish_stream
+        from fednav.simulators.stream import Simulation
+        from fednav.simulators.wing import WingSimulation
 
         make = WingSimulation if scenario.wing is not None else Simulation  # seed 002: wing nodes too
         sim = make(scenario, seed=args.seed, vehicle=args.vehicle, prefix=args.prefix)
@@ -104,20 +104,20 @@ def main(argv: list[str] | None = None) -> int:
             return 3
         print(f"fednav-sim: published {stats['messages']} messages in {stats['wall_s']:.1f} s", flush=True)
         return 0
-    from service.config import ConfigError
-    from simulators.evaluate import evaluate, format_table
+    from fednav.service.config import ConfigError
+    from fednav.simulators.evaluate import evaluate, format_table
 
     if args.runs < 1:
         print("--runs must be >= 1", file=sys.stderr)
         return 2
     if scenario.wing is not None:  # transfer alignment (seed 002): per-node alignment metrics
-        from simulators import transfer_eval
+        from fednav.simulators import transfer_eval
 
         seed = scenario.seed if args.seed is None else args.seed
         result = transfer_eval.evaluate(scenario, runs=args.runs, seed=seed)
         print(json.dumps(result, indent=2) if args.json else transfer_eval.format_table(result))
         return 0
-    from simulators.progress import EvalProgress
+    from fednav.simulators.progress import EvalProgress
 
     bar = EvalProgress(scenario, args.runs, enabled=not args.json and sys.stderr.isatty())
     try:

@@ -22,11 +22,11 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from service import earth
-from service.messages import DvlVelocity, UsblFix
-from simulators.faults import FaultSet
-from simulators.sensors import epoch_step
-from simulators.trajectory import Trajectory, mat_nb_vec
+from fednav.service import earth
+from fednav.service.messages import DvlVelocity, UsblFix
+from fednav.simulators.faults import FaultSet
+from fednav.simulators.sensors import epoch_step
+from fednav.simulators.trajectory import Trajectory, mat_nb_vec
 
 USBL_SENSOR = "usbl"
 DVL_SENSOR = "dvl"

@@ -13,8 +13,8 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-from simulators.processes import free_port, start_service, start_sim, wait_idle
-from simulators.scenario import scenario_path
+from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
+from fednav.simulators.scenario import scenario_path
 
 DEFAULT = Path(__file__).resolve().parent / "scenarios" / "demo_product.toml"
 
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         svc.wait(timeout=60)
     print(f"run took {time.monotonic() - t0:.1f} s", flush=True)
 
-    from dashboards.inspect import inspect_rrd, render_text
+    from fednav.dashboards.inspect import inspect_rrd, render_text
 
     print(render_text(inspect_rrd(rrd)))
     print(f"\nopen the recording:  .venv/bin/rerun {rrd}   (or: .venv/bin/fednav-view {rrd})")

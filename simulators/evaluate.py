@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service import config as config_mod
-from service import keys
-from service.engine import EstimateOutput, VehicleEngine
-from service.evaluation import (
+from fednav.service import config as config_mod
+from fednav.service import keys
+from fednav.service.engine import EstimateOutput, VehicleEngine
+from fednav.service.evaluation import (
     INTEGRITY_CLASSES,
     REPORT_KEYS,
     FaultWindow,
@@ -30,10 +30,10 @@ from service.evaluation import (
     integrity_metrics,
     nees,
 )
-from service.messages import Faults, Integrity, Solution, Truth, WireModel
-from simulators.papers import reference
-from simulators.scenario import Scenario
-from simulators.stream import Simulation
+from fednav.service.messages import Faults, Integrity, Solution, Truth, WireModel
+from fednav.simulators.papers import reference
+from fednav.simulators.scenario import Scenario
+from fednav.simulators.stream import Simulation
 
 
 @dataclass

@@ -34,7 +34,7 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
-from service.messages import ActiveFault
+from fednav.service.messages import ActiveFault
 
 
 class _FaultBase(BaseModel):

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.signal import lfilter
 
-from service import earth
+from fednav.service import earth
 
 Vec3 = tuple[float, float, float]
 

@@ -1,6 +1,6 @@
 """The issue-10 outside check on a simulated drive: is the fused solution better than the receiver?
 
-``python -m simulators.own_data_eval --runs 10`` runs a scenario (default ``own_data_phone_car``)
+``python -m fednav.simulators.own_data_eval --runs 10`` runs a scenario (default ``own_data_phone_car``)
 in process, seeded (runs ``seed .. seed + runs - 1``), and prints per pipeline, pooled over runs
 and over the epochs after ``--skip-s`` seconds (initial convergence):
 
@@ -23,13 +23,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service import keys
-from service.engine import VehicleEngine
-from service.messages import Faults, GnssFix
-from simulators.evaluate import service_config
-from simulators.scenario import Scenario, load_scenario, scenario_path
-from simulators.stream import Simulation
-from simulators.trajectory import mat_nb_vec, radii_vec
+from fednav.service import keys
+from fednav.service.engine import VehicleEngine
+from fednav.service.messages import Faults, GnssFix
+from fednav.simulators.evaluate import service_config
+from fednav.simulators.scenario import Scenario, load_scenario, scenario_path
+from fednav.simulators.stream import Simulation
+from fednav.simulators.trajectory import mat_nb_vec, radii_vec
 
 
 @dataclass

@@ -83,7 +83,7 @@ def start_service(
     rrd: Path | None = None,
     extra: list[str] | None = None,
 ) -> Proc:
-    args = [sys.executable, "-m", "service", "--listen", f"tcp/127.0.0.1:{port}"]
+    args = [sys.executable, "-m", "fednav.service", "--listen", f"tcp/127.0.0.1:{port}"]
     if config:
         args += ["--config", str(config)]
     if table:
@@ -102,7 +102,7 @@ def start_sim(
     args = [
         sys.executable,
         "-m",
-        "simulators",
+        "fednav.simulators",
         "run",
         str(scenario),
         "--speed",
@@ -123,8 +123,8 @@ def query_status(
     """Ask the service's status queryable (a plain Zenoh client)."""
     import zenoh
 
-    from service.config import ZenohConfig
-    from service.transport.zenoh_io import make_config
+    from fednav.service.config import ZenohConfig
+    from fednav.service.transport.zenoh_io import make_config
 
     with zenoh.open(
         make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"])

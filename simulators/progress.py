@@ -6,7 +6,7 @@ no-op, so logs and pipes stay clean.
 
 from __future__ import annotations
 
-from simulators.scenario import Scenario
+from fednav.simulators.scenario import Scenario
 
 
 class EvalProgress:

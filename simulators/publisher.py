@@ -12,9 +12,9 @@ from collections.abc import Iterable
 
 import zenoh
 
-from service.config import ZenohConfig
-from service.messages import WireModel
-from service.transport.zenoh_io import make_config
+from fednav.service.config import ZenohConfig
+from fednav.service.messages import WireModel
+from fednav.service.transport.zenoh_io import make_config
 
 
 class MatchTimeout(RuntimeError):

@@ -1,7 +1,7 @@
 """Consistency of the loosely coupled filter on REAL receiver fixes (docs/own_data.md, "Consistency
 on real fixes"; issue 10, deliverable 3).
 
-``python -m simulators.real_fix_eval DIR [--json out.json]`` on the Wuhan 2015 RINEX data
+``python -m fednav.simulators.real_fix_eval DIR [--json out.json]`` on the Wuhan 2015 RINEX data
 (``DIR/*.??o`` + ``*.??n``, GPS, 1 Hz, static start and static end):
 
 1. Real fixes: per epoch, the weighted least-squares single-point solution of ``simulators.rinex_eval``
@@ -44,16 +44,16 @@ from pathlib import Path
 
 import numpy as np
 
-from service import earth
-from service.config import GnssCorrelatedError, ImuModel, LooselyCoupledConfig
-from service.estimation.measurements import atmosphere as atm
-from service.estimation.snapshot import solve_position, solve_velocity
-from service.ins.alignment import InitStd
-from service.ins.mechanisation import NavState
-from service.messages import GnssFix
-from service.pipelines.loosely_coupled import LooselyCoupled
-from simulators.gnss.rinex_raw import iter_gnss_raw
-from simulators.rinex_eval import enu, find_files, spp, static_segments
+from fednav.service import earth
+from fednav.service.config import GnssCorrelatedError, ImuModel, LooselyCoupledConfig
+from fednav.service.estimation.measurements import atmosphere as atm
+from fednav.service.estimation.snapshot import solve_position, solve_velocity
+from fednav.service.ins.alignment import InitStd
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssFix
+from fednav.service.pipelines.loosely_coupled import LooselyCoupled
+from fednav.simulators.gnss.rinex_raw import iter_gnss_raw
+from fednav.simulators.rinex_eval import enu, find_files, spp, static_segments
 
 MASK_DEG = 10.0
 SKIP_S = 60.0  # the filter's first minute of each part (initial convergence) is left out

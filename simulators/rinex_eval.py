@@ -32,15 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-from service import earth
-from service.config import ClockModel, ImuModel, TightlyCoupledConfig
-from service.estimation.snapshot import solve_position, solve_velocity
-from service.ins.alignment import InitStd
-from service.ins.mechanisation import NavState
-from service.messages import GnssRaw, Integrity
-from service.pipelines.tightly_coupled import TightlyCoupled
-from simulators.gnss.rinex import read_rinex2_nav
-from simulators.gnss.rinex_raw import ConversionStats, iter_gnss_raw, read_observations
+from fednav.service import earth
+from fednav.service.config import ClockModel, ImuModel, TightlyCoupledConfig
+from fednav.service.estimation.snapshot import solve_position, solve_velocity
+from fednav.service.ins.alignment import InitStd
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssRaw, Integrity
+from fednav.service.pipelines.tightly_coupled import TightlyCoupled
+from fednav.simulators.gnss.rinex import read_rinex2_nav
+from fednav.simulators.gnss.rinex_raw import ConversionStats, iter_gnss_raw, read_observations
 
 GNSS_ONLY_VRW_UG = 1.0e5  # 1e5 ug/sqrt(Hz) = 0.98 m/s/sqrt(s): the vehicle's accelerations as noise
 STATIC_SPEED_MPS = 0.3  # Doppler speed below which an epoch counts as at rest
@@ -171,7 +171,7 @@ def ours_wls(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Epoch-wise weighted least squares with the service's corrections (Saastamoinen x DO-229
     mapping, sigma / sin E, mask), no filtering: separates the model from the filter's smoothing."""
-    from service.estimation.measurements import atmosphere as atm
+    from fednav.service.estimation.measurements import atmosphere as atm
 
     llh = earth.ecef_to_llh(x0_ecef_m)
     c_en = earth.mat_en(float(llh[0]), float(llh[1]))

@@ -3,7 +3,7 @@ geometry_msgs/TwistWithCovarianceStamped in CDR over Zenoh, under rmw_zenoh's or
 zenoh-bridge-ros2dds' keys (what a robot's drivers publish; docs/ros2.md). For trying and testing
 fednav-service's [ros2] bridge.
 
-    python -m simulators.ros2_publish SCENARIO.toml --connect tcp/127.0.0.1:7447 [--carrier ros2dds]
+    python -m fednav.simulators.ros2_publish SCENARIO.toml --connect tcp/127.0.0.1:7447 [--carrier ros2dds]
 
 Imu: angular_velocity and linear_acceleration are each interval's mean rate (increment / dt) in
 body FLU (REP 103) stamped at the interval's end, the bridge's ``imu_integration = "rectangle"``
@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from service.messages import GnssFix, ImuSample
-from service.ros2_config import Ros2Config
-from service.transport import ros2
+from fednav.service.messages import GnssFix, ImuSample
+from fednav.service.ros2_config import Ros2Config
+from fednav.service.transport import ros2
 
 RFU_TO_FLU = ros2.FLU_TO_RFU.T
 
@@ -105,7 +105,7 @@ def to_ros(msg, cfg: Ros2Config) -> list[tuple[str, object]]:
 
 def ros_samples(scenario, seed: int, cfg: Ros2Config) -> Iterator[tuple[str, bytes, object]]:
     """(Zenoh key, CDR payload, fednav message) of a scenario run, in time order."""
-    from simulators.stream import simulate
+    from fednav.simulators.stream import simulate
 
     store = ros2.typestore(cfg.distro)
     for _, m in simulate(scenario, seed=seed, vehicle=cfg.vehicle):
@@ -156,7 +156,7 @@ def publish(session, samples, *, attachment: bool = True, speed: float = 1.0) ->
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description="Publish a scenario's IMU and GNSS as ROS 2 messages (CDR) over Zenoh",
-        epilog="example: python -m simulators.ros2_publish simulators/scenarios/demo_aircraft.toml "
+        epilog="example: python -m fednav.simulators.ros2_publish simulators/scenarios/demo_aircraft.toml "
         "--connect tcp/127.0.0.1:7447",
     )
     ap.add_argument("scenario", type=Path, help="scenario TOML (simulators/scenarios/)")
@@ -170,9 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     import zenoh
 
-    from service.config import ZenohConfig
-    from service.transport.zenoh_io import make_config
-    from simulators.scenario import ScenarioError, load_scenario
+    from fednav.service.config import ZenohConfig
+    from fednav.service.transport.zenoh_io import make_config
+    from fednav.simulators.scenario import ScenarioError, load_scenario
 
     try:
         sc = load_scenario(args.scenario)

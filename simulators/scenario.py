@@ -41,13 +41,13 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from service.validation_errors import format_errors, suggest
-from simulators.acoustic import DVL_CHANNELS, DVL_SENSOR, USBL_CHANNELS, USBL_SENSOR, DvlSpec, UsblSpec
-from simulators.faults import FaultSpec
-from simulators.gnss.orbits import resolve_sat_id
-from simulators.gnss.raw_sensor import GnssRawSpec
-from simulators.imu import ImuSpec
-from simulators.sensors import (
+from fednav.service.validation_errors import format_errors, suggest
+from fednav.simulators.acoustic import DVL_CHANNELS, DVL_SENSOR, USBL_CHANNELS, USBL_SENSOR, DvlSpec, UsblSpec
+from fednav.simulators.faults import FaultSpec
+from fednav.simulators.gnss.orbits import resolve_sat_id
+from fednav.simulators.gnss.raw_sensor import GnssRawSpec
+from fednav.simulators.imu import ImuSpec
+from fednav.simulators.sensors import (
     GNSS_CHANNELS,
     GNSS_SENSOR,
     STAR_CHANNELS,
@@ -56,8 +56,8 @@ from simulators.sensors import (
     StarSpec,
     epoch_step,
 )
-from simulators.trajectory import Segment, StartSpec, Trajectory, build_trajectory, check_segments
-from simulators.wing import WingSpec
+from fednav.simulators.trajectory import Segment, StartSpec, Trajectory, build_trajectory, check_segments
+from fednav.simulators.wing import WingSpec
 
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 Vec3 = tuple[float, float, float]

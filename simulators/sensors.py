@@ -24,11 +24,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy.signal import lfilter
 
-from service import earth
-from service.estimation.measurements.gnss_fix import LABELS as GNSS_FIX_LABELS
-from service.messages import GnssFix, StarAttitude
-from simulators.faults import FaultSet
-from simulators.trajectory import Trajectory, mat_nb_vec, radii_vec
+from fednav.service import earth
+from fednav.service.estimation.measurements.gnss_fix import LABELS as GNSS_FIX_LABELS
+from fednav.service.messages import GnssFix, StarAttitude
+from fednav.simulators.faults import FaultSet
+from fednav.simulators.trajectory import Trajectory, mat_nb_vec, radii_vec
 
 GNSS_SENSOR = "gnss"
 STAR_SENSOR = "star"

@@ -27,15 +27,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service import earth, keys
-from service.messages import MAX_RATE_RPS, MAX_SPECIFIC_FORCE_MPS2, ImuSample, InitialNav, Truth, WireModel
-from simulators.acoustic import draw_dvl_errors, simulate_dvl, simulate_usbl
-from simulators.faults import FaultSet
-from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawTruth
-from simulators.imu import ImuErrorTruth, apply_imu_errors
-from simulators.scenario import GNSS_RAW_SENSOR, Scenario
-from simulators.sensors import epoch_step, simulate_gnss_fixes, simulate_star
-from simulators.trajectory import Trajectory, radii_vec
+from fednav.service import earth, keys
+from fednav.service.messages import (
+    MAX_RATE_RPS,
+    MAX_SPECIFIC_FORCE_MPS2,
+    ImuSample,
+    InitialNav,
+    Truth,
+    WireModel,
+)
+from fednav.simulators.acoustic import draw_dvl_errors, simulate_dvl, simulate_usbl
+from fednav.simulators.faults import FaultSet
+from fednav.simulators.gnss.raw_sensor import GnssRawSensor, GnssRawTruth
+from fednav.simulators.imu import ImuErrorTruth, apply_imu_errors
+from fednav.simulators.scenario import GNSS_RAW_SENSOR, Scenario
+from fednav.simulators.sensors import epoch_step, simulate_gnss_fixes, simulate_star
+from fednav.simulators.trajectory import Trajectory, radii_vec
 
 ZERO_SIGMA_FLOOR = 1e-3  # std reported for a zero initial-error sigma, in the field's units
 

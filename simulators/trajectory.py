@@ -41,7 +41,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from service import earth
+from fednav.service import earth
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(5)  # nodes on [-1, 1], weights (sum 2)
 _STEP_TOL = 1e-6  # tolerance (in IMU steps) for "is a multiple of the IMU step"

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.config import TransferAlignmentConfig
-from service.estimation import transfer_alignment as ta
-from service.pipelines.transfer_alignment import bank_from_config
-from simulators.trajectory import mat_nb_vec
-from simulators.wing import WingSimulation
+from fednav.service.config import TransferAlignmentConfig
+from fednav.service.estimation import transfer_alignment as ta
+from fednav.service.pipelines.transfer_alignment import bank_from_config
+from fednav.simulators.trajectory import mat_nb_vec
+from fednav.simulators.wing import WingSimulation
 
 NEES_IDX = np.r_[np.arange(0, 3), np.arange(15, 18), np.arange(21, 24)]  # phi, theta, dr
 
@@ -126,7 +126,7 @@ def summarise(runs: list[dict], settle_s: float) -> dict:
 def evaluate(scenario, runs: int, seed: int, settle_s: float = 60.0) -> dict:
     """Seeded Monte Carlo (seeds seed .. seed + runs - 1); improvements of every adaptive
     pipeline over the first plain-KF pipeline; the paper's figures under ``paper``."""
-    from simulators.papers import reference
+    from fednav.simulators.papers import reference
 
     cfgs = pipelines_of(scenario)
     traj = scenario.build_trajectory()
@@ -158,8 +158,8 @@ def improvement_pct(result: dict, base: str, new: str) -> dict:
 
 
 def format_table(result: dict) -> str:
-    from simulators.papers import SEED002_IMPROVEMENT_PCT as PCT
-    from simulators.papers import SEED002_TABLE2_LEVER_M, SEED002_TABLE3_HEADING_DEG
+    from fednav.simulators.papers import SEED002_IMPROVEMENT_PCT as PCT
+    from fednav.simulators.papers import SEED002_TABLE2_LEVER_M, SEED002_TABLE3_HEADING_DEG
 
     pipes = result["pipelines"]
     head = f"seed 002 transfer alignment, {result['runs']} runs, seed {result['seed']}"

@@ -31,9 +31,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.linalg import expm
 from scipy.signal import lfilter
 
-from service import earth
-from service.estimation.transfer_alignment import flexure_displacement_matrix, flexure_q, rot, rotvec
-from simulators.imu import ImuErrorTruth, ImuSpec, apply_imu_errors
+from fednav.service import earth
+from fednav.service.estimation.transfer_alignment import flexure_displacement_matrix, flexure_q, rot, rotvec
+from fednav.simulators.imu import ImuErrorTruth, ImuSpec, apply_imu_errors
 
 Vec3 = tuple[float, float, float]
 
@@ -260,8 +260,8 @@ class WingSimulation:
     def __init__(
         self, scenario, seed: int | None = None, vehicle: str = "v1", trajectory=None, prefix: str = "fednav"
     ):
-        from service import keys
-        from simulators.stream import Simulation
+        from fednav.service import keys
+        from fednav.simulators.stream import Simulation
 
         if scenario.wing is None:
             raise ValueError("scenario has no [wing] section")
@@ -281,7 +281,7 @@ class WingSimulation:
         return self
 
     def node_truth(self, j: int, k: int, t: float):
-        from service.messages import AlignmentTruth
+        from fednav.service.messages import AlignmentTruth
 
         n = self.nodes[j]
         deg = 1.0 / earth.DEG
@@ -298,7 +298,7 @@ class WingSimulation:
         return next(self._gen)
 
     def _messages(self):
-        from service.messages import ImuSample
+        from fednav.service.messages import ImuSample
 
         dt = 1.0 / self._rate
         dth = [n.dtheta_rad.tolist() for n in self.nodes]

@@ -25,7 +25,7 @@ def run_and_collect(scenario, key_expr: str, *, seed: int, rrd=None, sim_timeout
     import threading
     import time
 
-    from simulators.processes import free_port, start_service, start_sim, wait_idle
+    from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
     port = free_port()
     svc = start_service(port, config=scenario, table="service", rrd=rrd)

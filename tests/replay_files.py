@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from replay.mapping import GPS_EPOCH_UNIX_S, LEAP_SECONDS_NOW, axes_matrix
-from service.messages import GnssFix, ImuSample, Truth
+from fednav.replay.mapping import GPS_EPOCH_UNIX_S, LEAP_SECONDS_NOW, axes_matrix
+from fednav.service.messages import GnssFix, ImuSample, Truth
 
 T0_GPS_S = 1_400_000_000.0  # 2024-05-20
 STATIC_S = 12.0
@@ -103,8 +103,8 @@ class Drive:
 
 
 def simulate_drive(tmp: Path, duration_s: float = 40.0, seed: int = 3) -> Drive:
-    from simulators.scenario import load_scenario
-    from simulators.stream import simulate
+    from fednav.simulators.scenario import load_scenario
+    from fednav.simulators.stream import simulate
 
     p = tmp / "replay_drive.toml"
     p.write_text(SCENARIO_TOML.format(duration=duration_s, t0=T0_GPS_S, static=STATIC_S + 1.0))

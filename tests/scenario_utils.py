@@ -5,7 +5,7 @@ from __future__ import annotations
 import tomllib
 from pathlib import Path
 
-from simulators.scenario import parse_scenario
+from fednav.simulators.scenario import parse_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "simulators" / "scenarios"
 
@@ -54,8 +54,8 @@ def initial_nav_message(t: float, nav, pos_std_enu_m, vel_std_enu_mps, rpy_std_d
     rpy_rad) and the given 1-sigma uncertainties."""
     import math
 
-    from service import earth
-    from service.messages import InitialNav
+    from fednav.service import earth
+    from fednav.service.messages import InitialNav
 
     return InitialNav(
         t=t,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.estimation import kalman
-from service.estimation.adaptive import (
+from fednav.service.estimation import kalman
+from fednav.service.estimation.adaptive import (
     SageHusaR,
     chi2_threshold,
     faded_covariance,

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from service import earth
-from service.ins import alignment as al
-from service.messages import GnssFix, InitialNav
+from fednav.service import earth
+from fednav.service.ins import alignment as al
+from fednav.service.messages import GnssFix, InitialNav
 
 LAT_DEG = 45.0
 LAT = math.radians(LAT_DEG)
@@ -186,6 +186,6 @@ def test_from_initial_nav():
 
 
 def test_init_std_is_reexported_by_the_pipeline_contract():
-    from service.pipelines.base import InitStd
+    from fednav.service.pipelines.base import InitStd
 
     assert InitStd is al.InitStd

@@ -18,11 +18,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from service import keys
-from service.messages import GnssFix, ImuSample
-from simulators.evaluate import run_once
-from simulators.processes import free_port, start_service, start_sim, wait_idle
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.messages import GnssFix, ImuSample
+from fednav.simulators.evaluate import run_once
+from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
+from fednav.simulators.stream import Simulation
 
 from .plain_zenoh import client as zenoh_client
 from .scenario_utils import SCENARIOS, shortened
@@ -165,7 +165,7 @@ def test_sigterm_mid_run_leaves_a_complete_recording(tmp_path):
     assert took < 10.0, f"shutdown took {took:.1f} s"
     res = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    from dashboards.inspect import inspect_rrd
+    from fednav.dashboards.inspect import inspect_rrd
 
     summary = inspect_rrd(rrd)
     last_published = max(sols)

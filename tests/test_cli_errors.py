@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from service.__main__ import main as service_main
-from service.__main__ import zenoh_error_text
-from simulators.__main__ import main as sim_main
+from fednav.service.__main__ import main as service_main
+from fednav.service.__main__ import zenoh_error_text
+from fednav.simulators.__main__ import main as sim_main
 
 
 def _err(capsys) -> str:

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from service import config
+from fednav.service import config
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "service" / "configs" / "example.toml"
 
@@ -45,7 +45,10 @@ def test_service_cli_rejects_a_bad_config_naming_the_field(tmp_path):
     p = tmp_path / "bad.toml"
     p.write_text("[output]\nsolution_rate_hz = 0\n")
     res = subprocess.run(
-        [sys.executable, "-m", "service", "--config", str(p)], capture_output=True, text=True, timeout=60
+        [sys.executable, "-m", "fednav.service", "--config", str(p)],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert res.returncode == 2
     assert "output.solution_rate_hz" in res.stderr

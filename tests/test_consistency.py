@@ -10,10 +10,10 @@ uses a 100 s cut of the demo scenario (N = 6 seeds) to stay fast.
 import numpy as np
 from scipy.stats import chi2
 
-from service import keys
-from service.engine import VehicleEngine
-from simulators.evaluate import CollectingSink, service_config
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.engine import VehicleEngine
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import shortened
 

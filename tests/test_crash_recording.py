@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from dashboards.inspect import InspectError, inspect_rrd, read_series
-from service.messages import Truth
-from service.transport.rerun_sink import RerunSink
-from simulators.processes import free_port, start_service, start_sim
+from fednav.dashboards.inspect import InspectError, inspect_rrd, read_series
+from fednav.service.messages import Truth
+from fednav.service.transport.rerun_sink import RerunSink
+from fednav.simulators.processes import free_port, start_service, start_sim
 
 from .plain_zenoh import client as zenoh_client
 

@@ -2,11 +2,11 @@
 
 import numpy as np
 
-from service import keys
-from service.engine import VehicleEngine
-from service.estimation import kalman
-from simulators.evaluate import CollectingSink, service_config
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.engine import VehicleEngine
+from fednav.service.estimation import kalman
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import shortened
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service import earth
+from fednav.service import earth
 
 
 def test_gravity_closed_form():

@@ -9,17 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import keys
-from service.config import IntakeConfig, LooselyCoupledConfig
-from service.engine import VehicleEngine
-from service.ins.alignment import InitStd
-from service.ins.mechanisation import NavState
-from service.intake_rules import AcceptanceRules
-from service.messages import GnssFix, ImuSample, InitialNav, StarAttitude, Truth
-from service.pipelines.base import Pipeline
-from service.pipelines.loosely_coupled import LooselyCoupled
-from simulators.evaluate import CollectingSink, service_config
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.config import IntakeConfig, LooselyCoupledConfig
+from fednav.service.engine import VehicleEngine
+from fednav.service.ins.alignment import InitStd
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.intake_rules import AcceptanceRules
+from fednav.service.messages import GnssFix, ImuSample, InitialNav, StarAttitude, Truth
+from fednav.service.pipelines.base import Pipeline
+from fednav.service.pipelines.loosely_coupled import LooselyCoupled
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import shortened
 
@@ -206,8 +206,8 @@ def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
     assert statuses[i_lost + 1] == ("unaided", 2)  # started from the next GNSS fix
     assert statuses[-1] == ("aided", 2)
     writers = {m for _, m in attribute_writers}
-    assert writers and "service.engine" not in writers
-    assert writers <= {"service.pipelines.base", "service.pipelines.loosely_coupled"}
+    assert writers and "fednav.service.engine" not in writers
+    assert writers <= {"fednav.service.pipelines.base", "fednav.service.pipelines.loosely_coupled"}
 
 
 def test_engine_source_never_assigns_pipeline_bookkeeping():
@@ -252,7 +252,7 @@ def test_warnings_name_a_time_base_mismatch_and_a_pipeline_without_input(caplog)
     it has no input and what it consumes. Each once."""
     import logging
 
-    from service.config import ServiceConfig, TightlyCoupledConfig
+    from fednav.service.config import ServiceConfig, TightlyCoupledConfig
 
     sc = shortened("demo_aircraft.toml", 40.0)
     cfg = ServiceConfig(pipelines=[LooselyCoupledConfig(name="lc"), TightlyCoupledConfig(name="tc")])

@@ -5,8 +5,8 @@ import math
 import numpy as np
 from scipy.linalg import expm
 
-from service import earth
-from service.ins import error_model as em
+from fednav.service import earth
+from fednav.service.ins import error_model as em
 
 
 def _reference_F(lat_rad, h_m, vel_enu_mps, mat_nb, f_n_mps2):
@@ -95,8 +95,8 @@ def test_discretisation_against_matrix_exponential():
 def test_one_table_of_navigation_error_names():
     """The 9 navigation errors have one table of public names; evaluation, the recording and the
     error-state labels all read it (no second vocabulary)."""
-    from service import evaluation
-    from service.transport import rerun_paths
+    from fednav.service import evaluation
+    from fednav.service.transport import rerun_paths
 
     assert tuple(n.state for n in em.NAV_ERRORS) == em.STATE_LABELS[em.NAV]
     assert rerun_paths.ERROR_NAMES == tuple(n.recording for n in em.NAV_ERRORS)

@@ -17,17 +17,17 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from service import config, earth, pipelines
-from service.estimation import kalman, measurements
-from service.estimation.federated import fault_tests, sharing
-from service.estimation.federated.core import FederatedCore, LinearBank
-from service.estimation.federated.fault_tests import FaultDecision, FaultTest, make_fault_test
-from service.estimation.federated.sharing import SharingStrategy, get_strategy
-from service.estimation.ins_filter import InsFilterBank
-from service.estimation.measurements import Measurement, ModelContext, PrivateStates
-from service.ins import error_model as em
-from service.messages import DvlVelocity, Faults, GnssFix
-from service.pipelines.base import Estimate, Pipeline, initial_covariance
+from fednav.service import config, earth, pipelines
+from fednav.service.estimation import kalman, measurements
+from fednav.service.estimation.federated import fault_tests, sharing
+from fednav.service.estimation.federated.core import FederatedCore, LinearBank
+from fednav.service.estimation.federated.fault_tests import FaultDecision, FaultTest, make_fault_test
+from fednav.service.estimation.federated.sharing import SharingStrategy, get_strategy
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.measurements import Measurement, ModelContext, PrivateStates
+from fednav.service.ins import error_model as em
+from fednav.service.messages import DvlVelocity, Faults, GnssFix
+from fednav.service.pipelines.base import Estimate, Pipeline, initial_covariance
 
 from .test_federated import IMU, drive, mini_ins, run_linear, static_stream
 from .test_federated import H as STATIC_H

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from service.messages import ActiveFault
-from simulators.faults import FaultSet, parse_faults
+from fednav.service.messages import ActiveFault
+from fednav.simulators.faults import FaultSet, parse_faults
 
 CH = ["pos_e", "pos_n", "pos_u"]
 ZERO = {"pos_e": 0.0, "pos_n": 0.0, "pos_u": 0.0, "vel_e": 0.0}

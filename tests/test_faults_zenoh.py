@@ -60,7 +60,7 @@ def compressed_faults(tmp_path: Path) -> Path:
 def faults_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("seed000")
     scenario = compressed_faults(tmp)
-    from simulators.scenario import load_scenario
+    from fednav.simulators.scenario import load_scenario
 
     sc = load_scenario(scenario)  # the variant is a valid scenario
     assert [(f.start_s, f.duration_s) for f in sc.faults] == [(BOTH[0], 5.0), (VEL[0], 10.0)]
@@ -134,7 +134,7 @@ def test_recording_holds_the_fault_tests_and_shares(faults_run):
     rrd = faults_run["rrd"]
     res = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    from dashboards.inspect import inspect_rrd
+    from fednav.dashboards.inspect import inspect_rrd
 
     summary = inspect_rrd(rrd)
     m2 = summary["faults"]["fed_vector"]  # (one vehicle: keyed by pipeline; paths sanitise "/")

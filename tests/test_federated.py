@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from service import earth
-from service.config import (
+from fednav.service import earth
+from fednav.service.config import (
     CentralizedConfig,
     FaultHandlingName,
     FederatedConfig,
@@ -23,16 +23,16 @@ from service.config import (
     ServiceConfig,
     SubsystemConfig,
 )
-from service.estimation import kalman
-from service.estimation.federated import fault_tests
-from service.estimation.federated.core import FederatedCore, LinearBank, information_fusion
-from service.estimation.federated.fault_tests import make_fault_test
-from service.estimation.federated.sharing import get_strategy
-from service.evaluation import nav_errors, nees
-from service.ins.mechanisation import NavState
-from service.messages import Faults, GnssFix, StarAttitude
-from service.pipelines.base import InitStd
-from service.pipelines.federated import Centralized, Federated
+from fednav.service.estimation import kalman
+from fednav.service.estimation.federated import fault_tests
+from fednav.service.estimation.federated.core import FederatedCore, LinearBank, information_fusion
+from fednav.service.estimation.federated.fault_tests import make_fault_test
+from fednav.service.estimation.federated.sharing import get_strategy
+from fednav.service.evaluation import nav_errors, nees
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import Faults, GnssFix, StarAttitude
+from fednav.service.pipelines.base import InitStd
+from fednav.service.pipelines.federated import Centralized, Federated
 
 from .scenario_utils import initial_nav_message
 
@@ -652,7 +652,7 @@ def test_end_to_end_vector_sharing_is_overconfident():
 
 # --- construction --------------------------------------------------------------------------------
 def test_build_pipeline_and_config_errors():
-    from service.engine import build_pipeline
+    from fednav.service.engine import build_pipeline
 
     cfg = ServiceConfig(pipelines=[FederatedConfig(name="fed"), CentralizedConfig(name="cen")])
     fed, cen = (build_pipeline(p, cfg) for p in cfg.pipelines)
@@ -690,8 +690,8 @@ def test_engine_runs_federated_and_centralised_pipelines():
     """Through the real engine (events in sensor-time order): Faults outputs per aiding message
     from the federated pipeline, none from the centralised one without fault handling, solutions
     from both with finite covariances."""
-    from service.engine import VehicleEngine
-    from service.messages import ImuSample
+    from fednav.service.engine import VehicleEngine
+    from fednav.service.messages import ImuSample
 
     class Sink:
         def __init__(self):

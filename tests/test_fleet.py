@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from simulators.processes import free_port, query_status, start_service, start_sim, wait_idle
+from fednav.simulators.processes import free_port, query_status, start_service, start_sim, wait_idle
 
 from .plain_zenoh import client as zenoh_client
 from .scenario_utils import SCENARIOS

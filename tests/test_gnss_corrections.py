@@ -14,20 +14,20 @@ import math
 import numpy as np
 import pytest
 
-from service import earth
-from service.config import ImuModel, TightlyCoupledConfig
-from service.estimation.measurements import atmosphere as atm
-from service.estimation.measurements import gnss_raw as gm
-from service.estimation.measurements.base import ModelContext
-from service.evaluation import nav_errors
-from service.ins.mechanisation import NavState
-from service.messages import GnssRaw, IonoKlobuchar, SatObservation
-from service.pipelines.base import InitStd
-from service.pipelines.tightly_coupled import TightlyCoupled
-from simulators.gnss.orbits import NominalConstellation
-from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec
-from simulators.gnss.raw_sensor import tropo_delay_m as sim_tropo_delay_m
-from simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
+from fednav.service import earth
+from fednav.service.config import ImuModel, TightlyCoupledConfig
+from fednav.service.estimation.measurements import atmosphere as atm
+from fednav.service.estimation.measurements import gnss_raw as gm
+from fednav.service.estimation.measurements.base import ModelContext
+from fednav.service.evaluation import nav_errors
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssRaw, IonoKlobuchar, SatObservation
+from fednav.service.pipelines.base import InitStd
+from fednav.service.pipelines.tightly_coupled import TightlyCoupled
+from fednav.simulators.gnss.orbits import NominalConstellation
+from fednav.simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec
+from fednav.simulators.gnss.raw_sensor import tropo_delay_m as sim_tropo_delay_m
+from fednav.simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
 
 T0 = 1_300_000_000.0
 

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from service import config as config_mod
-from service import earth
-from service.estimation.measurements import ModelContext, make, private_layout
-from service.estimation.measurements.gnss_fix import LABELS, GnssFixModel, gauss_markov_block
-from service.ins import error_model as em
-from service.ins.imu_grades import PRESETS, gm_to_random_walk
-from service.ins.mechanisation import NavState
-from service.messages import GnssFix
+from fednav.service import config as config_mod
+from fednav.service import earth
+from fednav.service.estimation.measurements import ModelContext, make, private_layout
+from fednav.service.estimation.measurements.gnss_fix import LABELS, GnssFixModel, gauss_markov_block
+from fednav.service.ins import error_model as em
+from fednav.service.ins.imu_grades import PRESETS, gm_to_random_walk
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssFix
 
 LAT, LON, H = math.radians(30.5), math.radians(114.3), 20.0
 LEVER = np.array([0.4, 1.2, 0.9])
@@ -207,7 +207,7 @@ def test_pipelines_take_the_lever_arm_and_correlated_error():
             ]
         }
     )
-    from service.pipelines import build_pipeline
+    from fednav.service.pipelines import build_pipeline
 
     lc = build_pipeline(cfg.pipelines[0], cfg)
     assert lc.private[0].name == "gnss_error"

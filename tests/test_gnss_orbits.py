@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.earth import C_MPS, OMEGA_IE_RPS, llh_to_ecef, mat_en
-from simulators.gnss.orbits import (
+from fednav.service.earth import C_MPS, OMEGA_IE_RPS, llh_to_ecef, mat_en
+from fednav.simulators.gnss.orbits import (
     BDS_GEO_LON_DEG,
     BDS_IGSO_IDS,
     BDS_MEO_A_M,
@@ -30,8 +30,8 @@ from simulators.gnss.orbits import (
     range_geometry,
     resolve_sat_id,
 )
-from simulators.gnss.rinex import BroadcastEphemeris, read_rinex2_nav
-from simulators.gnss.sp3 import Sp3Data, Sp3Orbits, lagrange_weights
+from fednav.simulators.gnss.rinex import BroadcastEphemeris, read_rinex2_nav
+from fednav.simulators.gnss.sp3 import Sp3Data, Sp3Orbits, lagrange_weights
 
 from .real_data import BRDC_2015, BRDC_2021, SP3_FILE
 

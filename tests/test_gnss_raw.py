@@ -14,12 +14,17 @@ from pydantic import ValidationError
 from scipy import stats
 from scipy.optimize import least_squares
 
-from service.earth import C_MPS, ecef_to_enu, ecef_to_llh, llh_to_ecef, mat_en
-from service.estimation.snapshot import solve_position, solve_velocity
-from service.messages import GnssRaw
-from simulators.gnss.constellation import az_el, dop, dop_batch, los_enu, select_satellites
-from simulators.gnss.orbits import NOMINAL_EPOCH_GPS_S, NominalConstellation, gps_seconds, range_geometry
-from simulators.gnss.raw_sensor import (
+from fednav.service.earth import C_MPS, ecef_to_enu, ecef_to_llh, llh_to_ecef, mat_en
+from fednav.service.estimation.snapshot import solve_position, solve_velocity
+from fednav.service.messages import GnssRaw
+from fednav.simulators.gnss.constellation import az_el, dop, dop_batch, los_enu, select_satellites
+from fednav.simulators.gnss.orbits import (
+    NOMINAL_EPOCH_GPS_S,
+    NominalConstellation,
+    gps_seconds,
+    range_geometry,
+)
+from fednav.simulators.gnss.raw_sensor import (
     GnssRawSensor,
     GnssRawSpec,
     ReceiverClock,
@@ -29,7 +34,7 @@ from simulators.gnss.raw_sensor import (
     tropo_delay_m,
     tropo_mapping,
 )
-from simulators.gnss.rinex import C_L1_M, BroadcastEphemeris, read_rinex2_obs
+from fednav.simulators.gnss.rinex import C_L1_M, BroadcastEphemeris, read_rinex2_obs
 
 from .real_data import BRDC_2021, SP3_FILE, WUHAN
 
@@ -491,7 +496,7 @@ def test_real_spp_and_doppler_static_wuhan(wuhan):
 
 
 def test_gdop_rules_when_every_selected_satellite_is_required():
-    from simulators.gnss.constellation import select_satellites
+    from fednav.simulators.gnss.constellation import select_satellites
 
     az = np.radians([0.0, 90.0, 180.0, 270.0, 45.0, 135.0])
     el = np.radians([20.0, 30.0, 40.0, 50.0, 60.0, 70.0])

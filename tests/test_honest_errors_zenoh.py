@@ -11,10 +11,10 @@ import time
 
 import pytest
 
-from service import keys
-from service.messages import ServiceHealth
-from simulators.processes import free_port, start_service
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.messages import ServiceHealth
+from fednav.simulators.processes import free_port, start_service
+from fednav.simulators.stream import Simulation
 
 from .plain_zenoh import client as zenoh_client
 from .scenario_utils import SCENARIOS, shortened

@@ -20,10 +20,10 @@ import time
 import pytest
 import zenoh
 
-from service import keys
-from service.messages import GnssFix, ImuSample, InitialNav, StarAttitude
-from simulators.processes import free_port, query_status, start_service, wait_idle
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.messages import GnssFix, ImuSample, InitialNav, StarAttitude
+from fednav.simulators.processes import free_port, query_status, start_service, wait_idle
+from fednav.simulators.stream import Simulation
 
 from .plain_zenoh import client as zenoh_client
 from .scenario_utils import SCENARIOS, shortened

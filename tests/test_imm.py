@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal
 
-from service.config import IMM_PAPER_MU0, IMM_PAPER_TRANSITION, ConfigError, from_dict
-from service.estimation import kalman
-from service.estimation.imm import core
-from service.estimation.imm.models import DownWeighting, suspects
-from service.estimation.innovation_gate import gate_rows
+from fednav.service.config import IMM_PAPER_MU0, IMM_PAPER_TRANSITION, ConfigError, from_dict
+from fednav.service.estimation import kalman
+from fednav.service.estimation.imm import core
+from fednav.service.estimation.imm.models import DownWeighting, suspects
+from fednav.service.estimation.innovation_gate import gate_rows
 
 MODELS = ("normal", "largest", "two_largest", "above_c")
 PI = np.array(IMM_PAPER_TRANSITION)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from service import earth
-from simulators.faults import FaultSet
-from simulators.imu import ImuSpec, apply_imu_errors
-from simulators.sensors import GnssSpec, StarSpec, simulate_gnss_fixes, simulate_star
-from simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
+from fednav.service import earth
+from fednav.simulators.faults import FaultSet
+from fednav.simulators.imu import ImuSpec, apply_imu_errors
+from fednav.simulators.sensors import GnssSpec, StarSpec, simulate_gnss_fixes, simulate_star
+from fednav.simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
 
 T0 = 1_300_000_000.0
 

@@ -4,12 +4,12 @@ import math
 
 import numpy as np
 
-from service import keys
-from service.engine import VehicleEngine
-from service.messages import InitialNav
-from simulators.evaluate import CollectingSink, service_config
-from simulators.scenario import parse_scenario
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.engine import VehicleEngine
+from fednav.service.messages import InitialNav
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.scenario import parse_scenario
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import SCENARIOS, shortened
 

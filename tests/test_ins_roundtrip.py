@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from service import earth
-from service.ins.mechanisation import Ins, NavState
-from simulators.scenario import load_scenario
+from fednav.service import earth
+from fednav.service.ins.mechanisation import Ins, NavState
+from fednav.simulators.scenario import load_scenario
 
 from .scenario_utils import SCENARIOS
 
@@ -57,7 +57,7 @@ def test_noise_free_round_trip(demo_trajectory, major_s, pos_m, vel_mps, att_arc
 def test_shared_preintegration_applies_each_ins_bias_exactly():
     """Raw increments + the INS's bias estimate (exact algebra of Preintegrator) equal increments
     corrected sample by sample before the minor loop, for a tactical-grade bias."""
-    from service.ins.mechanisation import Preintegrator
+    from fednav.service.ins.mechanisation import Preintegrator
 
     rng = np.random.default_rng(3)
     nav = NavState(0.0, 0.7, 2.0, 100.0, np.array([50.0, 80.0, 1.0]), earth.rotvec_to_quat([0.1, -0.05, 0.8]))

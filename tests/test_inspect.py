@@ -9,10 +9,10 @@ import pytest
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
-from dashboards import blueprints, inspect, view
-from service.messages import Integrity, SatelliteTest, Solution, Truth
-from service.transport import rerun_paths as paths
-from service.transport.rerun_sink import RerunSink
+from fednav.dashboards import blueprints, inspect, view
+from fednav.service.messages import Integrity, SatelliteTest, Solution, Truth
+from fednav.service.transport import rerun_paths as paths
+from fednav.service.transport.rerun_sink import RerunSink
 
 T0 = 1_300_000_000.0
 ALL_FAMILIES = {

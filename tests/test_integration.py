@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from simulators.processes import free_port, start_service, start_sim, wait_idle
+from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
 from .plain_zenoh import client as zenoh_client
 
@@ -111,7 +111,7 @@ def test_recording_verifies_and_reads_back(demo_run):
     paths = {ch.entity_path for ch in RrdReader(str(rrd)).stream()}
     assert any(p.startswith("/v1/lc/solution") for p in paths), sorted(paths)[:20]
     assert any(p.startswith("/v1/truth") for p in paths)
-    from dashboards.inspect import inspect_rrd
+    from fednav.dashboards.inspect import inspect_rrd
 
     summary = inspect_rrd(rrd)
     assert "lc" in summary["pipelines"]
@@ -124,8 +124,8 @@ def test_recording_verifies_and_reads_back(demo_run):
 
 def test_in_process_eval_equals_over_zenoh(demo_run):
     """The same seeded scenario in-process gives the same solutions as over Zenoh."""
-    from simulators.evaluate import run_once
-    from simulators.scenario import load_scenario
+    from fednav.simulators.evaluate import run_once
+    from fednav.simulators.scenario import load_scenario
 
     sink, _ = run_once(load_scenario(DEMO), seed=3, keep_solutions=True)
     local = {round(s.t, 6): s for s in sink.records["lc"].solutions}

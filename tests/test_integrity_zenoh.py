@@ -38,7 +38,7 @@ def short_ramp(tmp_path: Path) -> Path:
 def integrity_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("seed001")
     scenario = short_ramp(tmp)
-    from simulators.scenario import load_scenario
+    from fednav.simulators.scenario import load_scenario
 
     sc = load_scenario(scenario)  # the variant is a valid scenario
     assert sc.duration_s == DURATION_S and sc.faults[0].channels == ["C03.pseudorange"]

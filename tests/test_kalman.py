@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from service.estimation import kalman
+from fednav.service.estimation import kalman
 
 
 def _random_spd(rng, n, scale=1.0):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from simulators.processes import free_port, start_service, start_sim, wait_idle
+from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,7 +81,7 @@ def test_live_stream_reaches_the_viewer_and_equals_the_file(tmp_path):
         [str(RERUN), "rrd", "verify", str(file_rrd)], capture_output=True, text=True, timeout=120
     )
     assert res.returncode == 0, res.stderr
-    from dashboards.inspect import inspect_rrd
+    from fednav.dashboards.inspect import inspect_rrd
 
     got, ref = inspect_rrd(live), inspect_rrd(file_rrd)
     assert ref["pipelines"]["lc"]["solutions"] >= DURATION_S * 10 - 20  # 10 Hz solutions

@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from service import keys
-from service.app import classify
-from service.messages import ALL_MESSAGES, ImuSample, json_schemas
+from fednav.service import keys
+from fednav.service.app import classify
+from fednav.service.messages import ALL_MESSAGES, ImuSample, json_schemas
 
 SCHEMAS = Path(__file__).resolve().parents[1] / "docs" / "schemas"
 
@@ -71,7 +71,7 @@ def test_schemas_are_2020_12_with_uri_ids_and_every_field_described():
 
     from jsonschema import Draft202012Validator
 
-    from service.messages import json_schemas
+    from fednav.service.messages import json_schemas
 
     for name, schema in json_schemas().items():
         assert schema["$schema"] == "https://json-schema.org/draft/2020-12/schema"

@@ -14,8 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from service.estimation import kalman
-from service.estimation.integrity.mhss import (
+from fednav.service.estimation import kalman
+from fednav.service.estimation.integrity.mhss import (
     MhssBank,
     cross_predict,
     cross_update,

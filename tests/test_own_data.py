@@ -13,11 +13,11 @@ import tomllib
 import numpy as np
 import pytest
 
-from service import config as config_mod
-from service.engine import VehicleEngine
-from service.messages import GnssFix, ImuSample
-from simulators.own_data_eval import evaluate, run_once
-from simulators.scenario import parse_scenario
+from fednav.service import config as config_mod
+from fednav.service.engine import VehicleEngine
+from fednav.service.messages import GnssFix, ImuSample
+from fednav.simulators.own_data_eval import evaluate, run_once
+from fednav.simulators.scenario import parse_scenario
 
 from .scenario_utils import SCENARIOS
 

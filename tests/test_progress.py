@@ -2,8 +2,8 @@
 
 import io
 
-from simulators.progress import EvalProgress
-from simulators.scenario import load_scenario
+from fednav.simulators.progress import EvalProgress
+from fednav.simulators.scenario import load_scenario
 
 
 def test_bar_counts_scenario_seconds_of_all_runs():
@@ -35,10 +35,10 @@ def test_disabled_bar_is_silent():
 
 def test_eval_json_prints_no_progress(capsys, monkeypatch):
     """--json (or a pipe) keeps stderr empty: the bar is off, no per-run lines either."""
-    from simulators import __main__ as cli
+    from fednav.simulators import __main__ as cli
 
     monkeypatch.setattr("sys.stderr.isatty", lambda: True, raising=False)
-    import simulators.evaluate as ev
+    import fednav.simulators.evaluate as ev
 
     monkeypatch.setattr(ev, "evaluate", lambda *a, **k: {"ok": 1})
     assert cli.main(["eval", "demo_product", "--json"]) == 0

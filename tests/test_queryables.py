@@ -8,7 +8,7 @@ import signal
 
 import pytest
 
-from simulators.processes import free_port, start_service, start_sim, wait_idle
+from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
 from .plain_zenoh import client as zenoh_client
 from .scenario_utils import SCENARIOS

@@ -22,7 +22,7 @@ import math
 import numpy as np
 import pytest
 
-from simulators.real_fix_eval import correlation_time_s, evaluate, real_fixes
+from fednav.simulators.real_fix_eval import correlation_time_s, evaluate, real_fixes
 
 from .real_data import WUHAN
 

@@ -20,7 +20,7 @@ import importlib.util
 
 import pytest
 
-from simulators.rinex_eval import evaluate_rinex
+from fednav.simulators.rinex_eval import evaluate_rinex
 
 from .real_data import WUHAN
 

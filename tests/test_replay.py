@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from replay import checks, mapping
-from replay.__main__ import main as replay_main
-from replay.events import ImuBuilder, merge, nmea_fix_to_wire
-from replay.mapping import MappingError, axes_matrix, from_dict, to_gps_s
-from replay.sources import stream_events
-from service.messages import (
+from fednav.replay import checks, mapping
+from fednav.replay.__main__ import main as replay_main
+from fednav.replay.events import ImuBuilder, merge, nmea_fix_to_wire
+from fednav.replay.mapping import MappingError, axes_matrix, from_dict, to_gps_s
+from fednav.replay.sources import stream_events
+from fednav.service.messages import (
     DEFAULT_H_STD_M,
     DEFAULT_SPEED_STD_MPS,
     VERTICAL_TO_HORIZONTAL,
@@ -199,7 +199,7 @@ def test_nmea_without_rmc_needs_a_date_and_takes_it_from_the_mapping(tmp_path, d
     date = rf.gps_to_utc(drive.fixes[0].t).date().isoformat()
     m = from_dict({"streams": [{**base, "date": date}]})
     stats: dict = {}
-    from replay import nmea_source
+    from fednav.replay import nmea_source
 
     fixes = list(nmea_source.events(m.streams[0], tmp_path, m, stats=stats))
     assert stats == {"bad_sentence": 1} and len(fixes) == len(drive.fixes)
@@ -283,7 +283,7 @@ def test_nmea_fix_type_from_gga_quality(tmp_path, drive, qual, fix_type):
 
 
 def test_rinex_slot_says_plainly_when_it_is_not_available(tmp_path, monkeypatch):
-    from replay import rinex_source
+    from fednav.replay import rinex_source
 
     monkeypatch.setattr(rinex_source, "available", lambda: False)
     m = from_dict({"streams": [{"source": "site.19o", "kind": "gnss_raw", "sensor_id": "rx"}]})
@@ -396,7 +396,7 @@ def test_cli_check_only_publishes_nothing_and_reports_json(files, capsys):
 
 
 def test_example_mappings_and_service_config_are_valid():
-    from service.config import load
+    from fednav.service.config import load
 
     root = Path(__file__).resolve().parents[1] / "replay" / "examples"
     names = sorted(p.name for p in root.glob("*.toml"))
@@ -428,7 +428,7 @@ def test_example_mappings_and_service_config_are_valid():
 def test_progress_bar_draws_only_when_enabled():
     import io
 
-    from replay.__main__ import Progress
+    from fednav.replay.__main__ import Progress
 
     out = io.StringIO()
     p = Progress(4, enabled=True, stream=out)
@@ -448,7 +448,7 @@ def test_rinex_slot_calls_iter_gnss_raw_when_present(tmp_path, monkeypatch):
     import sys
     import types
 
-    from service.messages import GnssRaw
+    from fednav.service.messages import GnssRaw
 
     calls = []
 
@@ -457,9 +457,9 @@ def test_rinex_slot_calls_iter_gnss_raw_when_present(tmp_path, monkeypatch):
         yield 1.4e9, GnssRaw(t=1.4e9, sats=[])
         yield 1.4e9 + 1.0, GnssRaw(t=1.4e9 + 1.0, sats=[])
 
-    fake = types.ModuleType("simulators.gnss.rinex_raw")
+    fake = types.ModuleType("fednav.simulators.gnss.rinex_raw")
     fake.iter_gnss_raw = iter_gnss_raw
-    monkeypatch.setitem(sys.modules, "simulators.gnss.rinex_raw", fake)
+    monkeypatch.setitem(sys.modules, "fednav.simulators.gnss.rinex_raw", fake)
     m = from_dict(
         {
             "rinex_nav": ["brdc.19n"],
@@ -496,7 +496,7 @@ def test_gyro_in_deg_per_s_declared_rad_per_s_is_named(tmp_path):
 def test_no_service_and_unserved_vehicle_are_named(files, capsys):
     import zenoh
 
-    from simulators.processes import free_port
+    from fednav.simulators.processes import free_port
 
     dead = free_port()
     assert (

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import earth, keys
-from simulators.gnss.orbits import gps_seconds
-from simulators.gnss.rinex_raw import MultiBroadcast, read_rinex3_nav
+from fednav.service import earth, keys
+from fednav.simulators.gnss.orbits import gps_seconds
+from fednav.simulators.gnss.rinex_raw import MultiBroadcast, read_rinex3_nav
 
 from .plain_zenoh import client
 from .real_data import WUHAN
@@ -50,7 +50,7 @@ WUHAN_S = 120.0
 
 def service_toml(vehicle: str, troposphere: bool) -> str:
     """eval-rinex's configuration (simulators/rinex_eval.py tc_config, gnss_only_imu) as TOML."""
-    from simulators.rinex_eval import GNSS_ONLY_VRW_UG
+    from fednav.simulators.rinex_eval import GNSS_ONLY_VRW_UG
 
     return f"""
 prefix = "fednav"
@@ -128,7 +128,7 @@ def initial_nav(t: float, pos_ecef_m: np.ndarray) -> dict:
 
 def replay_run(tmp: Path, vehicle: str, mapping: Path, init: dict, troposphere: bool, rrd: Path | None):
     """Service + InitialNav (plain client) + fednav-replay; returns solutions, runs, exit codes."""
-    from simulators.processes import Proc, free_port, start_service, wait_idle
+    from fednav.simulators.processes import Proc, free_port, start_service, wait_idle
 
     cfg = tmp / "service.toml"
     cfg.write_text(service_toml(vehicle, troposphere))
@@ -148,7 +148,8 @@ def replay_run(tmp: Path, vehicle: str, mapping: Path, init: dict, troposphere: 
         time.sleep(0.5)
         endpoint = f"tcp/127.0.0.1:{port}"
         p = Proc(
-            [sys.executable, "-m", "replay", str(mapping), "--connect", endpoint, "--json"], "fednav-replay"
+            [sys.executable, "-m", "fednav.replay", str(mapping), "--connect", endpoint, "--json"],
+            "fednav-replay",
         )
         rc = p.wait(timeout=180)
         out = p.output()
@@ -258,7 +259,7 @@ def test_generated_rinex3_replays_into_tightly_coupled_solutions_at_the_receiver
 
 
 def test_generated_rinex_recording_reads_back(generated):
-    from dashboards.inspect import read_series, summarize
+    from fednav.dashboards.inspect import read_series, summarize
 
     info, data = read_series(generated["rrd"])
     summary = summarize(info, data, str(generated["rrd"]))
@@ -271,8 +272,8 @@ def test_real_wuhan_static_start_through_replay(tmp_path):
     obs, nav = WUHAN / "01.15o", WUHAN / "01.15n"
     if not (obs.exists() and nav.exists()):
         pytest.skip(f"real data {WUHAN} absent (../shared/data not available here)")
-    from simulators.gnss.rinex_raw import iter_gnss_raw
-    from simulators.rinex_eval import spp
+    from fednav.simulators.gnss.rinex_raw import iter_gnss_raw
+    from fednav.simulators.rinex_eval import spp
 
     t0, first = next(iter_gnss_raw(obs, nav))
     x0 = spp([first]).pos_ecef_m[0]

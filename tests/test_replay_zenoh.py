@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from service import earth
+from fednav.service import earth
 
 from . import replay_files as rf
 from .plain_zenoh import client
@@ -30,7 +30,7 @@ ALIGN_S = 8.0
 
 @pytest.fixture(scope="module")
 def replayed(tmp_path_factory):
-    from simulators.processes import Proc, free_port, start_service, wait_idle
+    from fednav.simulators.processes import Proc, free_port, start_service, wait_idle
 
     tmp = tmp_path_factory.mktemp("replay_zenoh")
     drive = rf.simulate_drive(tmp, duration_s=DURATION_S)
@@ -54,7 +54,14 @@ def replayed(tmp_path_factory):
     runs = {}
     try:
         for case in CASES:
-            args = [sys.executable, "-m", "replay", str(mappings[case]), "--connect", f"tcp/127.0.0.1:{port}"]
+            args = [
+                sys.executable,
+                "-m",
+                "fednav.replay",
+                str(mappings[case]),
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+            ]
             p = Proc(args + ["--json"], f"fednav-replay {case}")
             rc = p.wait(timeout=120)
             runs[case] = {"rc": rc, "out": p.output()}
@@ -113,7 +120,7 @@ def test_each_format_produces_aided_solutions_close_to_truth(replayed, case):
 
 
 def test_recording_reads_back_with_every_vehicle(replayed):
-    from dashboards.inspect import read_series, summarize
+    from fednav.dashboards.inspect import read_series, summarize
 
     info, data = read_series(replayed["rrd"])
     summary = summarize(info, data, str(replayed["rrd"]))

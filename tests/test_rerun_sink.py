@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from dashboards.blueprints import blueprint_factory
-from dashboards.inspect import inspect_rrd, read_series
-from service.messages import (
+from fednav.dashboards.blueprints import blueprint_factory
+from fednav.dashboards.inspect import inspect_rrd, read_series
+from fednav.service.messages import (
     ActiveFault,
     Faults,
     Health,
@@ -27,8 +27,8 @@ from service.messages import (
     SubsystemFaults,
     Truth,
 )
-from service.transport import rerun_paths as paths
-from service.transport.rerun_sink import RerunSink, seconds_to_ns
+from fednav.service.transport import rerun_paths as paths
+from fednav.service.transport.rerun_sink import RerunSink, seconds_to_ns
 
 RERUN = Path(sys.executable).parent / "rerun"
 T0 = 1_400_000_000.0  # GPS seconds

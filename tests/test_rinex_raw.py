@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.earth import llh_to_ecef
-from service.estimation.snapshot import solve_position, solve_velocity
-from simulators.gnss.orbits import gps_seconds
-from simulators.gnss.rinex import gps_broadcast_states, read_rinex2_nav
-from simulators.gnss.rinex_raw import (
+from fednav.service.earth import llh_to_ecef
+from fednav.service.estimation.snapshot import solve_position, solve_velocity
+from fednav.simulators.gnss.orbits import gps_seconds
+from fednav.simulators.gnss.rinex import gps_broadcast_states, read_rinex2_nav
+from fednav.simulators.gnss.rinex_raw import (
     BDS_GEO,
     C_MPS,
     CGCS2000_MU_M3PS2,
@@ -158,7 +158,7 @@ def _synthetic_pseudoranges(src: MultiBroadcast, ids, t_rx: float, rx: np.ndarra
     """Pseudoranges of a receiver at ``rx`` (ECEF) whose clock reads ``t_rx`` when GPS time is
     ``t_rx - clk_rx_m / c``: the light time solved with the Sagnac rotation (service ranging model),
     P = rho + b - c dt_sv(t_tx)."""
-    from service.estimation.measurements.gnss_raw import range_geometry
+    from fednav.service.estimation.measurements.gnss_raw import range_geometry
 
     out = {}
     t_true = t_rx - clk_rx_m / C_MPS
@@ -227,7 +227,7 @@ def test_generated_rinex3_round_trip_recovers_receiver(tmp_path):
     stats = ConversionStats()
     msgs = list(iter_gnss_raw(obs_path, nav_path, stats=stats))
     assert len(msgs) == 3 and stats.observations == 9 and not stats.dropped
-    from service.estimation.measurements.gnss_raw import range_geometry
+    from fednav.service.estimation.measurements.gnss_raw import range_geometry
 
     for (t, m), tr in zip(msgs, truth, strict=True):
         assert m.t == t and {i.constellation for i in m.iono} == {"GPS", "BDS"}
@@ -279,8 +279,8 @@ def test_real_rinex2_conversion_resolves_wuhan():
 
 
 def test_rinex2raw_cli_writes_valid_json_lines(tmp_path, capsys):
-    from service.messages import GnssRaw
-    from simulators.__main__ import main
+    from fednav.service.messages import GnssRaw
+    from fednav.simulators.__main__ import main
 
     nav_path = write_nav3(tmp_path / "mixed.15p", with_geo=False)
     src = MultiBroadcast(read_rinex3_nav(nav_path))

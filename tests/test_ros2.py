@@ -10,11 +10,11 @@ import struct
 import numpy as np
 import pytest
 
-from service import config as config_mod
-from service import earth
-from service.messages import GnssFix, Health, ImuSample, PipelineHealth
-from service.ros2_config import Ros2Config
-from service.transport import ros2
+from fednav.service import config as config_mod
+from fednav.service import earth
+from fednav.service.messages import GnssFix, Health, ImuSample, PipelineHealth
+from fednav.service.ros2_config import Ros2Config
+from fednav.service.transport import ros2
 
 pytest.importorskip("rosbags")
 
@@ -279,7 +279,7 @@ def test_bad_cdr_and_no_fix_are_counted_rejections_not_exceptions():
     [(_, _, p)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (math.nan, 0, 0), (0, 0, 9.8))))
     from pydantic import ValidationError
 
-    from service.app import classify
+    from fednav.service.app import classify
 
     with pytest.raises(ValidationError) as v:
         ImuSample.model_validate_json(p)
@@ -500,7 +500,7 @@ def test_config_errors_name_the_field():
 def test_example_config_loads_and_missing_rosbags_is_one_line(monkeypatch, capsys):
     from pathlib import Path
 
-    from service import __main__ as service_main
+    from fednav.service import __main__ as service_main
 
     example = Path(__file__).resolve().parents[1] / "service" / "configs" / "ros2.toml"
     c = config_mod.load(example)

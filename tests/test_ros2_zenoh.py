@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import earth
+from fednav.service import earth
 
 from .plain_zenoh import client
 
@@ -61,10 +61,10 @@ tf = true
 
 @pytest.fixture(scope="module")
 def ros_run(tmp_path_factory):
-    from service.transport import ros2
-    from simulators.processes import free_port, query_status, start_service, wait_idle
-    from simulators.ros2_publish import example_config, publish, ros_samples
-    from simulators.scenario import load_scenario
+    from fednav.service.transport import ros2
+    from fednav.simulators.processes import free_port, query_status, start_service, wait_idle
+    from fednav.simulators.ros2_publish import example_config, publish, ros_samples
+    from fednav.simulators.scenario import load_scenario
 
     tmp = tmp_path_factory.mktemp("ros2")
     sc = load_scenario(short_demo(tmp))
@@ -73,7 +73,7 @@ def ros_run(tmp_path_factory):
     rrd = tmp / "ros2.rrd"
     cfg = example_config()
     samples = list(ros_samples(sc, 1, cfg))
-    from simulators.stream import simulate
+    from fednav.simulators.stream import simulate
 
     truth = {round(m.t, 3): m for k, m in simulate(sc, seed=1) if k.endswith("/truth")}
 
@@ -127,7 +127,7 @@ def ros_run(tmp_path_factory):
 
 
 def _decode(items, prefix: str, msgtype: str):
-    from service.transport import ros2
+    from fednav.service.transport import ros2
 
     store = ros2.typestore("jazzy")
     return [(k, store.deserialize_cdr(p, msgtype), a) for k, p, a in items if k.startswith(prefix)]
@@ -147,8 +147,8 @@ def test_service_takes_ros_input_through_the_intake(ros_run):
 
 
 def test_odometry_in_cdr_with_frames_covariance_and_rmw_attachment(ros_run):
-    from service.transport import ros2
-    from simulators.ros2_publish import example_config
+    from fednav.service.transport import ros2
+    from fednav.simulators.ros2_publish import example_config
 
     odo = _decode(ros_run["items"], "0/fednav/lc/odometry/", "nav_msgs/msg/Odometry")
     assert len(odo) >= 0.8 * DURATION_S * 10, len(odo)
@@ -186,7 +186,7 @@ def test_odometry_in_cdr_with_frames_covariance_and_rmw_attachment(ros_run):
 
 
 def test_navsatfix_out_follows_the_truth_and_tf_and_diagnostics_arrive(ros_run):
-    from service.transport import ros2
+    from fednav.service.transport import ros2
 
     fixes = _decode(ros_run["items"], "0/fednav/lc/fix/", "sensor_msgs/msg/NavSatFix")
     assert len(fixes) >= 0.8 * DURATION_S * 10
@@ -221,7 +221,7 @@ def test_navsatfix_out_follows_the_truth_and_tf_and_diagnostics_arrive(ros_run):
 
 
 def test_recording_reads_back(ros_run):
-    from dashboards.inspect import read_series
+    from fednav.dashboards.inspect import read_series
 
     _, data = read_series(ros_run["rrd"])
     assert any(p.startswith("/v1/lc/solution") for p in data), sorted(data)[:20]

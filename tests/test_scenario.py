@@ -9,10 +9,10 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from service import earth, keys
-from service.messages import GnssFix, ImuSample, InitialNav, StarAttitude, Truth
-from simulators.scenario import SCENARIO_DIR, ScenarioError, load_scenario, parse_scenario
-from simulators.stream import simulate
+from fednav.service import earth, keys
+from fednav.service.messages import GnssFix, ImuSample, InitialNav, StarAttitude, Truth
+from fednav.simulators.scenario import SCENARIO_DIR, ScenarioError, load_scenario, parse_scenario
+from fednav.simulators.stream import simulate
 
 MIN_SCENARIO = {
     "name": "t",

@@ -8,11 +8,11 @@ import importlib.util
 import pytest
 import rerun.blueprint as rrb
 
-from dashboards import screenshots as shots
-from dashboards.blueprints import build_blueprint
-from dashboards.record import record
-from simulators.evaluate import service_config
-from simulators.scenario import load_scenario
+from fednav.dashboards import screenshots as shots
+from fednav.dashboards.blueprints import build_blueprint
+from fednav.dashboards.record import record
+from fednav.simulators.evaluate import service_config
+from fednav.simulators.scenario import load_scenario
 
 
 def test_panel_filters_match_like_rerun():
@@ -65,7 +65,7 @@ def test_web_viewer_renders_a_tab_in_headless_chromium(demo_rrd, tmp_path):
     pipelines = {p.name: p.kind for p in cfg.pipelines}
 
     def bp(_i):
-        from dashboards.blueprints import vehicle_tabs
+        from fednav.dashboards.blueprints import vehicle_tabs
 
         tabs = vehicle_tabs("v1", pipelines)
         return rrb.Blueprint(

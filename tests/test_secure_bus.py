@@ -33,8 +33,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from service.messages import GnssFix
-from simulators.processes import Proc, free_port
+from fednav.service.messages import GnssFix
+from fednav.simulators.processes import Proc, free_port
 
 pytestmark = [
     pytest.mark.integration,
@@ -118,7 +118,7 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
     port = free_port()
     ep = f"tls/127.0.0.1:{port}"
     svc = Proc(
-        [sys.executable, "-m", "service", "--config", str(DEMO), "--config-table", "service"]
+        [sys.executable, "-m", "fednav.service", "--config", str(DEMO), "--config-table", "service"]
         + ["--zenoh-config", str(SECURE / "service.json5"), "--listen", ep, "--no-record"],
         "fednav-service",
         cwd=tmp_path,
@@ -202,7 +202,7 @@ def test_mtls_and_access_control(tmp_path, monkeypatch):
         time.sleep(0.5)  # subscriptions declared
 
         sim = Proc(
-            [sys.executable, "-m", "simulators", "run", str(DEMO), "--speed", "0", "--seed", "4"]
+            [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "0", "--seed", "4"]
             + ["--zenoh-config", str(SECURE / "simulator.json5"), "--connect", ep],
             "fednav-sim",
             cwd=tmp_path,

@@ -11,7 +11,7 @@ off by the fault.
 
 import numpy as np
 
-from simulators.evaluate import evaluate
+from fednav.simulators.evaluate import evaluate
 
 from .scenario_utils import shortened
 

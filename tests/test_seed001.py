@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from service import keys
-from service.estimation.integrity.mhss import MhssBank
-from service.estimation.integrity.monitor import ResidualWindows
-from service.messages import GnssRaw, ImuSample, Truth
-from simulators.evaluate import INTEGRITY_CLASSES, evaluate, format_table
-from simulators.papers import SEED001_TABLE1, reference
-from simulators.scenario import ScenarioError, load_scenario, parse_scenario
-from simulators.stream import Simulation
+from fednav.service import keys
+from fednav.service.estimation.integrity.mhss import MhssBank
+from fednav.service.estimation.integrity.monitor import ResidualWindows
+from fednav.service.messages import GnssRaw, ImuSample, Truth
+from fednav.simulators.evaluate import INTEGRITY_CLASSES, evaluate, format_table
+from fednav.simulators.papers import SEED001_TABLE1, reference
+from fednav.simulators.scenario import ScenarioError, load_scenario, parse_scenario
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import cut_to
 

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from service import earth, keys
-from service.config import TransferAlignmentConfig
-from service.engine import VehicleEngine
-from service.estimation import transfer_alignment as ta
-from service.messages import Alignment
-from service.pipelines.transfer_alignment import bank_from_config, params_from_config
-from simulators.evaluate import service_config
-from simulators.scenario import load_scenario, parse_scenario
-from simulators.wing import WingSimulation, _gm2
+from fednav.service import earth, keys
+from fednav.service.config import TransferAlignmentConfig
+from fednav.service.engine import VehicleEngine
+from fednav.service.estimation import transfer_alignment as ta
+from fednav.service.messages import Alignment
+from fednav.service.pipelines.transfer_alignment import bank_from_config, params_from_config
+from fednav.simulators.evaluate import service_config
+from fednav.simulators.scenario import load_scenario, parse_scenario
+from fednav.simulators.wing import WingSimulation, _gm2
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = ROOT / "simulators" / "scenarios" / "seed002_wing.toml"

@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.config import TransferAlignmentConfig
-from service.estimation import transfer_alignment as ta
-from service.pipelines.transfer_alignment import bank_from_config, params_from_config
-from simulators.wing import WingSimulation, turbulence_gain
+from fednav.service.config import TransferAlignmentConfig
+from fednav.service.estimation import transfer_alignment as ta
+from fednav.service.pipelines.transfer_alignment import bank_from_config, params_from_config
+from fednav.simulators.wing import WingSimulation, turbulence_gain
 from tests.test_seed002 import TURN, _true_w, short
 
 
@@ -31,7 +31,7 @@ def test_vibration_displacement_noise_matches_the_nominal_velocity_R():
     d = sc.model_dump()
     d["wing"] |= {"gyro_bias_dph": 0.0, "accel_bias_ug": 0.0, "arw_dpsh": 0.0, "vrw_ugpsHz": 0.0}
     d["imu"] |= {"gyro_bias_dph": (0, 0, 0), "accel_bias_ug": (0, 0, 0), "arw_dpsh": 0.0, "vrw_ugpsHz": 0.0}
-    from simulators.scenario import parse_scenario
+    from fednav.simulators.scenario import parse_scenario
 
     sc = parse_scenario(d)
     sim = WingSimulation(sc, seed=3)
@@ -81,7 +81,7 @@ def test_turbulence_scales_the_flexure_by_its_gain():
     sc = short(120.0, [{"kind": "straight", "duration_s": 120.0}], turbulence=[(60.0, 120.0)])
     d = sc.model_dump()
     d["wing"] |= {"turbulence_flexure_gain": 2.0}
-    from simulators.scenario import parse_scenario
+    from fednav.simulators.scenario import parse_scenario
 
     sc = parse_scenario(d)
     g = turbulence_gain(np.arange(12001) * 0.01, sc.wing, gain=2.0)

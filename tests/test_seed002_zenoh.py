@@ -45,7 +45,7 @@ def short_wing(tmp_path: Path) -> Path:
 def wing_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("seed002")
     scenario = short_wing(tmp)
-    from simulators.scenario import load_scenario
+    from fednav.simulators.scenario import load_scenario
 
     sc = load_scenario(scenario)
     assert sc.duration_s == DURATION_S and sc.wing is not None and len(sc.wing.nodes) == 3
@@ -80,7 +80,7 @@ def test_recording_holds_alignment_errors_with_bounds(wing_run):
     rrd = wing_run["rrd"]
     res = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    from dashboards.inspect import read_series
+    from fednav.dashboards.inspect import read_series
 
     _, data = read_series(rrd)
     err = [p for p in data if "/ta/alignment_error/" in p]

@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service import config as config_mod
-from simulators.evaluate import run_once
-from simulators.scenario import parse_scenario
-from simulators.stream import Simulation
+from fednav.service import config as config_mod
+from fednav.simulators.evaluate import run_once
+from fednav.simulators.scenario import parse_scenario
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import shortened
 
@@ -82,7 +82,7 @@ def test_imm_with_one_model_equals_the_tightly_coupled_kf_on_the_same_stream():
 
 
 def test_imm_pipelines_get_the_imm_dashboard():
-    from dashboards.blueprints import build_blueprint, family_of, vehicle_tabs
+    from fednav.dashboards.blueprints import build_blueprint, family_of, vehicle_tabs
 
     assert family_of("imm_tightly_coupled") == "imm"
     tabs = vehicle_tabs("v1", {"tc": "tightly_coupled", "tc_imm": "imm_tightly_coupled"})
@@ -125,7 +125,7 @@ def test_short_outlier_run_imm_and_gate_resist_outliers_the_kf_does_not():
     20 s: the normal model's mean probability is 0.58 with the Gaussian likelihood (the fault
     models pick their rows after seeing the residuals) and 0.996 with the selection correction
     (seed 1); bounds 0.8 and 0.95."""
-    from service.messages import ImmModels
+    from fednav.service.messages import ImmModels
 
     sc, clean, _ = short_outlier_run(seed=1, duration_s=40.0, outliers=False)
     sc, sink, sim = short_outlier_run(seed=1, duration_s=40.0)

@@ -58,7 +58,7 @@ def short_outliers(tmp_path: Path) -> Path:
 def imm_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("seed003")
     scenario = short_outliers(tmp)
-    from simulators.scenario import load_scenario
+    from fednav.simulators.scenario import load_scenario
 
     sc = load_scenario(scenario)  # the variant is a valid scenario
     assert sc.duration_s == DURATION_S and [f.kind for f in sc.faults] == ["outliers"]
@@ -94,7 +94,7 @@ def test_recording_reads_back_with_model_probabilities(imm_run):
     rrd = imm_run["rrd"]
     res = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    from dashboards.inspect import read_series
+    from fednav.dashboards.inspect import read_series
 
     info, data = read_series(rrd)
     assert info["blueprints"] >= 1

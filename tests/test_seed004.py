@@ -11,20 +11,20 @@ import math
 import numpy as np
 import pytest
 
-from service import config, earth
-from service.estimation import measurements
-from service.estimation.measurements import ModelContext
-from service.estimation.measurements.dvl import BLOCK, DvlModel
-from service.estimation.measurements.usbl import UsblModel, predicted_vector, usbl_noise
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import DvlVelocity, Faults, UsblFix
-from service.pipelines.underwater import DVL_LOCAL, USBL_LOCAL
-from simulators.acoustic import DvlSpec, UsblSpec, true_usbl_vectors, usbl_covariance
-from simulators.evaluate import evaluate, format_table, run_once
-from simulators.papers import reference
-from simulators.scenario import load_scenario, parse_scenario
-from simulators.stream import Simulation
+from fednav.service import config, earth
+from fednav.service.estimation import measurements
+from fednav.service.estimation.measurements import ModelContext
+from fednav.service.estimation.measurements.dvl import BLOCK, DvlModel
+from fednav.service.estimation.measurements.usbl import UsblModel, predicted_vector, usbl_noise
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import DvlVelocity, Faults, UsblFix
+from fednav.service.pipelines.underwater import DVL_LOCAL, USBL_LOCAL
+from fednav.simulators.acoustic import DvlSpec, UsblSpec, true_usbl_vectors, usbl_covariance
+from fednav.simulators.evaluate import evaluate, format_table, run_once
+from fednav.simulators.papers import reference
+from fednav.simulators.scenario import load_scenario, parse_scenario
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import cut_to
 
@@ -158,8 +158,8 @@ def test_models_are_registered_and_the_dvl_needs_its_private_block():
 def test_bank_feeds_back_common_and_private_corrections_separately():
     """The federated master's correction has the 15 common states only: it must leave the
     private references alone; the owner's private estimate goes in with ``feedback_private``."""
-    from service.config import ImuModel
-    from service.estimation.ins_filter import InsFilterBank
+    from fednav.service.config import ImuModel
+    from fednav.service.estimation.ins_filter import InsFilterBank
 
     dvl = DvlModel()
     bank = InsFilterBank(nav_state(), np.eye(21), ImuModel().noise(), bank_size=3, private=dvl.private_states)

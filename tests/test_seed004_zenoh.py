@@ -46,7 +46,7 @@ def compressed(tmp_path: Path) -> Path:
 def uw_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("seed004")
     scenario = compressed(tmp)
-    from simulators.scenario import load_scenario
+    from fednav.simulators.scenario import load_scenario
 
     sc = load_scenario(scenario)  # the variant is a valid scenario
     assert [(f.start_s, f.duration_s) for f in sc.faults] == [(FAULT[0], FAULT[1] - FAULT[0])]
@@ -87,8 +87,8 @@ def test_recording_holds_the_reconfiguration_and_dvl_states(uw_run):
     rrd = uw_run["rrd"]
     res = subprocess.run([str(RERUN), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
-    from dashboards.inspect import read_series
-    from service.transport import rerun_paths as paths
+    from fednav.dashboards.inspect import read_series
+    from fednav.service.transport import rerun_paths as paths
 
     info, data = read_series(rrd)
     assert info["blueprints"] >= 1

@@ -10,10 +10,10 @@ import typing
 import numpy as np
 import pytest
 
-from service.config import SharingName
-from service.estimation.federated import sharing
-from service.estimation.federated.sharing import MIN_SHARE, SharingContext, get_strategy
-from service.estimation.kalman import information_fusion
+from fednav.service.config import SharingName
+from fednav.service.estimation.federated import sharing
+from fednav.service.estimation.federated.sharing import MIN_SHARE, SharingContext, get_strategy
+from fednav.service.estimation.kalman import information_fusion
 
 ALL = sorted(sharing.STRATEGIES)
 

@@ -5,12 +5,12 @@ import math
 import numpy as np
 import pytest
 
-from service import earth, keys
-from service.engine import VehicleEngine
-from service.estimation import snapshot
-from service.messages import GnssFix, GnssRaw, InitialNav
-from simulators.evaluate import CollectingSink, service_config
-from simulators.stream import Simulation
+from fednav.service import earth, keys
+from fednav.service.engine import VehicleEngine
+from fednav.service.estimation import snapshot
+from fednav.service.messages import GnssFix, GnssRaw, InitialNav
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.stream import Simulation
 
 from .scenario_utils import shortened
 

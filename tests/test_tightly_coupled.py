@@ -12,19 +12,19 @@ import math
 import numpy as np
 import pytest
 
-from service import earth
-from service.config import ClockModel, ImuModel, TightlyCoupledConfig
-from service.estimation.measurements import gnss_raw as gm
-from service.evaluation import nav_errors
-from service.ins.mechanisation import NavState
-from service.messages import GnssRaw, ImuSample
-from service.pipelines.base import InitStd
-from service.pipelines.tightly_coupled import TightlyCoupled
-from simulators.gnss.orbits import NominalConstellation
-from simulators.gnss.orbits import range_geometry as sim_range_geometry
-from simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec
-from simulators.gnss.raw_sensor import clock_transition as sim_clock_transition
-from simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
+from fednav.service import earth
+from fednav.service.config import ClockModel, ImuModel, TightlyCoupledConfig
+from fednav.service.estimation.measurements import gnss_raw as gm
+from fednav.service.evaluation import nav_errors
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssRaw, ImuSample
+from fednav.service.pipelines.base import InitStd
+from fednav.service.pipelines.tightly_coupled import TightlyCoupled
+from fednav.simulators.gnss.orbits import NominalConstellation
+from fednav.simulators.gnss.orbits import range_geometry as sim_range_geometry
+from fednav.simulators.gnss.raw_sensor import GnssRawSensor, GnssRawSpec
+from fednav.simulators.gnss.raw_sensor import clock_transition as sim_clock_transition
+from fednav.simulators.trajectory import StartSpec, StraightSegment, TurnSegment, build_trajectory
 
 from .scenario_utils import initial_nav_message
 
@@ -319,8 +319,8 @@ def test_covariance_recovery_restarts_the_bank_and_keeps_navigating(scenario):
 
 def test_runs_through_the_engine(scenario):
     """InitialNav + ImuSample + GnssRaw through VehicleEngine: Integrity messages come out."""
-    from service.config import ServiceConfig
-    from service.engine import VehicleEngine
+    from fednav.service.config import ServiceConfig
+    from fednav.service.engine import VehicleEngine
 
     traj, epochs = scenario
     outs = []

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from service import earth
-from simulators.scenario import load_scenario
-from simulators.trajectory import (
+from fednav.service import earth
+from fednav.simulators.scenario import load_scenario
+from fednav.simulators.trajectory import (
     AccelerateSegment,
     ClimbSegment,
     StartSpec,

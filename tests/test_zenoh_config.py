@@ -8,8 +8,8 @@ import json
 import pytest
 import zenoh
 
-from service.config import ZenohConfig
-from service.transport.zenoh_io import make_config
+from fednav.service.config import ZenohConfig
+from fednav.service.transport.zenoh_io import make_config
 
 
 def _get(c: zenoh.Config, key: str):
@@ -104,7 +104,7 @@ def test_service_process_with_a_minimal_file_opens_no_multicast_socket(tmp_path,
     the scouting sockets (so the check can see them)."""
     import psutil  # installed with rerun-sdk (its dependency)
 
-    from simulators.processes import Proc, free_port
+    from fednav.simulators.processes import Proc, free_port
 
     port = free_port()
     scouting = "" if multicast is None else "scouting: { multicast: { enabled: true } },"
@@ -113,7 +113,9 @@ def test_service_process_with_a_minimal_file_opens_no_multicast_socket(tmp_path,
     )
     import sys
 
-    proc = Proc([sys.executable, "-m", "service", "--zenoh-config", path, "--no-record"], "fednav-service")
+    proc = Proc(
+        [sys.executable, "-m", "fednav.service", "--zenoh-config", path, "--no-record"], "fednav-service"
+    )
     try:
         assert proc.wait_for("fednav-service ready", timeout=60.0), proc.output()
         conns = psutil.Process(proc.p.pid).net_connections(kind="inet")
@@ -137,7 +139,7 @@ def test_default_service_refuses_spoofed_outputs():
     import threading
     import time
 
-    from simulators.processes import free_port, start_service
+    from fednav.simulators.processes import free_port, start_service
 
     from .plain_zenoh import client
 
@@ -179,7 +181,7 @@ def test_default_service_refuses_spoofed_outputs():
 
 
 def test_simulator_config_is_overlaid_the_same_way(tmp_path):
-    from simulators.publisher import session_config
+    from fednav.simulators.publisher import session_config
 
     c = session_config()
     assert _get(c, "mode") == "client"
@@ -233,7 +235,7 @@ def test_arrival_time_is_the_ingress_timestamp():
     from datetime import UTC, datetime, timedelta
     from types import SimpleNamespace
 
-    from service.transport.zenoh_io import Intake, make_config
+    from fednav.service.transport.zenoh_io import Intake, make_config
 
     class Ts:
         def __init__(self, age_s):

@@ -15,15 +15,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.estimation import kalman
-from service.estimation.measurements.base import (
+from fednav.service.estimation import kalman
+from fednav.service.estimation.measurements.base import (
     ModelContext,
     PrivateStates,
     private_layout,
     private_transition,
 )
-from service.ins import error_model as em
-from service.ins.mechanisation import Ins, NavState
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import Ins, NavState
 
 
 class InsFilterBank:

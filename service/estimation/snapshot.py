@@ -25,10 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service import earth
-from service.earth import ecef_to_llh
-from service.estimation.measurements.gnss_raw import range_geometry
-from service.messages import GnssFix, GnssRaw
+from fednav.service import earth
+from fednav.service.earth import ecef_to_llh
+from fednav.service.estimation.measurements.gnss_raw import range_geometry
+from fednav.service.messages import GnssFix, GnssRaw
 
 #: 1-sigma position error added in quadrature for the unmodelled ionosphere and troposphere (a
 #: snapshot fix serves alignment only; the filters model the ranging themselves), m

@@ -37,8 +37,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from service.estimation import kalman
-from service.estimation.adaptive import SageHusaR, chi2_threshold, faded_covariance, fading_factors
+from fednav.service.estimation import kalman
+from fednav.service.estimation.adaptive import SageHusaR, chi2_threshold, faded_covariance, fading_factors
 
 N_STATES = 27
 N_MEAS = 9

@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service import earth
-from service.ins.mechanisation import NavState
-from service.messages import GnssFix, InitialNav
+from fednav.service import earth
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssFix, InitialNav
 
 #: a GNSS fix further than this from the INS time is not used to initialise (s)
 FIX_MAX_AGE_S = 1.0

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service import earth
+from fednav.service import earth
 
 N_STATES = 15
 POS, VEL, ATT, GYRO, ACC = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)

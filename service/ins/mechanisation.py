@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service import earth
+from fednav.service import earth
 
 
 @dataclass

@@ -10,17 +10,17 @@ from __future__ import annotations
 
 import importlib
 
-from service.pipelines.base import Pipeline
+from fednav.service.pipelines.base import Pipeline
 
 #: configuration kind -> "module:Class" (imported on first use)
 _KINDS: dict[str, str] = {
-    "loosely_coupled": "service.pipelines.loosely_coupled:LooselyCoupled",
-    "federated": "service.pipelines.federated:Federated",
-    "centralized": "service.pipelines.federated:Centralized",
-    "tightly_coupled": "service.pipelines.tightly_coupled:TightlyCoupled",
-    "transfer_alignment": "service.pipelines.transfer_alignment:TransferAlignment",
-    "underwater": "service.pipelines.underwater:Underwater",
-    "imm_tightly_coupled": "service.pipelines.imm_tightly_coupled:ImmTightlyCoupled",
+    "loosely_coupled": "fednav.service.pipelines.loosely_coupled:LooselyCoupled",
+    "federated": "fednav.service.pipelines.federated:Federated",
+    "centralized": "fednav.service.pipelines.federated:Centralized",
+    "tightly_coupled": "fednav.service.pipelines.tightly_coupled:TightlyCoupled",
+    "transfer_alignment": "fednav.service.pipelines.transfer_alignment:TransferAlignment",
+    "underwater": "fednav.service.pipelines.underwater:Underwater",
+    "imm_tightly_coupled": "fednav.service.pipelines.imm_tightly_coupled:ImmTightlyCoupled",
 }
 
 

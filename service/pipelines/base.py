@@ -29,12 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service import earth
-from service.config import ImuModel
-from service.estimation.ins_filter import InsFilterBank
-from service.ins.alignment import InitStd
-from service.ins.mechanisation import NavState
-from service.messages import Solution, WireModel
+from fednav.service import earth
+from fednav.service.config import ImuModel
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.ins.alignment import InitStd
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import Solution, WireModel
 
 
 def initial_covariance(std: InitStd, imu: ImuModel, private=()) -> np.ndarray:

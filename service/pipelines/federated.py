@@ -31,18 +31,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.config import CentralizedConfig, FederatedConfig, ImuModel
-from service.estimation import measurements
-from service.estimation.federated.core import FederatedCore
-from service.estimation.federated.fault_tests import FaultTest, make_fault_test
-from service.estimation.federated.sharing import get_strategy
-from service.estimation.ins_filter import InsFilterBank
-from service.estimation.measurements import MeasurementModel
-from service.estimation.measurements.gnss_fix import gnss_fix_options
-from service.ins import error_model as em
-from service.ins.mechanisation import Ins, NavState
-from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
-from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from fednav.service.config import CentralizedConfig, FederatedConfig, ImuModel
+from fednav.service.estimation import measurements
+from fednav.service.estimation.federated.core import FederatedCore
+from fednav.service.estimation.federated.fault_tests import FaultTest, make_fault_test
+from fednav.service.estimation.federated.sharing import get_strategy
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.measurements import MeasurementModel
+from fednav.service.estimation.measurements.gnss_fix import gnss_fix_options
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import Ins, NavState
+from fednav.service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
+from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
 @dataclass

@@ -24,18 +24,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.config import ImmTightlyCoupledConfig, ImuModel
-from service.estimation import kalman
-from service.estimation.imm import core
-from service.estimation.imm.models import DownWeighting
-from service.estimation.innovation_gate import gate_rows
-from service.estimation.ins_filter import InsFilterBank
-from service.estimation.kalman import NotPositiveDefinite
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import GnssRaw, ImmModels, WireModel
-from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
-from service.pipelines.tightly_coupled import raw_gnss_model
+from fednav.service.config import ImmTightlyCoupledConfig, ImuModel
+from fednav.service.estimation import kalman
+from fednav.service.estimation.imm import core
+from fednav.service.estimation.imm.models import DownWeighting
+from fednav.service.estimation.innovation_gate import gate_rows
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.kalman import NotPositiveDefinite
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssRaw, ImmModels, WireModel
+from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from fednav.service.pipelines.tightly_coupled import raw_gnss_model
 
 
 class ImmTightlyCoupled(Pipeline):

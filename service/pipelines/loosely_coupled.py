@@ -7,15 +7,15 @@ from collections import deque
 
 import numpy as np
 
-from service.config import ImuModel, LooselyCoupledConfig
-from service.estimation import kalman, measurements
-from service.estimation.ins_filter import InsFilterBank
-from service.estimation.measurements import MeasurementModel
-from service.estimation.measurements.gnss_fix import gnss_fix_options
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
-from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from fednav.service.config import ImuModel, LooselyCoupledConfig
+from fednav.service.estimation import kalman, measurements
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.measurements import MeasurementModel
+from fednav.service.estimation.measurements.gnss_fix import gnss_fix_options
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
+from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
 class LooselyCoupled(Pipeline):

@@ -30,17 +30,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.config import ImuModel, TightlyCoupledConfig
-from service.estimation import measurements
-from service.estimation.integrity.ins_bank import MhssInsBank
-from service.estimation.integrity.mhss import MhssBank
-from service.estimation.integrity.monitor import EpochResult, MhssMonitor, MonitorSettings
-from service.estimation.kalman import NotPositiveDefinite
-from service.estimation.measurements.gnss_raw import GnssRawModel
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import GnssRaw, Integrity, SatelliteTest, WireModel
-from service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from fednav.service.config import ImuModel, TightlyCoupledConfig
+from fednav.service.estimation import measurements
+from fednav.service.estimation.integrity.ins_bank import MhssInsBank
+from fednav.service.estimation.integrity.mhss import MhssBank
+from fednav.service.estimation.integrity.monitor import EpochResult, MhssMonitor, MonitorSettings
+from fednav.service.estimation.kalman import NotPositiveDefinite
+from fednav.service.estimation.measurements.gnss_raw import GnssRawModel
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssRaw, Integrity, SatelliteTest, WireModel
+from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
 def raw_gnss_model(cfg) -> GnssRawModel:

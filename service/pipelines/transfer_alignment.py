@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import earth
-from service.config import ImuModel, LooselyCoupledConfig, TransferAlignmentConfig
-from service.estimation import transfer_alignment as ta
-from service.messages import Alignment, ImuSample, WireModel
-from service.pipelines.loosely_coupled import LooselyCoupled
+from fednav.service import earth
+from fednav.service.config import ImuModel, LooselyCoupledConfig, TransferAlignmentConfig
+from fednav.service.estimation import transfer_alignment as ta
+from fednav.service.messages import Alignment, ImuSample, WireModel
+from fednav.service.pipelines.loosely_coupled import LooselyCoupled
 
 
 def params_from_config(cfg: TransferAlignmentConfig) -> ta.TAParams:

@@ -34,14 +34,14 @@ import math
 
 import numpy as np
 
-from service.config import ImuModel, UnderwaterConfig
-from service.estimation.federated.fault_tests import make_fault_test
-from service.estimation.measurements.dvl import BLOCK as DVL_BLOCK
-from service.estimation.measurements.dvl import DvlModel
-from service.estimation.measurements.usbl import UsblModel
-from service.ins import error_model as em
-from service.messages import Faults, Reconfiguration, StateEstimate, WireModel
-from service.pipelines.federated import _CorePipeline
+from fednav.service.config import ImuModel, UnderwaterConfig
+from fednav.service.estimation.federated.fault_tests import make_fault_test
+from fednav.service.estimation.measurements.dvl import BLOCK as DVL_BLOCK
+from fednav.service.estimation.measurements.dvl import DvlModel
+from fednav.service.estimation.measurements.usbl import UsblModel
+from fednav.service.ins import error_model as em
+from fednav.service.messages import Faults, Reconfiguration, StateEstimate, WireModel
+from fednav.service.pipelines.federated import _CorePipeline
 
 USBL_LOCAL, DVL_LOCAL = "INS/USBL", "INS/DVL"
 

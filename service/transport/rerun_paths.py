@@ -60,7 +60,7 @@ import re
 from dataclasses import dataclass
 from functools import lru_cache
 
-from service.ins.error_model import NAV_ERRORS, STATE_LABELS
+from fednav.service.ins.error_model import NAV_ERRORS, STATE_LABELS
 
 TIMELINE = "sensor_time"
 MISSION_TIMELINE = "mission_time"

@@ -55,9 +55,9 @@ from typing import Any
 import numpy as np
 import rerun as rr
 
-from service import earth
-from service.messages import Faults, GnssFix, Health, ImmModels, Integrity, Solution, Truth
-from service.transport import rerun_paths as paths
+from fednav.service import earth
+from fednav.service.messages import Faults, GnssFix, Health, ImmModels, Integrity, Solution, Truth
+from fednav.service.transport import rerun_paths as paths
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service import earth
-from service.ros2_config import Ros2Config, Ros2Input
+from fednav.service import earth
+from fednav.service.ros2_config import Ros2Config, Ros2Input
 
 INSTALL_HINT = "the ROS 2 bridge needs rosbags: install fednav[ros] (pip install -e '.[ros]')"
 

@@ -17,8 +17,8 @@ from collections.abc import Callable
 
 import zenoh
 
-from service.config import ZenohConfig
-from service.messages import WireModel
+from fednav.service.config import ZenohConfig
+from fednav.service.messages import WireModel
 
 log = logging.getLogger("fednav.service")
 #: Keys of fednav's safe defaults, overlaid on a ``--zenoh-config`` file unless the file sets them

@@ -13,7 +13,7 @@ raw_sensor     ``GnssRawSpec`` / ``GnssRawSensor`` producing ``service.messages.
                clock model, atmosphere models (the single-point solvers are service.estimation.snapshot).
 """
 
-from simulators.gnss.constellation import (
+from fednav.simulators.gnss.constellation import (
     SELECTION_RULES,
     Dop,
     az_el,
@@ -22,7 +22,7 @@ from simulators.gnss.constellation import (
     select_satellites,
     visible,
 )
-from simulators.gnss.orbits import (
+from fednav.simulators.gnss.orbits import (
     NOMINAL_ALIASES,
     NominalConstellation,
     OrbitSource,
@@ -35,7 +35,7 @@ from simulators.gnss.orbits import (
     range_geometry,
     resolve_sat_id,
 )
-from simulators.gnss.raw_sensor import (
+from fednav.simulators.gnss.raw_sensor import (
     GnssRawEpoch,
     GnssRawSensor,
     GnssRawSpec,
@@ -43,8 +43,8 @@ from simulators.gnss.raw_sensor import (
     ReceiverClockSpec,
     clock_transition,
 )
-from simulators.gnss.rinex import BroadcastEphemeris, read_rinex2_nav, read_rinex2_obs
-from simulators.gnss.sp3 import Sp3Orbits, read_sp3
+from fednav.simulators.gnss.rinex import BroadcastEphemeris, read_rinex2_nav, read_rinex2_obs
+from fednav.simulators.gnss.sp3 import Sp3Orbits, read_sp3
 
 __all__ = [
     "NOMINAL_ALIASES",

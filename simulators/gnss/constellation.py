@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.earth import ecef_to_llh, mat_en
+from fednav.service.earth import ecef_to_llh, mat_en
 
 # A geometry whose normal matrix G'G has eigenvalues spread by more than this is singular for our
 # purposes (its DOP would be > ~1e6, i.e. meaningless); its DOPs are reported as infinite.

@@ -45,11 +45,11 @@ from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 
-from service.earth import A_M, GM_M3PS2, OMEGA_IE_RPS
+from fednav.service.earth import A_M, GM_M3PS2, OMEGA_IE_RPS
 
 # The ranging model is the receiver's (service.estimation.measurements.gnss_raw), re-exported here: one copy
 # shared by the simulator and the filter, so simulated and predicted pseudoranges agree exactly.
-from service.estimation.measurements.gnss_raw import (  # noqa: F401
+from fednav.service.estimation.measurements.gnss_raw import (  # noqa: F401
     RangeGeometry,
     earth_rotation_matrices,
     range_geometry,

@@ -53,10 +53,10 @@ import numpy as np
 import scipy.linalg
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from service.earth import A_M, C_MPS
-from service.messages import GnssRaw, SatObservation
-from simulators.gnss.constellation import SELECTION_RULES, az_el, dop, select_satellites
-from simulators.gnss.orbits import (
+from fednav.service.earth import A_M, C_MPS
+from fednav.service.messages import GnssRaw, SatObservation
+from fednav.simulators.gnss.constellation import SELECTION_RULES, az_el, dop, select_satellites
+from fednav.simulators.gnss.orbits import (
     NominalConstellation,
     OrbitSource,
     RangeGeometry,
@@ -216,10 +216,10 @@ def make_orbit_source(spec: GnssRawSpec) -> OrbitSource:
     if spec.orbit_source == "nominal":
         return NominalConstellation(spec.constellations)
     if orbit_file_kind(spec.orbit_source) == "sp3":
-        from simulators.gnss.sp3 import Sp3Orbits
+        from fednav.simulators.gnss.sp3 import Sp3Orbits
 
         return Sp3Orbits.from_file(spec.orbit_source)
-    from simulators.gnss.rinex import BroadcastEphemeris
+    from fednav.simulators.gnss.rinex import BroadcastEphemeris
 
     return BroadcastEphemeris.from_file(spec.orbit_source)
 

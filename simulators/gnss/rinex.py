@@ -23,7 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from simulators.gnss.orbits import SECONDS_PER_WEEK, SatStates, _times_for, gps_seconds, gps_week_seconds
+from fednav.simulators.gnss.orbits import (
+    SECONDS_PER_WEEK,
+    SatStates,
+    _times_for,
+    gps_seconds,
+    gps_week_seconds,
+)
 
 # IS-GPS-200 constants (must be used with broadcast parameters, not the WGS-84 ones).
 GPS_MU_M3PS2 = 3.986005e14

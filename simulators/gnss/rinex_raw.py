@@ -37,9 +37,9 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from service.messages import GnssRaw, IonoKlobuchar, SatObservation
-from simulators.gnss.orbits import SECONDS_PER_WEEK, gps_seconds, gps_week_seconds
-from simulators.gnss.rinex import (
+from fednav.service.messages import GnssRaw, IonoKlobuchar, SatObservation
+from fednav.simulators.gnss.orbits import SECONDS_PER_WEEK, gps_seconds, gps_week_seconds
+from fednav.simulators.gnss.rinex import (
     _NAV_FIELDS,
     GpsEphemerides,
     RinexObs,

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.earth import C_MPS, GM_M3PS2, OMEGA_IE_RPS
-from simulators.gnss.orbits import SatStates, _times_for, gps_seconds
+from fednav.service.earth import C_MPS, GM_M3PS2, OMEGA_IE_RPS
+from fednav.simulators.gnss.orbits import SatStates, _times_for, gps_seconds
 
 SP3_BAD_CLOCK_US = 999999.0  # values >= this are "no clock"
 

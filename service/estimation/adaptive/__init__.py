@@ -6,13 +6,13 @@
   (Zhu, Ma, Wang, Chen 2022, eq 8-17, after Geng & Wang 2008).
 """
 
-from service.estimation.adaptive.fading import (
+from fednav.service.estimation.adaptive.fading import (
     FadingResult,
     chi2_threshold,
     faded_covariance,
     fading_factors,
 )
-from service.estimation.adaptive.sage_husa import SageHusaR, sage_husa_weight
+from fednav.service.estimation.adaptive.sage_husa import SageHusaR, sage_husa_weight
 
 __all__ = [
     "FadingResult",

@@ -48,10 +48,10 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from service.estimation import kalman
-from service.estimation.federated.fault_tests import FaultDecision, FaultTest
-from service.estimation.federated.sharing import SharingContext, SharingStrategy
-from service.estimation.kalman import information_fusion
+from fednav.service.estimation import kalman
+from fednav.service.estimation.federated.fault_tests import FaultDecision, FaultTest
+from fednav.service.estimation.federated.sharing import SharingContext, SharingStrategy
+from fednav.service.estimation.kalman import information_fusion
 
 ResetMode = Literal["fusion_reset", "no_reset"]
 

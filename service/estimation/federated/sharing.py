@@ -61,7 +61,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from service.estimation.kalman import information_fusion
+from fednav.service.estimation.kalman import information_fusion
 
 # Smallest share any strategy may hand out (numerical guard, not a modelling choice): the reset
 # divides by the share, so it must never be 0.

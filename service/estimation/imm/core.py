@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.estimation import kalman
-from service.estimation.imm.models import DownWeighting, suspects
+from fednav.service.estimation import kalman
+from fednav.service.estimation.imm.models import DownWeighting, suspects
 
 LIKELIHOODS = ("paper", "gaussian")
 _TINY = np.finfo(float).tiny

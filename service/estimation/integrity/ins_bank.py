@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.estimation.ins_filter import InsFilterBank
-from service.estimation.integrity.mhss import MhssBank
-from service.estimation.measurements.base import PrivateStates
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.integrity.mhss import MhssBank
+from fednav.service.estimation.measurements.base import PrivateStates
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
 
 
 class MhssInsBank(InsFilterBank):

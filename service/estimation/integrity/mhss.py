@@ -75,8 +75,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import integrate, special
 
-from service.estimation import kalman
-from service.estimation.kalman import symmetrise
+from fednav.service.estimation import kalman
+from fednav.service.estimation.kalman import symmetrise
 
 H_IDX = (0, 1)  # east, north position error (ENU metres) in the INS error state
 V_IDX = 2  # up

@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.estimation.integrity.mhss import (
+from fednav.service.estimation.integrity.mhss import (
     BankUpdate,
     SeparationTests,
     k_fa,
@@ -69,8 +69,8 @@ from service.estimation.integrity.mhss import (
     k_md,
     residual_test,
 )
-from service.estimation.kalman import NotPositiveDefinite, is_positive_definite
-from service.estimation.measurements.base import Measurement
+from fednav.service.estimation.kalman import NotPositiveDefinite, is_positive_definite
+from fednav.service.estimation.measurements.base import Measurement
 
 PhaseName = str
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from service.estimation.measurements.base import (
+from fednav.service.estimation.measurements.base import (
     Measurement,
     MeasurementModel,
     ModelContext,
@@ -17,11 +17,11 @@ from service.estimation.measurements.base import (
     private_layout,
     private_transition,
 )
-from service.estimation.measurements.dvl import DvlModel
-from service.estimation.measurements.gnss_fix import GnssFixModel
-from service.estimation.measurements.gnss_raw import GnssRawModel
-from service.estimation.measurements.star import StarAttitudeModel
-from service.estimation.measurements.usbl import UsblModel
+from fednav.service.estimation.measurements.dvl import DvlModel
+from fednav.service.estimation.measurements.gnss_fix import GnssFixModel
+from fednav.service.estimation.measurements.gnss_raw import GnssRawModel
+from fednav.service.estimation.measurements.star import StarAttitudeModel
+from fednav.service.estimation.measurements.usbl import UsblModel
 
 #: sensor kind -> model factory (keyword options from the pipeline's configuration)
 REGISTRY: dict[str, Callable[..., MeasurementModel]] = {

@@ -27,9 +27,9 @@ from typing import Protocol
 
 import numpy as np
 
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import WireModel
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import WireModel
 
 
 @dataclass(frozen=True)

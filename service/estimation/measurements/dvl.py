@@ -24,11 +24,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import earth
-from service.estimation.measurements.base import Measurement, ModelContext, PrivateStates
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import DvlVelocity
+from fednav.service import earth
+from fednav.service.estimation.measurements.base import Measurement, ModelContext, PrivateStates
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import DvlVelocity
 
 LABELS = ("vb_x", "vb_y", "vb_z")
 BLOCK = "dvl"

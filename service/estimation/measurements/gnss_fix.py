@@ -42,16 +42,16 @@ import math
 
 import numpy as np
 
-from service import earth
-from service.estimation.measurements.base import (
+from fednav.service import earth
+from fednav.service.estimation.measurements.base import (
     Measurement,
     ModelContext,
     PrivateStates,
     floored_variances,
 )
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import DEFAULT_VERTICAL_RATE_STD_MPS, GnssFix
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import DEFAULT_VERTICAL_RATE_STD_MPS, GnssFix
 
 #: rows of a full fix (also the simulator's fault channels)
 LABELS = ("pos_e", "pos_n", "pos_u", "vel_e", "vel_n", "vel_u")

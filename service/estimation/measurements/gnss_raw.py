@@ -55,11 +55,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from service import earth
-from service.estimation.measurements import atmosphere
-from service.estimation.measurements.base import Measurement, ModelContext, PrivateStates
-from service.ins import error_model as em
-from service.messages import GnssRaw
+from fednav.service import earth
+from fednav.service.estimation.measurements import atmosphere
+from fednav.service.estimation.measurements.base import Measurement, ModelContext, PrivateStates
+from fednav.service.ins import error_model as em
+from fednav.service.messages import GnssRaw
 
 RANGE_ITERATIONS = 3  # light-time fixed point; each pass shrinks the error by ~omega r / c ~ 1e-5
 CLK_BIAS, CLK_DRIFT = 15, 16

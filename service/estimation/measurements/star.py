@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from service import earth
-from service.estimation.measurements.base import Measurement, ModelContext, floored_variances
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import StarAttitude
+from fednav.service import earth
+from fednav.service.estimation.measurements.base import Measurement, ModelContext, floored_variances
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import StarAttitude
 
 LABELS = ("roll", "pitch", "yaw")
 MIN_ATT_STD_RAD = 0.1 * earth.ARCSEC

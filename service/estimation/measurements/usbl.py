@@ -37,11 +37,11 @@ import math
 
 import numpy as np
 
-from service import earth
-from service.estimation.measurements.base import Measurement, ModelContext
-from service.ins import error_model as em
-from service.ins.mechanisation import NavState
-from service.messages import UsblFix
+from fednav.service import earth
+from fednav.service.estimation.measurements.base import Measurement, ModelContext
+from fednav.service.ins import error_model as em
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import UsblFix
 
 LABELS = ("r_x", "r_y", "r_z")
 
