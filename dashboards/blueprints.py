@@ -37,7 +37,9 @@ from fednav.service.transport import rerun_paths as paths
 
 log = logging.getLogger(__name__)
 
-FAMILIES = ("loosely_coupled", "federated", "integrity", "imm", "transfer_alignment", "underwater")
+FAMILIES = ("loosely_coupled", "federated", "integrity", "imm", "transfer_alignment", "underwater", "plain")
+#: "plain": an estimator that publishes no fault tests (e.g. a centralised comparator without fault
+#: handling, ``config.recording_kinds``): errors, states and health, no Faults panels.
 #: Pipeline kinds of the service configuration that map onto a family's dashboard.
 FAMILY_ALIASES = {
     "centralized": "loosely_coupled",

@@ -24,7 +24,7 @@ import numpy as np
 
 from fednav.service import keys
 from fednav.service.app import OutputSink
-from fednav.service.config import ServiceConfig
+from fednav.service.config import ServiceConfig, recording_kinds
 from fednav.service.engine import VehicleEngine
 from fednav.service.messages import Health
 from fednav.service.transport.rerun_sink import RerunSink
@@ -63,7 +63,7 @@ def record(
     clock = [0.0]
     sink = RerunSink(
         out,
-        blueprint=blueprint_factory({p.name: p.kind for p in cfg.pipelines}),
+        blueprint=blueprint_factory(recording_kinds(cfg.pipelines)),
         recording_name=f"{sc.name} (fednav-record)",
         flush_interval_s=cfg.rrd_flush_interval_s,
         clock=lambda: clock[0],

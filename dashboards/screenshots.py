@@ -298,6 +298,7 @@ def screenshot_family(
 
     from fednav.dashboards.blueprints import vehicle_tabs
     from fednav.dashboards.record import record
+    from fednav.service.config import recording_kinds
     from fednav.service.transport import rerun_paths as paths
     from fednav.simulators.evaluate import service_config
     from fednav.simulators.scenario import load_scenario
@@ -308,7 +309,7 @@ def screenshot_family(
     work = work or Path(tempfile.mkdtemp(prefix="fednav-shots-"))
     rrd = work / f"{family}.rrd"
     record(sc, rrd, cfg=cfg, optimize=True, duration_s=duration_s or default_s)
-    pipelines = {p.name: p.kind for p in cfg.pipelines}
+    pipelines = recording_kinds(cfg.pipelines)
 
     def bp(active: int) -> rrb.Blueprint:
         tabs = vehicle_tabs("v1", pipelines)

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from fednav.service import keys
-from fednav.service.config import ServiceConfig
+from fednav.service.config import ServiceConfig, recording_kinds
 from fednav.service.engine import EstimateOutput, VehicleEngine
 from fednav.service.evaluation import recording_errors
 from fednav.service.messages import (
@@ -374,7 +374,7 @@ class Service:
             from fednav.service.transport.rerun_sink import RerunSink
 
             Path(self.rrd_path).parent.mkdir(parents=True, exist_ok=True)
-            blueprint = _blueprint_plugin({p.name: p.kind for p in cfg.pipelines})
+            blueprint = _blueprint_plugin(recording_kinds(cfg.pipelines))
             self.rr = RerunSink(
                 self.rrd_path,
                 viewer_addr=self.viewer,

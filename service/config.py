@@ -7,6 +7,7 @@ A TOML file (``fednav-service --config service.toml``) or a ``[service]`` table 
 from __future__ import annotations
 
 import tomllib
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -647,3 +648,17 @@ def load(path: Path | str, table: str | None = None) -> ServiceConfig:
             raise ConfigError(f"{path} has no [{table}] table")
         data, source = data[table], f"{path} [{table}]"
     return from_dict(data, source)
+
+
+def recording_kinds(pipelines: Sequence[PipelineConfig]) -> dict[str, str]:
+    """Pipeline name -> the kind its dashboards are built for: its ``kind``, or ``"plain"`` for a
+    pipeline that publishes neither fault tests nor integrity (a centralised comparator with
+    ``fault_handling = "none"``, a tightly coupled filter with ``integrity = false``), so the
+    recording's blueprint has no empty Faults or Integrity panels for it."""
+
+    def plain(p) -> bool:
+        if p.kind == "centralized":
+            return getattr(p, "fault_handling", "none") == "none"
+        return p.kind == "tightly_coupled" and not getattr(p, "integrity", True)
+
+    return {p.name: "plain" if plain(p) else p.kind for p in pipelines}

@@ -52,3 +52,22 @@ def test_service_cli_rejects_a_bad_config_naming_the_field(tmp_path):
     )
     assert res.returncode == 2
     assert "output.solution_rate_hz" in res.stderr
+
+
+def test_recording_kinds_mark_pipelines_without_tests_or_integrity_plain():
+    """The recording's blueprint gets no Faults / Integrity panels for a pipeline that publishes
+    neither (they would stay empty)."""
+    pipes = [
+        config.CentralizedConfig(name="c"),
+        config.CentralizedConfig(name="c_tested", fault_handling="per_observation"),
+        config.TightlyCoupledConfig(name="tc", integrity=False),
+        config.TightlyCoupledConfig(name="tc_mhss"),
+        config.LooselyCoupledConfig(name="lc"),
+    ]
+    assert config.recording_kinds(pipes) == {
+        "c": "plain",
+        "c_tested": "centralized",
+        "tc": "plain",
+        "tc_mhss": "tightly_coupled",
+        "lc": "loosely_coupled",
+    }

@@ -399,13 +399,15 @@ class RerunSink:
             en = self._enu(vehicle, paths.TRUTH, truth.lat_deg, truth.lon_deg, truth.height_m)
             desc = "; ".join(f"{f.sensor} {f.kind} [{','.join(f.channels)}]" for f in truth.faults)
             desc = desc or "no active faults"
-            changed = self._truth_faults.get(vehicle, "no active faults") != desc
-            if changed:
+            before = self._truth_faults.get(vehicle)  # None: this vehicle's first truth
+            changed = before != desc
+            if changed:  # the first state too, so the log says "no active faults" from the start
                 self._truth_faults[vehicle] = desc
                 level = "WARN" if truth.faults else "INFO"
                 self._add(paths.truth(vehicle, "faults"), "text", tn, (desc, level))
-                label = f"fault: {desc}" if truth.faults else "faults end"
-                self._marker(paths.enu_markers(vehicle, paths.TRUTH), tn, en, label, _AMBER)
+                if truth.faults or before is not None:
+                    label = f"fault: {desc}" if truth.faults else "faults end"
+                    self._marker(paths.enu_markers(vehicle, paths.TRUTH), tn, en, label, _AMBER)
             self._track(paths.truth(vehicle, "track"), truth.t, truth.lat_deg, truth.lon_deg, _TRUTH_COLOR)
             if not self._due("navigation", vehicle, paths.TRUTH, truth.t, force=changed):
                 self._maybe_flush()
