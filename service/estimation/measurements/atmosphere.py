@@ -22,7 +22,9 @@ import math
 
 import numpy as np
 
-C_MPS = 299792458.0
+from fednav.service import earth
+
+C_MPS = earth.C_MPS  # one definition of the speed of light (service.earth)
 GPS_L1_HZ = 1575.42e6
 BDS_B1I_HZ = 1561.098e6
 
