@@ -80,17 +80,25 @@ class GnssCorrelatedError(Model):
         return self
 
 
+#: GNSS antenna position relative to the IMU, shared by the pipelines that take GNSS fixes
+GnssLeverArm = Annotated[
+    tuple[float, float, float],
+    Field(
+        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
+        "(README 'Conventions (one place)')"
+    ),
+]
+GnssCorrelatedErrorOption = Annotated[
+    GnssCorrelatedError | None,
+    Field(description="Estimate a time-correlated receiver position error (None: fixes independent)"),
+]
+
+
 class LooselyCoupledConfig(Model):
     kind: Literal["loosely_coupled"] = "loosely_coupled"
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
-    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0),
-        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
-        "(README 'Conventions (one place)')",
-    )
-    gnss_correlated_error: GnssCorrelatedError | None = Field(
-        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
-    )
+    gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
+    gnss_correlated_error: GnssCorrelatedErrorOption = None
     use_star: bool = Field(True, description="Use star-tracker attitude when present")
     innovation_gate_sigma: float | None = Field(
         5.0,
@@ -157,14 +165,8 @@ class FederatedConfig(Model):
         description="Share floor of a state seen only by a flagged row (docs/seed000.md: not below ~0.01)",
     )
     master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
-    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0),
-        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
-        "(README 'Conventions (one place)')",
-    )
-    gnss_correlated_error: GnssCorrelatedError | None = Field(
-        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
-    )
+    gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
+    gnss_correlated_error: GnssCorrelatedErrorOption = None
 
 
 class CentralizedConfig(Model):
@@ -174,14 +176,8 @@ class CentralizedConfig(Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     fault_handling: FaultHandlingName = "none"
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5)
-    gnss_lever_arm_b_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0),
-        description="GNSS antenna position relative to the IMU in body axes (right, forward, up), m "
-        "(README 'Conventions (one place)')",
-    )
-    gnss_correlated_error: GnssCorrelatedError | None = Field(
-        None, description="Estimate a time-correlated receiver position error (None: fixes independent)"
-    )
+    gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
+    gnss_correlated_error: GnssCorrelatedErrorOption = None
 
 
 class ClockModel(Model):
