@@ -84,12 +84,21 @@ _GROUP_OF_FAMILY = {
 }
 
 
+def features_of(kind: str) -> frozenset[str]:
+    """The dashboard features a kind carries after a colon (``config.recording_kinds``):
+    ``"underwater:centralized,untested"`` -> {"centralized", "untested"}."""
+    _, _, rest = kind.partition(":")
+    return frozenset(f for f in rest.split(",") if f)
+
+
 def family_of(kind: str) -> str:
-    """Dashboard family of a pipeline family or configuration kind (``FAMILY_ALIASES``).
+    """Dashboard family of a pipeline family or configuration kind (``FAMILY_ALIASES``); the
+    features after a colon (``features_of``) do not change the family.
 
     An unknown kind gets the loosely-coupled dashboards (errors, faults) and a logged warning: a
     new pipeline kind must not stop the service from recording.
     """
+    kind = kind.partition(":")[0]
     if kind in FAMILIES:
         return kind
     if kind in FAMILY_ALIASES:
@@ -230,21 +239,30 @@ def _isolation_view(v: str, fault_pipes: Sequence[str]) -> rrb.StateTimelineView
     )
 
 
-def _faults_detail(v: str, p: str, family: str) -> rrb.Grid:
+def _has_sharing(kind: str) -> bool:
+    """Federated pipelines publish sharing coefficients; a centralised underwater one does not."""
+    return family_of(kind) in ("federated", "underwater") and "centralized" not in features_of(kind)
+
+
+def _reconfiguration_log(v: str, p: str) -> rrb.TextLogView:
+    """Seed 004: locals (or the centralised filter's sensor rows) leaving and rejoining the fusion,
+    beside the injected faults (truth) that should cause them."""
+    return rrb.TextLogView(
+        name=f"{p}: reconfiguration, injected faults (truth)",
+        origin=paths.vehicle_root(v),
+        contents=[paths.reconfiguration(v, p), paths.truth(v, "faults")],
+    )
+
+
+def _faults_detail(v: str, p: str, kind: str) -> rrb.Grid:
     views: list[rrb.View] = [
         _ts(f"{p}: test statistic / threshold (flag above 1)", f"{paths.fault_test(v, p)}/**"),
         _states(f"{p}: flags per observation (ok / flagged / isolated)", paths.faults(v, p), "$origin/**"),
     ]
-    if family in ("federated", "underwater"):
+    if _has_sharing(kind):
         views.append(_ts(f"{p}: sharing coefficients (local state)", f"{paths.sharing(v, p)}/**"))
-    if family == "underwater":  # locals leaving / rejoining the fusion (seed 004)
-        views.append(
-            rrb.TextLogView(
-                name=f"{p}: reconfiguration",
-                origin=paths.pipeline_root(v, p),
-                contents=[paths.reconfiguration(v, p)],
-            )
-        )
+    if family_of(kind) == "underwater" and "untested" not in features_of(kind):
+        views.append(_reconfiguration_log(v, p))
     return rrb.Grid(*views, grid_columns=2, name=p)
 
 
@@ -264,7 +282,7 @@ def _faults_tab(v: str, fault_pipes: Mapping[str, str]) -> rrb.Vertical:
         ),
         column_shares=[2, 1],
     )
-    detail = rrb.Tabs(*[_faults_detail(v, p, fam) for p, fam in fault_pipes.items()], active_tab=0)
+    detail = rrb.Tabs(*[_faults_detail(v, p, kind) for p, kind in fault_pipes.items()], active_tab=0)
     return rrb.Vertical(top, detail, row_shares=[1, 2], name="Faults & sharing")
 
 
@@ -354,29 +372,29 @@ def _overview_tab(
     return rrb.Grid(*views, grid_columns=2, name="Overview")
 
 
-def _underwater_tab(v: str, p: str) -> rrb.Grid:
-    """Seed 004: USBL/DVL tests vs thresholds and flags, reconfiguration events, sharing
-    coefficients, DVL offset and scale-factor estimates with their 1-sigma."""
+def _underwater_tab(v: str, p: str, kind: str = "underwater") -> rrb.Grid:
+    """Seed 004: USBL/DVL tests vs thresholds and flags, reconfiguration events (unless nothing is
+    tested), sharing coefficients (federated only), DVL offset and scale-factor estimates with
+    their 1-sigma (state names as ``measurements.dvl.STATE_NAMES``)."""
 
-    def st(prefix: str) -> list[str]:
-        return [f"{paths.filter_state(v, p)}/{prefix}_{a}/**" for a in "xyz"]
+    def st(prefix: str, suffix: str = "") -> list[str]:
+        return [f"{paths.filter_state(v, p)}/{prefix}_{a}{suffix}/**" for a in "xyz"]
 
-    return rrb.Grid(
+    views: list[rrb.View] = [
         _ts(f"{p}: USBL / DVL test statistics vs thresholds", f"{paths.faults(v, p)}/**"),
         rrb.StateTimelineView(
             name=f"{p}: rows in use / flagged", origin=paths.faults(v, p), contents="$origin/**"
         ),
-        rrb.TextLogView(
-            name=f"{p}: reconfiguration",
-            origin=paths.pipeline_root(v, p),
-            contents=[paths.reconfiguration(v, p)],
-        ),
-        _ts(f"{p}: sharing coefficients", f"{paths.sharing(v, p)}/**"),
-        _ts(f"{p}: DVL offset (m/s) and 1σ", st("dvl_offset")),
+    ]
+    if "untested" not in features_of(kind):
+        views.append(_reconfiguration_log(v, p))
+    if _has_sharing(kind):
+        views.append(_ts(f"{p}: sharing coefficients", f"{paths.sharing(v, p)}/**"))
+    views += [
+        _ts(f"{p}: DVL offset (m/s) and 1σ", st("dvl_offset", "_mps")),
         _ts(f"{p}: DVL scale factor and 1σ", st("dvl_scale")),
-        grid_columns=2,
-        name=f"{p}: underwater",
-    )
+    ]
+    return rrb.Grid(*views, grid_columns=2, name=f"{p}: underwater")
 
 
 def _imm_tab(v: str, p: str) -> rrb.Grid:
@@ -437,14 +455,21 @@ def _health_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
     return rrb.Vertical(status, grid, row_shares=[1, 4], name="Health")
 
 
-def _family_tab(v: str, pipes: Sequence[str], family: str) -> rrb.Container:
-    make = {"imm": _imm_tab, "transfer_alignment": _alignment_tab, "underwater": _underwater_tab}.get(family)
+def _family_tab(v: str, pipes: Mapping[str, str], family: str) -> rrb.Container:
+    """The family's tab; ``pipes`` maps each pipeline to its kind (with features)."""
+    if family == "underwater":
+
+        def make(v: str, p: str) -> rrb.Container:
+            return _underwater_tab(v, p, pipes[p])
+
+    else:
+        make = {"imm": _imm_tab, "transfer_alignment": _alignment_tab}.get(family)
     if make is None:
         views = [_group_tab(v, p, family) for p in pipes]
         title = _GROUP_OF_FAMILY.get(family, (family, family))[0]
         return rrb.Tabs(*views, name=title, active_tab=0) if len(views) > 1 else views[0]
     if len(pipes) == 1:
-        return make(v, pipes[0])
+        return make(v, next(iter(pipes)))
     title = {"imm": "IMM", "transfer_alignment": "Alignment", "underwater": "Underwater"}[family]
     return rrb.Tabs(*[make(v, p) for p in pipes], name=title, active_tab=0)
 
@@ -460,7 +485,7 @@ def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
     names = list(pipelines)
     fam = {p: family_of(k) for p, k in pipelines.items()}
     integ = [p for p in names if fam[p] == "integrity"]
-    faults = {p: fam[p] for p in names if fam[p] in ("federated", "loosely_coupled", "underwater")}
+    faults = {p: pipelines[p] for p in names if fam[p] in ("federated", "loosely_coupled", "underwater")}
     tabs: list[rrb.Container | rrb.View] = [
         _overview_tab(vehicle, names, list(faults), integ),
         _trajectory_tab(vehicle, names),
@@ -471,7 +496,7 @@ def vehicle_tabs(vehicle: str, pipelines: Mapping[str, str]) -> rrb.Tabs:
     if faults:
         tabs.append(_faults_tab(vehicle, faults))
     for family in ("imm", "transfer_alignment", "underwater"):
-        pipes = [p for p in names if fam[p] == family]
+        pipes = {p: pipelines[p] for p in names if fam[p] == family}
         if pipes:
             tabs.append(_family_tab(vehicle, pipes, family))
     tabs += [_states_tab(vehicle, names), _health_tab(vehicle, names)]

@@ -43,7 +43,7 @@ FAMILIES: dict[str, tuple[str, float]] = {
     "seed001": ("seed001_ramp", 180.0),
     "seed002": ("seed002_wing", 60.0),
     "seed003": ("seed003_outliers", 120.0),
-    "seed004": ("seed004_usbl_fault", 240.0),
+    "seed004": ("seed004_usbl_fault", 620.0),  # the USBL fault starts at 500 s
 }
 
 

@@ -650,11 +650,25 @@ def recording_kinds(pipelines: Sequence[PipelineConfig]) -> dict[str, str]:
     """Pipeline name -> the kind its dashboards are built for: its ``kind``, or ``"plain"`` for a
     pipeline that publishes neither fault tests nor integrity (a centralised comparator with
     ``fault_handling = "none"``, a tightly coupled filter with ``integrity = false``), so the
-    recording's blueprint has no empty Faults or Integrity panels for it."""
+    recording's blueprint has no empty Faults or Integrity panels for it. An underwater pipeline
+    carries its dashboard features after a colon: ``underwater:centralized`` (no sharing
+    coefficients), ``underwater:untested`` (no USBL/DVL test: no reconfiguration log), or both."""
 
     def plain(p) -> bool:
         if p.kind == "centralized":
             return getattr(p, "fault_handling", "none") == "none"
         return p.kind == "tightly_coupled" and not getattr(p, "integrity", True)
 
-    return {p.name: "plain" if plain(p) else p.kind for p in pipelines}
+    def kind(p) -> str:
+        if plain(p):
+            return "plain"
+        if p.kind == "underwater":  # dashboard features after the colon (dashboards.blueprints)
+            features = []
+            if p.architecture == "centralized":
+                features.append("centralized")  # one filter: no sharing coefficients
+            if p.usbl_fault_handling == "none" and p.dvl_fault_handling == "none":
+                features.append("untested")  # nothing is ever excluded: no reconfiguration log
+            return "underwater:" + ",".join(features) if features else "underwater"
+        return p.kind
+
+    return {p.name: kind(p) for p in pipelines}

@@ -63,6 +63,10 @@ def test_recording_kinds_mark_pipelines_without_tests_or_integrity_plain():
         config.TightlyCoupledConfig(name="tc", integrity=False),
         config.TightlyCoupledConfig(name="tc_mhss"),
         config.LooselyCoupledConfig(name="lc"),
+        config.UnderwaterConfig(name="uw"),
+        config.UnderwaterConfig(name="uw_c", architecture="centralized", usbl_fault_handling="none"),
+        config.UnderwaterConfig(name="uw_c_chi2", architecture="centralized"),
+        config.UnderwaterConfig(name="uw_untested", usbl_fault_handling="none"),
     ]
     assert config.recording_kinds(pipes) == {
         "c": "plain",
@@ -70,4 +74,8 @@ def test_recording_kinds_mark_pipelines_without_tests_or_integrity_plain():
         "tc": "plain",
         "tc_mhss": "tightly_coupled",
         "lc": "loosely_coupled",
+        "uw": "underwater",
+        "uw_c": "underwater:centralized,untested",
+        "uw_c_chi2": "underwater:centralized",
+        "uw_untested": "underwater:untested",
     }
