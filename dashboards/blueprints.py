@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 
+import rerun as rr
 import rerun.blueprint as rrb
 import rerun.encodings as rre
 
@@ -84,11 +85,12 @@ _GROUP_OF_FAMILY = {
 }
 
 
-def features_of(kind: str) -> frozenset[str]:
-    """The dashboard features a kind carries after a colon (``config.recording_kinds``):
-    ``"underwater:centralized,untested"`` -> {"centralized", "untested"}."""
+def features_of(kind: str) -> tuple[str, ...]:
+    """The dashboard details a kind carries after a colon (``config.recording_kinds``), in order:
+    underwater features (``"underwater:centralized,untested"`` -> ("centralized", "untested")),
+    the node ids of a transfer-alignment pipeline (``"transfer_alignment:wing1,wing2"``)."""
     _, _, rest = kind.partition(":")
-    return frozenset(f for f in rest.split(",") if f)
+    return tuple(f for f in rest.split(",") if f)
 
 
 def family_of(kind: str) -> str:
@@ -139,6 +141,28 @@ def _ts(name: str, contents: list[str] | str, origin: str = "/", legend: bool = 
         time_ranges=WHOLE_RUN,
         axis_x=WHOLE_RUN_AXIS,
         plot_legend=rrb.PlotLegend(corner="LeftTop", visible=legend),
+    )
+
+
+#: Line colours of views whose lines are named in the blueprint (east/x, north/y, up/z).
+_AXIS_COLOURS = (0xD62728FF, 0x2CA02CFF, 0x1F77B4FF)
+
+
+def _named(name: str, series: Mapping[str, str]) -> rrb.TimeSeriesView:
+    """A time series view whose lines are named here (path -> label, one colour per line), not by
+    the recording's pipeline style."""
+    overrides = {
+        path: rr.SeriesLines.from_fields(names=[label], colors=[_AXIS_COLOURS[i % 3]])
+        for i, (path, label) in enumerate(series.items())
+    }
+    return rrb.TimeSeriesView(
+        name=name,
+        origin="/",
+        contents=list(series),
+        overrides=overrides,
+        time_ranges=WHOLE_RUN,
+        axis_x=WHOLE_RUN_AXIS,
+        plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True),
     )
 
 
@@ -403,7 +427,13 @@ def _imm_tab(v: str, p: str) -> rrb.Grid:
     imm = paths.group(v, p, "imm")
     return rrb.Grid(
         _ts(f"{p}: model probabilities", f"{imm}/prob/**"),
-        _ts(f"{p}: position error (m)", [paths.error(v, p, n) for n in paths.POSITION_ERRORS]),
+        _named(
+            f"{p}: position error (m)",
+            {
+                paths.error(v, p, n): axis
+                for n, axis in zip(paths.POSITION_ERRORS, ("east", "north", "up"), strict=True)
+            },
+        ),
         _ts(
             f"{p}: down-weighted rows per model / gate rejections",
             [f"{imm}/downweighted/**", f"{imm}/rejected_rows"],
@@ -426,15 +456,63 @@ def _group_tab(v: str, p: str, family: str) -> rrb.TimeSeriesView:
     return _ts(f"{p}: {title}", f"{paths.group(v, p, group)}/**")
 
 
-def _alignment_tab(v: str, p: str) -> rrb.Grid:
-    """Transfer alignment (seed 002): per-node errors against truth with +-3 sigma bounds
-    (misalignment and flexure in arcmin, lever arm in m), estimates, adaptive R and fading."""
+def _error_bounds_view(title: str, group: str, node: str, quantity: str) -> rrb.TimeSeriesView:
+    """One quantity's error per axis with its +-3 sigma bounds, in the axis colours the service
+    gives the series (``service.app.alignment_styles``)."""
+    suffixes = ("", "_p3s", "_m3s")
+    return _ts(title, [f"{group}/{node}.{quantity}_{a}{s}" for a in "xyz" for s in suffixes])
+
+
+def _alignment_node(v: str, p: str, node: str) -> rrb.Grid:
+    err, est = paths.group(v, p, "alignment_error"), paths.group(v, p, "alignment")
     return rrb.Grid(
-        _ts(f"{p}: errors vs truth, ±3σ", f"{paths.group(v, p, 'alignment_error')}/**"),
-        _ts(f"{p}: lever arm, flexure, mount estimates", f"{paths.group(v, p, 'alignment')}/**"),
-        _ts(f"{p}: adaptive R (1σ), fading factor, NIS", f"{paths.group(v, p, 'alignment_adaptive')}/**"),
+        _error_bounds_view(f"{node}: misalignment error ±3σ (arcmin)", err, node, "misalignment"),
+        _error_bounds_view(f"{node}: flexure error ±3σ (arcmin)", err, node, "flexure"),
+        _error_bounds_view(f"{node}: lever-arm error ±3σ (m)", err, node, "lever"),
+        _ts(f"{node}: lever-arm estimate (m)", [f"{est}/{node}.lever_{a}_m" for a in "xyz"]),
         grid_columns=2,
+        name=node,
+    )
+
+
+def _alignment_adaptation(v: str, p: str, nodes: Sequence[str]) -> rrb.Grid:
+    """Per node: NIS (the fading trigger's statistic), the fading factor (1: not engaged) and the
+    measurement-noise 1-sigma in use (adaptive R), by row kind."""
+    ad = paths.group(v, p, "alignment_adaptive")
+
+    def rows(first: int) -> list[str]:
+        return [f"{ad}/{n}.r_std_{i}" for n in nodes for i in range(first, first + 3)]
+
+    return rrb.Grid(
+        _ts(f"{p}: NIS per node", [f"{ad}/{n}.nis" for n in nodes]),
+        _ts(f"{p}: fading factor per node (1: not engaged)", [f"{ad}/{n}.fading" for n in nodes]),
+        _ts(f"{p}: R 1σ, attitude rows (deg)", rows(0)),
+        _ts(f"{p}: R 1σ, velocity rows (m/s)", rows(3)),
+        _ts(f"{p}: R 1σ, angular-rate rows (deg/s)", rows(6)),
+        grid_columns=2,
+        name="adaptive R, fading",
+    )
+
+
+def _alignment_tab(v: str, p: str, kind: str = "transfer_alignment") -> rrb.Container:
+    """Transfer alignment (seed 002): per node (ids from ``features_of(kind)``), the errors against
+    truth with +-3 sigma bounds (misalignment and flexure in arcmin, lever arm in m, one colour per
+    axis) and the lever-arm estimate; then the adaptive R, fading factor and NIS per node.
+    Without node ids: three panels with every node."""
+    nodes = features_of(kind)
+    if not nodes:
+        return rrb.Grid(
+            _ts(f"{p}: errors vs truth, ±3σ", f"{paths.group(v, p, 'alignment_error')}/**"),
+            _ts(f"{p}: lever arm, flexure, mount estimates", f"{paths.group(v, p, 'alignment')}/**"),
+            _ts(f"{p}: adaptive R (1σ), fading factor, NIS", f"{paths.group(v, p, 'alignment_adaptive')}/**"),
+            grid_columns=2,
+            name=f"{p}: alignment",
+        )
+    return rrb.Tabs(
+        *[_alignment_node(v, p, n) for n in nodes],
+        _alignment_adaptation(v, p, nodes),
         name=f"{p}: alignment",
+        active_tab=0,
     )
 
 
@@ -457,13 +535,14 @@ def _health_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
 
 def _family_tab(v: str, pipes: Mapping[str, str], family: str) -> rrb.Container:
     """The family's tab; ``pipes`` maps each pipeline to its kind (with features)."""
-    if family == "underwater":
+    if family in ("underwater", "transfer_alignment"):
+        by_kind = {"underwater": _underwater_tab, "transfer_alignment": _alignment_tab}[family]
 
         def make(v: str, p: str) -> rrb.Container:
-            return _underwater_tab(v, p, pipes[p])
+            return by_kind(v, p, pipes[p])
 
     else:
-        make = {"imm": _imm_tab, "transfer_alignment": _alignment_tab}.get(family)
+        make = {"imm": _imm_tab}.get(family)
     if make is None:
         views = [_group_tab(v, p, family) for p in pipes]
         title = _GROUP_OF_FAMILY.get(family, (family, family))[0]

@@ -169,6 +169,10 @@ def png_rgb(path: Path):
     return out.reshape(h, w, bpp)[:, :, :3].astype(np.uint8)
 
 
+#: Below this fraction of coloured pixels a screenshot shows no data (``main``, the test).
+BLANK_FRACTION = 0.005
+
+
 def coloured_fraction(path: Path) -> float:
     """Share of pixels with a saturated colour (plot lines, state lanes, markers): a viewer with
     no data shown is grey and white."""
@@ -364,7 +368,11 @@ def main(argv: list[str] | None = None) -> int:
         for tab, name in r["empty_panels"]:
             print(f"  EMPTY panel: {tab} / {name}")
         for p in r["screenshots"]:
-            print(f"  {p}")
+            # the viewer's welcome page (a recording or blueprint it could not load) and an
+            # unrendered tab are grey and white: 0.35 % coloured pixels; drawn tabs 1-5 %
+            blank = coloured_fraction(Path(p)) < BLANK_FRACTION
+            print(f"  {p}" + ("  BLANK: the viewer shows no data (did the recording load?)" if blank else ""))
+            bad += blank
         bad += len(r["empty_panels"])
     return 1 if bad else 0
 

@@ -83,6 +83,23 @@ def _blueprint_plugin(pipelines: dict[str, str]):
     return None
 
 
+#: Colours of the x, y, z lines of the per-node alignment panels (the same in every panel).
+AXIS_COLOURS = (0xD62728FF, 0x2CA02CFF, 0x1F77B4FF)
+
+
+def alignment_styles(node: str) -> dict[str, tuple[str, int]]:
+    """Legend labels and colours of one node's error series (``alignment_error`` group): the
+    error per axis in its axis colour, the +-3 sigma bounds in the same colour."""
+    out = {}
+    for quantity in ("misalignment", "flexure", "lever"):
+        for a, colour in zip("xyz", AXIS_COLOURS, strict=True):
+            key = f"{node}.{quantity}_{a}"
+            out[key] = (f"{a} error", colour)
+            out[key + "_p3s"] = (f"{a} +3σ", colour)
+            out[key + "_m3s"] = (f"{a} −3σ", colour)
+    return out
+
+
 def alignment_scalars(msg: Alignment, truth=None) -> dict[str, dict[str, float]]:
     """Recording groups of one node's alignment (``/{vehicle}/{pipeline}/{group}/{node}.{name}``):
     estimates, and with the node's truth the errors and their 3-sigma bounds (misalignment and
@@ -162,8 +179,9 @@ class OutputSink:
         if isinstance(msg, Alignment):  # transfer alignment (seed 002); err9: the node's truth
             self.pubs.publish(keys.alignment(vehicle, msg.pipeline, msg.node, self.prefix), msg)
             if self.rr is not None:
+                styles = alignment_styles(msg.node)
                 for group, values in alignment_scalars(msg, err9).items():
-                    self.rr.log_scalars(vehicle, msg.pipeline, msg.t, group, values)
+                    self.rr.log_scalars(vehicle, msg.pipeline, msg.t, group, values, styles)
             return
         what = "faults" if isinstance(msg, Faults) else "integrity" if isinstance(msg, Integrity) else None
         if isinstance(msg, ImmModels):

@@ -652,7 +652,8 @@ def recording_kinds(pipelines: Sequence[PipelineConfig]) -> dict[str, str]:
     ``fault_handling = "none"``, a tightly coupled filter with ``integrity = false``), so the
     recording's blueprint has no empty Faults or Integrity panels for it. An underwater pipeline
     carries its dashboard features after a colon: ``underwater:centralized`` (no sharing
-    coefficients), ``underwater:untested`` (no USBL/DVL test: no reconfiguration log), or both."""
+    coefficients), ``underwater:untested`` (no USBL/DVL test: no reconfiguration log), or both; a
+    transfer-alignment pipeline its node ids (``transfer_alignment:wing1,wing2,wing3``)."""
 
     def plain(p) -> bool:
         if p.kind == "centralized":
@@ -669,6 +670,8 @@ def recording_kinds(pipelines: Sequence[PipelineConfig]) -> dict[str, str]:
             if p.usbl_fault_handling == "none" and p.dvl_fault_handling == "none":
                 features.append("untested")  # nothing is ever excluded: no reconfiguration log
             return "underwater:" + ",".join(features) if features else "underwater"
+        if p.kind == "transfer_alignment":  # one dashboard tab per wing node
+            return "transfer_alignment:" + ",".join(n.id for n in p.nodes)
         return p.kind
 
     return {p.name: kind(p) for p in pipelines}

@@ -33,6 +33,34 @@ def test_empty_panels_names_the_views_without_data():
     assert all(isinstance(p.filters, list) and p.filters for p in empty)
 
 
+def test_panels_follow_each_pipelines_features():
+    """Underwater: no sharing panel for a centralised filter, no reconfiguration log without a
+    test; transfer alignment: one sub-tab per node (ids from the kind) with the node's errors."""
+    from fednav.dashboards.blueprints import family_of, features_of
+
+    assert family_of("underwater:centralized,untested") == "underwater"
+    assert features_of("transfer_alignment:wing1,wing2") == ("wing1", "wing2")
+    bp = build_blueprint(
+        "v1",
+        {
+            "uw": "underwater",
+            "uw_c": "underwater:centralized,untested",
+            "uw_c2": "underwater:centralized",
+            "ta": "transfer_alignment:wing1,wing2",
+        },
+    )
+    names = {p.name for _, node in shots.tabs_of(bp) for p in shots._views(node, "")}
+    assert {"uw: sharing coefficients", "uw: reconfiguration, injected faults (truth)"} <= names
+    assert "uw_c2: reconfiguration, injected faults (truth)" in names
+    assert not any(n.startswith(("uw_c: sharing", "uw_c2: sharing", "uw_c: reconfiguration")) for n in names)
+    assert "uw_c: DVL offset (m/s) and 1σ" in names
+    panels = {p.name: p.filters for _, node in shots.tabs_of(bp) for p in shots._views(node, "")}
+    assert "/v1/uw/states/dvl_offset_x_mps/**" in panels["uw: DVL offset (m/s) and 1σ"]
+    mis = panels["wing2: misalignment error ±3σ (arcmin)"]
+    assert "/v1/ta/alignment_error/wing2.misalignment_x_p3s" in mis and len(mis) == 9
+    assert not any("wing1" in f for f in mis)
+
+
 @pytest.fixture(scope="module")
 def demo_rrd(tmp_path_factory):
     sc = load_scenario("demo_product")
@@ -81,4 +109,4 @@ def test_web_viewer_renders_a_tab_in_headless_chromium(demo_rrd, tmp_path):
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     # an empty or still-loading viewer is grey and white (0.3 % coloured pixels measured, with
     # the side panels open); the rendered overview's lines, lanes and legends are about 1 %
-    assert shots.coloured_fraction(saved[0]) > 0.005
+    assert shots.coloured_fraction(saved[0]) > shots.BLANK_FRACTION

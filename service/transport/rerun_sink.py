@@ -699,11 +699,18 @@ class RerunSink:
             self._maybe_flush()
 
     def log_scalars(
-        self, vehicle: str, pipeline: str, t: float, group: str, values: Mapping[str, float]
+        self,
+        vehicle: str,
+        pipeline: str,
+        t: float,
+        group: str,
+        values: Mapping[str, float],
+        styles: Mapping[str, tuple[str, int]] | None = None,
     ) -> None:
         """Family-specific scalars at ``/{vehicle}/{pipeline}/{group}/{name}``.
 
         Groups the blueprints show: ``rerun_paths.GROUPS`` (imm, alignment, underwater).
+        ``styles`` (name -> (legend label, RGBA colour)) styles a series once, the first time.
         """
         if self._closed:
             return
@@ -715,7 +722,11 @@ class RerunSink:
             tn = self._time(vehicle, t)
             for name, v in values.items():
                 if math.isfinite(v):
-                    self._add(paths.group(vehicle, pipeline, group, name), "scalar", tn, float(v))
+                    path = paths.group(vehicle, pipeline, group, name)
+                    if styles and name in styles:
+                        label, colour = styles[name]
+                        self._style_series(path, [label], [colour])
+                    self._add(path, "scalar", tn, float(v))
             self._maybe_flush()
 
     def flush(self) -> None:
