@@ -342,6 +342,7 @@ def _integrity_grid(v: str, p: str, name: str | None = None) -> rrb.Vertical:
                 _ts(
                     f"{p}: HAL / VAL (m), excluded satellites", [i("hal_m"), i("val_m"), i("excluded_count")]
                 ),
+                row_shares=[3, 2],  # both lanes visible
             ),
             _ts(f"{p}: per-satellite statistic / threshold", f"{paths.integrity_sat_ratio(v, p)}/**"),
         ),

@@ -446,8 +446,11 @@ def stanford_xy(error_m: float, pl_m: float) -> tuple[float, float]:
 
 
 def _metres(decade: int) -> str:
+    """Short tick label of a decade of metres: 1cm, 10cm, 1m, 10m, 100m, 1km, 10km."""
+    if decade >= 3:
+        return f"{10 ** (decade - 3)}km"
     v = 10.0**decade
-    return f"{v:g} m" if v >= 1 else f"{v * 100:g} cm"
+    return f"{v:g}m" if v >= 1 else f"{v * 100:g}cm"
 
 
 def stanford_frame(
@@ -461,12 +464,20 @@ def stanford_frame(
     pos: list[list[float]] = []
     texts: list[str] = []
     tcol: list[int] = []
+    # tick labels: every decade up to 5 of them, every other one beyond (narrow panels); the x
+    # axis starts one decade in, where the y axis's lowest label would otherwise overlap it
+    step = 1 if hi - lo <= 5 else 2
     for d in range(lo, hi + 1):
         strips += [[[d, -lo], [d, -hi]], [[lo, -d], [hi, -d]]]
         colors += [_GRID, _GRID]
-        pos += [[d, -lo + 0.12], [lo - 0.12, -d]]
-        texts += [_metres(d), _metres(d)]
-        tcol += [_TEXT, _TEXT]
+        if (d - lo) % step == 0 or d == hi:
+            if d > lo:
+                pos.append([d, -lo + 0.12])
+                texts.append(_metres(d))
+                tcol.append(_TEXT)
+            pos.append([lo - 0.12, -d])
+            texts.append(_metres(d))
+            tcol.append(_TEXT)
     strips.append([[lo, -lo], [hi, -hi]])
     colors.append(_DIAG)
     pos.append([(lo + hi) / 2 + 0.35, -(lo + hi) / 2 + 0.35])
