@@ -153,6 +153,29 @@ def test_status_follows_aiding_coasting_and_screening():
     assert p.screened == {"innovation_gate": 3}
 
 
+def test_gate_faults_clear_after_a_refusal():
+    """The loosely coupled gate publishes Faults while it refuses rows and once more, all rows in
+    use, at the first fix it passes whole; nothing while nothing was refused."""
+    p = LooselyCoupled(
+        LooselyCoupledConfig(name="lc"), service_config(shortened("demo_aircraft.toml", 5.0)).imu, 0.1
+    )
+    nav = _nav()
+    p.start(nav, STD)
+    lat, lon = np.degrees(nav.lat_rad), np.degrees(nav.lon_rad)
+
+    def fix(t, dlat_deg=0.0):
+        return GnssFix(t=t, lat_deg=lat + dlat_deg, lon_deg=lon, height_m=0.0, vel_enu_mps=(0.0, 0.0, 0.0))
+
+    assert p.apply("gnss_fix", "g", fix(0.1)) == []
+    (refused,) = p.apply("gnss_fix", "g", fix(0.2, dlat_deg=0.01))  # 1.1 km north: refused
+    assert [o.label for o in refused.subsystems[0].observations if o.isolated] == ["pos_n"]
+    assert abs(np.degrees(p.bank.nav().lat_rad) - lat) < 1e-9  # the refused row moved nothing
+    (clear,) = p.apply("gnss_fix", "g", fix(0.3))
+    assert not clear.subsystems[0].isolated
+    assert not any(o.flagged or o.isolated for o in clear.subsystems[0].observations)
+    assert p.apply("gnss_fix", "g", fix(0.4)) == []
+
+
 @pytest.fixture
 def attribute_writers(monkeypatch):
     """(attribute, writing module) for every write of a pipeline's status bookkeeping."""

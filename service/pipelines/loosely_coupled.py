@@ -36,9 +36,11 @@ class LooselyCoupled(Pipeline):
         self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
         self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
+        self._gate_reported: set[str] = set()  # kinds whose last published Faults refused rows
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
         self._refused_since.clear()
+        self._gate_reported.clear()
         self._P0 = initial_covariance(std, self.imu, self.private)
         self.bank = InsFilterBank(
             nav, self._P0, self.imu.noise(), major_interval_s=self.major_interval_s, private=self.private
@@ -62,6 +64,7 @@ class LooselyCoupled(Pipeline):
         if refused.any():
             self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
             outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], refused))
+            self._gate_reported.add(kind)
             if refused.all():
                 since = self._refused_since.setdefault(kind, nav.t)
                 if kind not in self._trusted or nav.t - since < self.cfg.gate_recovery_s:
@@ -73,6 +76,9 @@ class LooselyCoupled(Pipeline):
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
             else:
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R, mask=~refused[None, :])
+        elif kind in self._gate_reported:  # the first update the gate passes whole: say it is clear
+            self._gate_reported.discard(kind)
+            outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], refused))
         self._refused_since.pop(kind, None)
         self._trusted.add(kind)
         if not kalman.is_positive_definite(P)[0]:
@@ -88,8 +94,9 @@ class LooselyCoupled(Pipeline):
         return outputs
 
     def _gate_faults(self, t: float, kind: str, labels, standardised, refused) -> Faults:
-        """The gate's decision on Faults (published only when it refuses a row): per row |r|/sqrt(S)
-        against the gate; refused rows are flagged and isolated."""
+        """The gate's decision on Faults (published when it refuses a row, and once more at the
+        first update it passes whole, so that a subscriber's isolation state clears): per row
+        |r|/sqrt(S) against the gate; refused rows are flagged and isolated."""
         gate = float(self.cfg.innovation_gate_sigma)
         rows = [
             ObservationFault(
