@@ -413,9 +413,16 @@ class Service:
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
         self.sink = OutputSink(cfg.prefix, self.pubs, self.rr, extra)
         sel = "*" if "*" in cfg.vehicles else None
-        # every vehicle's inputs, served or not: data under a name the service does not serve is
-        # counted (ServiceHealth) and logged once per name instead of meeting silence
-        self.intake = zenoh_io.Intake(self.session, keys.inputs_selector("*", cfg.prefix), self._deliver)
+        # by default every vehicle's inputs, served or not: data under a name the service does not
+        # serve is counted (ServiceHealth) and logged once per name instead of meeting silence;
+        # intake.subscribe = "served": only the served vehicles' keys (services sharing a fleet)
+        served_only = cfg.intake.subscribe == "served" and sel is None
+        selectors = (
+            [e for v in cfg.vehicles for e in keys.inputs_selector(v, cfg.prefix)]
+            if served_only
+            else keys.inputs_selector("*", cfg.prefix)
+        )
+        self.intake = zenoh_io.Intake(self.session, selectors, self._deliver)
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
             from fednav.service.transport.ros2 import header_stamp_s

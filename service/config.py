@@ -489,6 +489,12 @@ class IntakeConfig(Model):
         "that agree with each other and confirm a time jump (sensor restart, clock step): the INS is "
         "re-initialised on the new time base",
     )
+    subscribe: Literal["all", "served"] = Field(
+        "all",
+        description="'all': subscribe to every vehicle's inputs, so data under a name this service does "
+        "not serve is counted and named (a typo shows); 'served': only the listed vehicles' keys (several "
+        "services sharing a fleet on one bus: none receives or counts the others' vehicles)",
+    )
     max_vehicles: int = Field(
         64,
         ge=1,

@@ -23,9 +23,13 @@ from .test_hostile import Publisher
 pytestmark = pytest.mark.integration
 
 
-def test_unserved_vehicle_is_counted_and_named(tmp_path):
+@pytest.mark.parametrize("subscribe", ["all", "served"])
+def test_unserved_vehicle_is_counted_and_named(tmp_path, subscribe):
+    """subscribe = "all" (default): counted and named; "served" (services sharing a fleet): the
+    service never receives the other vehicle's data, so nothing is counted or logged."""
     text = (SCENARIOS / "demo_aircraft.toml").read_text()
-    text = text.replace("[service]\n", '[service]\nvehicles = ["v1"]\n', 1)
+    line = f'vehicles = ["v1"]\nintake = {{ subscribe = "{subscribe}" }}\n'
+    text = text.replace("[service]\n", "[service]\n" + line, 1)
     cfg = tmp_path / "service.toml"
     cfg.write_text(text)
     port = free_port()
@@ -52,6 +56,8 @@ def test_unserved_vehicle_is_counted_and_named(tmp_path):
                 last = got[-1] if got else None
             if last and last.get("unserved_vehicles", {}).get("car", 0) >= sent:
                 break
+            if subscribe == "served" and len(got) >= 3:  # health keeps coming, nothing counted
+                break
             time.sleep(0.2)
     finally:
         sub.undeclare()
@@ -61,9 +67,13 @@ def test_unserved_vehicle_is_counted_and_named(tmp_path):
     assert rc == 0
     assert last is not None, "no ServiceHealth received"
     h = ServiceHealth.model_validate(last)  # the wire contract
+    out = svc.output()
+    if subscribe == "served":
+        assert h.unserved_vehicles == {} and h.refused_before_routing.get("unserved_vehicle", 0) == 0
+        assert "unserved_vehicle" not in out
+        return
     assert h.unserved_vehicles == {"car": sent}
     assert h.refused_before_routing["unserved_vehicle"] == sent
     assert h.vehicles == ["v1"] and h.active_vehicles == []
-    out = svc.output()
     assert out.count("unserved_vehicle: data for vehicle 'car' refused") == 1, out[-2000:]
     assert keys.is_output("fednav/_services/abc/health")
