@@ -305,12 +305,16 @@ def format_seed003(result: dict) -> list[str]:
         return []
     lines = ["paper (He, Nie, Wu 2011, Table 1), position RMS (m):"]
     schemes = ref.get("seed003_schemes", {})
-    ours = {scheme: name for name, scheme in schemes.items()}
     for scheme, vals in table.items():
-        name = ours.get(scheme)
-        e = result["pipelines"].get(name, {}) if name else {}
-        mine = f"ours ({name}) {e['pos_rms_m']:.3f}" if e else "ours: other scenario"
-        lines.append(f"  {scheme:<14}{vals['pos_m']:8.3f}   {mine}")
+        mine = [
+            f"{name} {result['pipelines'][name]['pos_rms_m']:.3f}"
+            for name, s in schemes.items()
+            if s == scheme and "pos_rms_m" in result["pipelines"].get(name, {})
+        ]
+        lines.append(
+            f"  {scheme:<14}{vals['pos_m']:8.3f}   "
+            + ("ours: " + ", ".join(mine) if mine else "ours: other scenario")
+        )
     for name, e in result["pipelines"].items():
         if "pos_rms_m" in e:
             lines.append(f"  {name:<22}position RMS {e['pos_rms_m']:.3f} m, NEES/9 {e['nees']['mean']:.2f}")
