@@ -690,11 +690,13 @@ class RerunSink:
             if self._closed:
                 return
             tn = self._time(vehicle, msg.t)
-            for m, pr, rs in zip(msg.models, msg.probabilities, msg.r_scale, strict=True):
-                self._add(f"{base}/prob/{paths.part(m)}", "scalar", tn, float(pr))
-                self._add(
-                    f"{base}/downweighted/{paths.part(m)}", "scalar", tn, float(sum(r > 1.0 for r in rs))
-                )
+            for i, (m, pr, rs) in enumerate(zip(msg.models, msg.probabilities, msg.r_scale, strict=True)):
+                colour = _PALETTE[i % len(_PALETTE)]  # one colour per model, the same in both panels
+                prob, down = f"{base}/prob/{paths.part(m)}", f"{base}/downweighted/{paths.part(m)}"
+                self._style_series(prob, [m], [colour])
+                self._style_series(down, [m], [colour])
+                self._add(prob, "scalar", tn, float(pr))
+                self._add(down, "scalar", tn, float(sum(r > 1.0 for r in rs)))
             self._add(f"{base}/rejected_rows", "scalar", tn, float(len(msg.rejected)))
             self._maybe_flush()
 
