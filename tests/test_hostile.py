@@ -189,7 +189,9 @@ def test_single_hostile_messages_cost_no_navigation(tmp_path):
     null = status["null_island"]["health"]["pipelines"]["lc"]["screened"]
     assert null.get("innovation_gate", 0) == 3 and report["null_island"][0] < 1.0, (null, report)
     # ... and the refusal is on Faults: position rows flagged and isolated, velocity rows used
-    (f,) = [f for v, f in faults if v == "null_island"]
+    # (then, at the next fix the gate passes whole, one Faults with every row in use: it clears)
+    f, clear = [f for v, f in faults if v == "null_island"]
+    assert not any(o["flagged"] or o["isolated"] for o in clear["subsystems"][0]["observations"])
     rows = {o["label"]: o["isolated"] for o in f["subsystems"][0]["observations"]}
     assert rows == {
         "pos_e": True,

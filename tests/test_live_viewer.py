@@ -11,18 +11,21 @@ from __future__ import annotations
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+import rerun_cli
 
 from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "simulators" / "scenarios" / "demo_aircraft.toml"
-RERUN = Path(sys.executable).with_name("rerun")
+# the viewer binary itself: the `rerun` console script is a Python wrapper that runs it as a child,
+# so a SIGINT to the script never reached the binary (and once, under load, the script outlived
+# the 30 s wait); signalling the binary lets it finish its file and exit
+RERUN = Path(rerun_cli.__file__).with_name("rerun")
 DURATION_S = 40.0
 
 
@@ -71,7 +74,7 @@ def test_live_stream_reaches_the_viewer_and_equals_the_file(tmp_path):
         time.sleep(0.5)  # let the receiver drain its socket before it is stopped
         receiver.send_signal(signal.SIGINT)
         try:
-            receiver.wait(timeout=30)
+            receiver.wait(timeout=60)
         except subprocess.TimeoutExpired:
             receiver.kill()
             raise
