@@ -144,15 +144,11 @@ def _ts(name: str, contents: list[str] | str, origin: str = "/", legend: bool = 
     )
 
 
-#: Line colours of views whose lines are named in the blueprint (east/x, north/y, up/z).
-_AXIS_COLOURS = (0xD62728FF, 0x2CA02CFF, 0x1F77B4FF)
-
-
 def _named(name: str, series: Mapping[str, str]) -> rrb.TimeSeriesView:
     """A time series view whose lines are named here (path -> label, one colour per line), not by
     the recording's pipeline style."""
     overrides = {
-        path: rr.SeriesLines.from_fields(names=[label], colors=[_AXIS_COLOURS[i % 3]])
+        path: rr.SeriesLines.from_fields(names=[label], colors=[paths.AXIS_COLOURS[i % 3]])
         for i, (path, label) in enumerate(series.items())
     }
     return rrb.TimeSeriesView(

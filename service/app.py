@@ -8,6 +8,7 @@ emits the last solutions and health, closes the recording (complete, readable) a
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import queue
@@ -37,6 +38,7 @@ from fednav.service.messages import (
     Truth,
     WireModel,
 )
+from fednav.service.transport import rerun_paths as paths
 
 log = logging.getLogger("fednav.service")
 
@@ -83,16 +85,13 @@ def _blueprint_plugin(pipelines: dict[str, str]):
     return None
 
 
-#: Colours of the x, y, z lines of the per-node alignment panels (the same in every panel).
-AXIS_COLOURS = (0xD62728FF, 0x2CA02CFF, 0x1F77B4FF)
-
-
+@functools.lru_cache(maxsize=256)
 def alignment_styles(node: str) -> dict[str, tuple[str, int]]:
     """Legend labels and colours of one node's error series (``alignment_error`` group): the
     error per axis in its axis colour, the +-3 sigma bounds in the same colour."""
     out = {}
     for quantity in ("misalignment", "flexure", "lever"):
-        for a, colour in zip("xyz", AXIS_COLOURS, strict=True):
+        for a, colour in zip("xyz", paths.AXIS_COLOURS, strict=True):
             key = f"{node}.{quantity}_{a}"
             out[key] = (f"{a} error", colour)
             out[key + "_p3s"] = (f"{a} +3σ", colour)

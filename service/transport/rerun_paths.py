@@ -130,6 +130,8 @@ STD_SCALARS = tuple(n.std for n in NAV_ERRORS)
 #: Errors of a solution against truth: position ENU (m), velocity ENU (m/s), attitude error angles
 #: about E/N/U (arcsec).
 ERROR_NAMES = tuple(n.recording for n in NAV_ERRORS)
+#: Line colours (RGBA) of x / y / z (east / north / up) where one panel shows the three axes.
+AXIS_COLOURS = (0xD62728FF, 0x2CA02CFF, 0x1F77B4FF)
 POSITION_ERRORS = ERROR_NAMES[0:3]
 VELOCITY_ERRORS = ERROR_NAMES[3:6]
 ATTITUDE_ERRORS = ERROR_NAMES[6:9]
