@@ -143,7 +143,11 @@ def test_service_takes_ros_input_through_the_intake(ros_run):
     assert h["rejected"].get("bad_cdr") == 2, h["rejected"]
     # everything else accepted: the intake delivers the three topics in header.stamp order
     assert h["accepted"] == (n_imu - 1) + n_fix, h["rejected"]
-    assert h["pipelines"]["lc"]["status"] == "aided" and h["pipelines"]["lc"]["updates"] >= 30
+    # aided while the data flowed; queried after the input stopped, the wall-clock stale rule (2 s
+    # without input) truthfully turns it to coasting when the machine is slow to go idle. Either
+    # means it was aided (a pipeline never aided is "unaided"); the diagnostics below show OK.
+    assert h["pipelines"]["lc"]["status"] in ("aided", "coasting"), h["pipelines"]["lc"]
+    assert h["pipelines"]["lc"]["updates"] >= 30
 
 
 def test_odometry_in_cdr_with_frames_covariance_and_rmw_attachment(ros_run):
