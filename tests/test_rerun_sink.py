@@ -485,3 +485,29 @@ def test_optimize_on_close_keeps_content(tmp_path):
     a.pop("file"), b.pop("file")
     assert a == b
     assert not list(tmp_path.glob("*.optimizing"))
+
+
+def test_stanford_tick_labels_are_short_and_do_not_crowd():
+    """Short labels (1cm .. 10km); every decade up to five decades, every other one beyond (and the
+    top one); the x axis starts one decade in, away from the y axis's lowest label."""
+    assert [paths._metres(d) for d in range(-2, 5)] == ["1cm", "10cm", "1m", "10m", "100m", "1km", "10km"]
+
+    def ticks(lo, hi):
+        _, _, (pos, texts, _) = paths.stanford_frame(lo, hi, None, None)
+        x = [t for p, t in zip(pos, texts, strict=True) if p[1] == -lo + 0.12]
+        y = [t for p, t in zip(pos, texts, strict=True) if p[0] == lo - 0.12]
+        return x, y
+
+    assert ticks(-1, 2) == (["1m", "10m", "100m"], ["10cm", "1m", "10m", "100m"])
+    x, y = ticks(-2, 4)  # six decades: every other one
+    assert y == ["1cm", "1m", "100m", "10km"] and x == ["1m", "100m", "10km"]
+
+
+def test_alignment_error_series_carry_axis_labels_and_colours():
+    from fednav.service.app import alignment_styles
+
+    s = alignment_styles("wing2")
+    assert len(s) == 27  # 3 quantities x 3 axes x (error, +3σ, -3σ)
+    assert s["wing2.lever_x"] == ("x error", paths.AXIS_COLOURS[0])
+    assert s["wing2.flexure_z_p3s"] == ("z +3σ", paths.AXIS_COLOURS[2])
+    assert s["wing2.misalignment_y_m3s"][1] == paths.AXIS_COLOURS[1]
