@@ -146,6 +146,14 @@ class Ros2Config(_Model):
         le=1.0,
         description="A NavSatFix and a Twist are one fix when their stamps differ by less",
     )
+    twist_wait_s: float = Field(
+        0.2,
+        gt=0.0,
+        le=1.0,
+        description="A NavSatFix of a receiver with a Twist topic waits at most this long (stamp time: the "
+        "newest header.stamp decoded) for its Twist, or until the receiver's next fix; then it goes on "
+        "position-only (counted fix_without_velocity). Keep it below [intake] late_tolerance_s",
+    )
     fix_std_m: float = Field(
         10.0,
         gt=0.0,
@@ -202,4 +210,9 @@ class Ros2Config(_Model):
                     "has it (a Twist is the velocity of a NavSatFix)"
                 )
         # a NavSatFix without a Twist topic is fine: it gives position-only GnssFix messages
+        if self.twist_wait_s < self.pair_tolerance_s:
+            raise ValueError(
+                f"twist_wait_s ({self.twist_wait_s}) is below pair_tolerance_s ({self.pair_tolerance_s}): a "
+                "fix would give up on a Twist that still pairs with it"
+            )
         return self

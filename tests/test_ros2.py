@@ -3,9 +3,9 @@ conventions, configuration errors."""
 
 from __future__ import annotations
 
-import json
 import math
 import struct
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -97,7 +97,85 @@ def test_ros_time_is_utc_and_converts_to_gps_seconds_with_leap_seconds():
     for t in (1_300_000_000.0, 1_300_000_000.123456789, 1_400_000_000.999999999):
         sec, ns = ros2.t_to_stamp(t)
         assert 0 <= ns < 1_000_000_000
-        assert abs(ros2.stamp_to_t(sec, ns) - t) < 1e-6
+        assert ros2.stamp_to_t(sec, ns) == t  # t -> stamp -> t is the identity for any float
+    # stamp -> t rounds once: the float nearest to the exact value
+    for sec, ns in ((1_732_512_345, 123_456_789), (1_483_228_800, 999_999_999), (1_900_000_000, 1)):
+        exact = Fraction(sec - 315_964_800 + 18) + Fraction(ns, 10**9)
+        t = ros2.stamp_to_t(sec, ns)
+        assert abs(Fraction(t) - exact) <= Fraction(math.ulp(t)) / 2
+
+
+def test_stamp_t_stamp_is_exact_for_microsecond_stamps_and_within_a_float_spacing_for_any():
+    """fednav's t is float64 GPS seconds: 2**-22 s (238 ns) apart at today's magnitudes, so only
+    stamps no finer than 1 us survive the float alone; t_to_stamp inverts stamp_to_t for them."""
+    rng = np.random.default_rng(5)
+    secs = rng.integers(1_300_000_000, 4_000_000_000 + 315_964_800 - 18, 20_000)
+    for sec, us in zip(secs, rng.integers(0, 1_000_000, secs.size), strict=True):
+        sec, ns = int(sec), int(us) * 1000
+        assert ros2.t_to_stamp(ros2.stamp_to_t(sec, ns)) == (sec, ns)
+        assert ros2.t_to_stamp(ros2.stamp_to_t(sec, ns, "gps"), "gps") == (sec, ns)
+    # a driver's 100 Hz stamps on a millisecond clock, and whole seconds: exact
+    for k in range(1000):
+        sec, ns = divmod(1_732_512_345_120_000_000 + k * 10_000_000, 10**9)
+        assert ros2.t_to_stamp(ros2.stamp_to_t(sec, ns)) == (sec, ns)
+    # nanosecond stamps: within one float spacing through the float alone (the exact stamp comes
+    # from the bridge's memory of what it decoded, next test)
+    worst = 0
+    for sec, ns in zip(secs, rng.integers(0, 10**9, secs.size), strict=True):
+        t = ros2.stamp_to_t(int(sec), int(ns))
+        s2, n2 = ros2.t_to_stamp(t)
+        worst = max(worst, abs((s2 - int(sec)) * 10**9 + n2 - int(ns)))
+        assert abs((s2 - int(sec)) * 10**9 + n2 - int(ns)) <= math.ulp(t) * 1e9
+    assert 100 < worst <= 477  # 238 ns until 2048, 477 ns until 2116: nanoseconds do not survive
+
+
+def test_outputs_carry_the_input_stamps_to_the_nanosecond():
+    """Real drivers stamp in integer ns (here 200 Hz and 100 Hz from 1732512345.123456789, and a
+    GNSS receiver off the IMU's grid): every output at a decoded sample's time carries that
+    sample's stamp exactly, in header.stamp of Odometry, NavSatFix, TF and DiagnosticArray."""
+    for period_ns in (5_000_000, 10_000_000):
+        c = cfg(imu_integration="rectangle", outputs={"tf": True})
+        rin, enc = ros2.RosInput(c), ros2.RosEncoder(c)
+        stamps = [1_732_512_345_123_456_789 + k * period_ns for k in range(400)]
+        ts = {}
+        for s in stamps:
+            msg = imu_msg(0.0, (0.0, 0.0, 0.01), (0.0, 0.0, 9.8))
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(s, 10**9)
+            for _, _, sample in rin.decode(IMU_KEY, cdr(msg)):
+                ts[sample.t] = s
+        assert len(ts) == len(stamps) - 1  # every stamp its own float: 5 ms >> 238 ns
+        fix = navsat_msg(0.0, 40.0, 118.0, 50.0)
+        fix.header.stamp.sec, fix.header.stamp.nanosec = divmod(stamps[200] + 3_141_593, 10**9)
+        only = ros2.RosInput(cfg(inputs=[{"topic": "/gnss/fix", "type": fix.__msgtype__, "sensor_id": "rx"}]))
+        [(_, _, g)] = only.decode(FIX_KEY, cdr(fix))
+        ts[g.t] = stamps[200] + 3_141_593  # another RosInput, another memory: the fallback below
+        P9 = np.eye(9) * 1e-2
+        for t, s in ts.items():
+            nav = _Nav(t, 40.0, 118.0, 50.0, (1.0, 2.0, 0.0), (0.0, 0.0, 10.0))
+            for m in (enc.odometry("lc", nav, P9), enc.navsatfix(nav, P9, "aided"), enc.tf("lc", nav)):
+                back = STORE.deserialize_cdr(enc.cdr(m), m.__msgtype__)
+                h = back.transforms[0].header if m.__msgtype__ == "tf2_msgs/msg/TFMessage" else back.header
+                got = h.stamp.sec * 10**9 + h.stamp.nanosec
+                if t == g.t:  # not decoded by enc's bridge: the float's stamp, within its spacing
+                    assert abs(got - s) <= math.ulp(t) * 1e9
+                else:
+                    assert got == s
+        assert enc.stamp(None) == (0, 0)
+        health = Health(
+            t=next(iter(ts)),
+            uptime_s=1.0,
+            received=1,
+            accepted=1,
+            rejected={},
+            pipelines={},
+            dropped_overload=0,
+            queue_depth=0,
+            latency_ms={"p50": 1.0, "p99": 1.0, "max": 1.0},
+        )
+        arr = STORE.deserialize_cdr(
+            enc.cdr(enc.diagnostics("v1", health)), "diagnostic_msgs/msg/DiagnosticArray"
+        )
+        assert arr.header.stamp.sec * 10**9 + arr.header.stamp.nanosec == ts[health.t]
 
 
 def test_key_formats_of_both_carriers():
@@ -157,10 +235,10 @@ def test_hand_laid_navsatfix_equals_rosbags_bytes_and_decodes_to_the_fields():
         "0/gnss/vel/geometry_msgs::msg::dds_::TwistWithCovarianceStamped_/h",
         cdr(twist_msg(T0_UNIX + 0.25, (1.0, 2.0, 0.5))),
     )
-    [(kind, sid, payload)] = out
-    fix = GnssFix.model_validate_json(payload)
+    [(kind, sid, fix)] = out
+    assert isinstance(fix, GnssFix)  # the wire model itself, validated: no JSON in between
     assert (kind, sid) == ("gnss_fix", "rx")
-    assert fix.t == pytest.approx(T0_UNIX + 0.25 - 315_964_800 + 18, abs=1e-6)
+    assert fix.t == (T0_UNIX - 315_964_800 + 18) + 0.25
     assert (fix.lat_deg, fix.lon_deg, fix.height_m) == (40.5, 118.25, 123.5)
     assert fix.pos_std_enu_m == (2.0, 3.0, 4.0)
     assert fix.vel_enu_mps == (1.0, 2.0, 0.5)
@@ -178,8 +256,8 @@ def test_imu_rates_in_flu_become_increments_in_rfu_over_the_stamp_interval():
     w0, a0 = (0.1, 0.2, 0.3), (1.0, -2.0, 9.8)
     w1, a1 = (0.3, 0.0, 0.1), (3.0, 0.0, 9.6)
     assert rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, w0, a0))) == []  # the first opens the interval
-    [(kind, sid, payload)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
-    s = ImuSample.model_validate_json(payload)
+    [(kind, sid, s)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
+    assert isinstance(s, ImuSample)
     assert (kind, sid) == ("imu", "main")
     assert s.dt_s == pytest.approx(0.01, abs=1e-9)
     w, a = 0.5 * (np.array(w0) + w1), 0.5 * (np.array(a0) + a1)  # trapezoid
@@ -193,24 +271,27 @@ def test_imu_rates_in_flu_become_increments_in_rfu_over_the_stamp_interval():
     with pytest.raises(ros2.RosDecodeError) as e:
         rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 5.0, w0, a0)))
     assert e.value.reason == "time_backwards"
-    [(_, _, payload)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 4.99, w1, a1)))
-    assert ImuSample.model_validate_json(payload).dt_s == pytest.approx(0.01, abs=1e-9)
+    [(_, _, s)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX - 4.99, w1, a1)))
+    assert s.dt_s == pytest.approx(0.01, abs=1e-9)
     rect = ros2.RosInput(cfg(imu_integration="rectangle"))
     rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, w0, a0)))
-    [(_, _, payload)] = rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
-    np.testing.assert_allclose(json.loads(payload)["dtheta_rad"], np.array([-w1[1], w1[0], w1[2]]) * 0.01)
+    [(_, _, s)] = rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, w1, a1)))
+    np.testing.assert_allclose(s.dtheta_rad, np.array([-w1[1], w1[0], w1[2]]) * 0.01)
 
 
 def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
     rin = ros2.RosInput(cfg())
     fix = cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov_type=0))
     assert rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 1.0, (0.0, 10.0, 0.0)))) == []
-    [(_, _, p)] = rin.decode(FIX_KEY, fix)
-    g = GnssFix.model_validate_json(p)
+    [(_, _, g)] = rin.decode(FIX_KEY, fix)
+    assert g.variant == "velocity" and g.vel_enu_mps == (0.0, 10.0, 0.0)
     assert g.pos_std_enu_m == (10.0, 10.0, 10.0)  # covariance UNKNOWN -> fix_std_m
-    # a Twist 0.5 s away is another epoch: no pair
+    # a Twist 0.5 s away is another epoch: no pair; its stamp moves the bridge's stamp time past
+    # the fix's wait (0.2 s), so the fix goes on position-only, counted, and the Twist waits
     assert rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 2.0, 40.0, 118.0, 50.0))) == []
-    assert rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 2.5, (0.0, 10.0, 0.0)))) == []
+    [(_, _, g)] = rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 2.5, (0.0, 10.0, 0.0))))
+    assert g.variant == "position" and g.t == ros2.stamp_to_t(T0_UNIX + 2, 0)
+    assert rin.counters == {"fix_without_velocity": 1, "twist_without_fix": 0}
     # NED velocity frame
     ned = ros2.RosInput(
         cfg(
@@ -226,11 +307,10 @@ def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
         )
     )
     ned.decode("0/fix/sensor_msgs::msg::dds_::NavSatFix_/h", fix)
-    [(_, _, p)] = ned.decode(
+    [(_, _, g)] = ned.decode(
         "0/vel/geometry_msgs::msg::dds_::TwistWithCovarianceStamped_/h",
         cdr(twist_msg(T0_UNIX + 1.0, (3.0, 4.0, 1.0))),
     )
-    g = GnssFix.model_validate_json(p)
     assert g.vel_enu_mps == (4.0, 3.0, -1.0)
     assert g.vel_std_enu_mps == pytest.approx((0.2, 0.1, 0.3))
 
@@ -243,21 +323,21 @@ def test_navsatfix_without_twist_topic_gives_position_only_fixes():
     assert config_mod.from_dict(ok).ros2.inputs[0].sensor_id == "rx"
     rin = ros2.RosInput(c)
     cov = np.diag([4.0, 9.0, 16.0]).ravel()
-    [(kind, sid, p)] = rin.decode(
+    [(kind, sid, g)] = rin.decode(
         FIX_KEY, cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov=cov, status=1))
     )
-    g = GnssFix.model_validate_json(p)
     assert (kind, sid) == ("gnss_fix", "rx") and g.variant == "position"
     assert g.vel_enu_mps is None and g.vel_std_enu_mps is None and g.speed_mps is None
     assert g.pos_std_enu_m == pytest.approx((2.0, 3.0, 4.0)) and g.fix_type == "sbas"
-    assert g.t == pytest.approx(ros2.stamp_to_t(T0_UNIX + 1, 0, "unix", 18), abs=1e-6)
+    assert g.t == ros2.stamp_to_t(T0_UNIX + 1, 0, "utc", 18)
+    assert rin.counters["fix_without_velocity"] == 0  # position-only by configuration: no note
     # the pure function: None twist -> position only; with a twist -> 3-D velocity
     fix = {"t": 1.0, "lat_deg": 1.0, "lon_deg": 2.0, "height_m": 3.0, "pos_std_enu_m": [1.0, 1.0, 2.0]}
-    assert GnssFix.model_validate_json(json.dumps(ros2.gnss_fix_from_ros(fix, None))).variant == "position"
+    assert ros2.gnss_fix_from_ros(fix, None).variant == "position"
     tw = {"t": 1.0, "vel_enu_mps": [1.0, 2.0, 0.1], "vel_std_enu_mps": [0.1, 0.1, 0.2]}
-    g3 = GnssFix.model_validate_json(json.dumps(ros2.gnss_fix_from_ros(fix, tw)))
+    g3 = ros2.gnss_fix_from_ros(fix, tw)
     assert g3.variant == "velocity" and g3.vel_enu_mps == (1.0, 2.0, 0.1)
-    # a receiver with a Twist topic still waits for its pair (no position-only fix in between)
+    # a receiver with a Twist topic waits for its pair (no position-only fix at once)
     assert ros2.RosInput(cfg()).decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0))) == []
 
 
@@ -274,16 +354,92 @@ def test_bad_cdr_and_no_fix_are_counted_rejections_not_exceptions():
     with pytest.raises(ros2.RosDecodeError) as e:
         rin.decode("0/other/x::msg::dds_::Y_/h", good)
     assert e.value.reason == "unknown_key"
-    # a non-finite rate passes the bridge and is refused by the wire model like JSON input
+    # the wire model refuses what it refuses in JSON, with the service's reasons, at decode
     rin.decode(IMU_KEY, good)
-    [(_, _, p)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (math.nan, 0, 0), (0, 0, 9.8))))
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (math.nan, 0, 0), (0, 0, 9.8))))
+    assert e.value.reason == "non_finite" and str(e.value).startswith("imu/main: ")
+    rect = ros2.RosInput(cfg(imu_integration="rectangle"))
+    rect.decode(IMU_KEY, good)
+    with pytest.raises(ros2.RosDecodeError) as e:  # 100 rad/s: above the plausibility limit
+        rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (100.0, 0, 0), (0, 0, 9.8))))
+    assert e.value.reason == "absurd_value"
+    with pytest.raises(ros2.RosDecodeError) as e:  # a 3 s interval: dt_s above 1 s
+        rect.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 3.01, (0, 0, 0), (0, 0, 9.8))))
+    assert e.value.reason == "out_of_range"
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX, 95.0, 118.0, 50.0)))
+    assert e.value.reason == "out_of_range" and "gnss_fix/rx" in str(e.value)
+    with pytest.raises(ros2.RosDecodeError) as e:  # 5 km/s: absurd, refused alone (its fix unharmed)
+        rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX, (5000.0, 0.0, 0.0))))
+    assert e.value.reason == "absurd_value"
+
+
+def test_a_fix_whose_twist_does_not_come_goes_on_position_only_and_is_counted():
+    rin = ros2.RosInput(cfg())
+    assert rin.cfg.twist_wait_s == 0.2
+    assert rin.counters == {"fix_without_velocity": 0, "twist_without_fix": 0}
+    rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, (0, 0, 0), (0, 0, 9.8))))
+    assert rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 0.005, 40.0, 118.0, 50.0))) == []
+    for k in range(1, 21):  # IMU stamps up to 0.2 s after the fix: it still waits
+        [(kind, _, _)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01 * k, (0, 0, 0), (0, 0, 9.8))))
+        assert kind == "imu"
+    # past the wait: the fix comes first (older), position-only, then the IMU sample
+    [(k1, s1, g), (k2, _, imu)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.21, (0, 0, 0), (0, 0, 9.8))))
+    assert (k1, s1, k2) == ("gnss_fix", "rx", "imu") and g.variant == "position" and g.t < imu.t
+    assert g.t == ros2.stamp_to_t(T0_UNIX, 5_000_000)
+    assert rin.counters["fix_without_velocity"] == 1
+    # its Twist arriving now finds no fix: it waits, and is dropped (counted) after the wait
+    assert rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 0.005, (1.0, 0.0, 0.0)))) == []
+    assert rin.counters["twist_without_fix"] == 1  # already 0.2 s behind the stamp time
+
+    # a 10 Hz receiver without Twists: each fix goes on when the next one arrives (0.1 s < wait)
+    rin = ros2.RosInput(cfg())
+    assert rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0))) == []
+    for k in range(1, 5):
+        [(_, _, g)] = rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 1.0 + 0.1 * k, 40.0, 118.0, 50.0)))
+        assert g.variant == "position" and g.t == ros2.stamp_to_t(T0_UNIX + 1, (k - 1) * 100_000_000)
+    assert rin.counters["fix_without_velocity"] == 4
+    assert [g.t for _, _, g in rin.flush()] == [ros2.stamp_to_t(T0_UNIX + 1, 400_000_000)]
+
+    # a bad Twist is refused alone; its fix still goes on (position-only after the wait)
+    rin = ros2.RosInput(cfg(twist_wait_s=0.5, imu_integration="rectangle"))
+    assert rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX + 2.0, 40.0, 118.0, 50.0))) == []
+    with pytest.raises(ros2.RosDecodeError) as e:
+        rin.decode(VEL_KEY, cdr(twist_msg(T0_UNIX + 2.0, (math.inf, 0.0, 0.0))))
+    assert e.value.reason == "non_finite"
+    rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 2.4, (0, 0, 0), (0, 0, 9.8))))
+    # a refused sample past the wait: the fix it released is kept for the next decode, not lost
+    with pytest.raises(ros2.RosDecodeError):
+        rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 2.6, (math.nan, 0, 0), (0, 0, 9.8))))
+    out = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 2.61, (0, 0, 0), (0, 0, 9.8))))
+    assert [k for k, _, _ in out] == ["gnss_fix", "imu"]
+    assert out[0][2].variant == "position" and rin.counters["fix_without_velocity"] == 1
+    with pytest.raises(config_mod.ConfigError, match="twist_wait_s"):
+        config_mod.from_dict({"vehicles": ["v1"], "ros2": cfg().model_dump() | {"twist_wait_s": 0.01}})
+
+
+def test_ros2_classify_is_the_services():
     from pydantic import ValidationError
 
     from fednav.service.app import classify
 
+    cases = [
+        {"t": 1.0, "dt_s": 0.01, "dtheta_rad": (math.nan, 0.0, 0.0), "dvel_mps": (0.0, 0.0, 0.0)},
+        {"t": 1.0, "dt_s": 0.01, "dtheta_rad": (9.0, 0.0, 0.0), "dvel_mps": (0.0, 0.0, 0.0)},
+        {"t": 1.0, "dt_s": 2.0, "dtheta_rad": (0.0, 0.0, 0.0), "dvel_mps": (0.0, 0.0, 0.0)},
+        {"t": 1.0, "dt_s": 0.01, "dtheta_rad": [0.0, 0.0, 0.0], "dvel_mps": (0.0, 0.0, 0.0)},
+    ]
+    reasons = []
+    for d in cases:
+        with pytest.raises(ValidationError) as v:
+            ImuSample.model_validate(d)
+        reasons.append(ros2.classify(v.value))
+        assert reasons[-1] == classify(v.value)
+    assert reasons == ["non_finite", "absurd_value", "out_of_range", "schema"]
     with pytest.raises(ValidationError) as v:
-        ImuSample.model_validate_json(p)
-    assert classify(v.value) == "non_finite"
+        ImuSample.model_validate_json(b"{")
+    assert ros2.classify(v.value) == classify(v.value) == "malformed_json"
 
 
 # --- outputs: conventions ---------------------------------------------------------------------------------
@@ -447,7 +603,7 @@ def test_rmw_zenoh_graph_tokens():
     assert toks[0] == "@ros2_lv/0/abc123/0/0/NN/%/%/nav"
     assert (
         toks[1] == "@ros2_lv/0/abc123/0/1/MP/%/%/nav/%fednav%lc%odometry/nav_msgs::msg::dds_::Odometry_/"
-        f"{h}/::,:,:,:,,"
+        f"{h}/::,10:,:,:,,"
     )
     assert toks[2].startswith(
         "@ros2_lv/0/abc123/0/2/MS/%/%/nav/%imu%data/sensor_msgs::msg::dds_::Imu_/RIHS01_"
@@ -457,6 +613,65 @@ def test_rmw_zenoh_graph_tokens():
 
         zenoh.KeyExpr(t)
         assert len(t.split("/")) in (9, 13)
+
+
+def test_xxh3_128_matches_the_reference_implementation():
+    # digests of the xxHash library (xxh3_128, seed 0) for every length class of the algorithm
+    ref = {
+        b"": "99aa06d3014798d86001c324468d497f",
+        b"a": "a96faf705af16834e6c632b61e964e1f",
+        b"abc": "06b05ab6733a618578af5f94892f3950",
+        b"abcd1234": "ea07bff96e7b492e32500856f68ba7c2",
+        b"0123456789abcdef": "ccba8085a0434e9e0befb4873dbe58f8",
+        b"x" * 100: "add9998d55ed3962e18dc405a95cc094",
+        b"y" * 200: "833cf59a501ae2a8661514be62296c9c",
+        b"z" * 1000: "66a9b2d587876ce7cd3a574700eddf41",
+    }
+    for data, hexdigest in ref.items():
+        lo, hi = ros2.xxh3_128(data)
+        assert format(hi << 64 | lo, "032x") == hexdigest, len(data)
+
+
+def test_each_publisher_has_the_gid_rmw_zenoh_derives_from_its_token():
+    c = cfg(node_name="nav")
+    pubs = [("/fednav/lc/odometry", "nav_msgs/msg/Odometry"), ("/fednav/lc/fix", "sensor_msgs/msg/NavSatFix")]
+    ents = ros2.graph_entities(c, "abc123", pubs, [("/imu/data", "sensor_msgs/msg/Imu")])
+    assert [(e.kind, e.entity_id) for e in ents] == [("NN", 0), ("MP", 1), ("MP", 2), ("MS", 3)]
+    # the GID of a token: XXH3-128 of the key expression, low then high 64 bits little-endian
+    # (value of the xxHash library for this token)
+    assert ents[1].gid.hex() == "f2466f86e422934b60d5db45be4350c5"
+    assert len({e.gid for e in ents}) == 4
+    sent = []
+    sink = ros2.RosSink(c, ["lc"], lambda k, p, a: sent.append((k, a)), gid=bytes(16))
+    # before any token: per-publisher GIDs derived from the base GID, topic and type
+    g_odo = sink.gid_of("/fednav/lc/odometry", "nav_msgs/msg/Odometry")
+    assert g_odo == ros2.derived_gid(bytes(16), "/fednav/lc/odometry", "nav_msgs/msg/Odometry")
+    assert g_odo != sink.gid_of("/fednav/lc/fix", "sensor_msgs/msg/NavSatFix") != bytes(16)
+    assert g_odo != ros2.derived_gid(bytes(range(16)), "/fednav/lc/odometry", "nav_msgs/msg/Odometry")
+    # the tokens the service declares for this configuration: the sink's attachments carry their GIDs
+    assert ros2.graph_tokens(c, "abc123", pubs, []) == [e.token for e in ents[:3]]
+    nav = _Nav(1_300_000_000.5, 40.0, 118.0, 10.0, (0.0, 20.0, 0.0), (0.0, 0.0, 0.0))
+    sink._send("/fednav/lc/odometry", sink.enc.odometry("lc", nav, np.eye(9)))
+    sink._send("/fednav/lc/fix", sink.enc.navsatfix(nav, np.eye(9), "aided"))
+    sink._send("/fednav/lc/odometry", sink.enc.odometry("lc", nav, np.eye(9)))
+    gids = [a[17:] for _, a in sent]
+    assert gids == [ents[1].gid, ents[2].gid, ents[1].gid]
+    assert [struct.unpack_from("<q", a)[0] for _, a in sent] == [1, 1, 2]  # sequence per publisher
+    # another configuration object (another service) keeps its own
+    assert ros2.RosSink(cfg(node_name="nav"), ["lc"], None, bytes(16)).gid_of(*pubs[0]) == g_odo
+
+
+def test_qos_chunk_as_rmw_zenoh_writes_it():
+    # fields equal to rmw_zenoh's defaults (reliable, volatile, keep last, depth 42) are empty
+    assert ros2.qos_keyexpr(depth=42) == "::,:,:,:,,"
+    assert ros2.QOS_CHUNK == ros2.qos_keyexpr() == "::,10:,:,:,,"  # ROS 2's default profile: keep last 10
+    assert ros2.qos_keyexpr(ros2.QOS_BEST_EFFORT, ros2.QOS_TRANSIENT_LOCAL, ros2.QOS_KEEP_ALL, 5) == (
+        "2:1:2,5:,:,:,,"
+    )
+    # what rmw_zenoh's keyexpr_to_qos splits: 6 ':' parts; history 2, deadline 2, lifespan 2 and
+    # liveliness 3 ',' parts
+    parts = ros2.QOS_CHUNK.split(":")
+    assert [len(p.split(",")) for p in parts] == [1, 1, 2, 2, 2, 3]
 
 
 # --- configuration ------------------------------------------------------------------------------------------

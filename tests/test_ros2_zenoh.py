@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import signal
+import struct
 import threading
 import time
 from pathlib import Path
@@ -231,8 +232,31 @@ def test_recording_reads_back(ros_run):
     assert any(p.startswith("/v1/lc/solution") for p in data), sorted(data)[:20]
 
 
+def test_output_stamps_are_the_input_imu_stamps(ros_run):
+    imu_stamps = {struct.unpack_from("<iI", p, 4) for k, p, _ in ros_run["samples"] if "/imu/" in k}
+    for prefix, msgtype in (
+        ("0/fednav/lc/odometry/", "nav_msgs/msg/Odometry"),
+        ("0/fednav/lc/fix/", "sensor_msgs/msg/NavSatFix"),
+    ):
+        out = _decode(ros_run["items"], prefix, msgtype)
+        assert out and all((m.header.stamp.sec, m.header.stamp.nanosec) in imu_stamps for _, m, _ in out)
+
+
+def test_each_publisher_attaches_the_gid_of_its_graph_token(ros_run):
+    from fednav.service.transport import ros2
+
+    toks = [t for t in ros_run["tokens"] if t.split("/")[5] == "MP"]
+    gid_of = {t.split("/")[9]: ros2.entity_gid(t) for t in toks}
+    assert len(set(gid_of.values())) == len(toks) == 4
+    for topic, prefix in (("%fednav%lc%odometry", "0/fednav/lc/odometry/"), ("%tf", "0/tf/")):
+        atts = {a[17:] for k, _, a in ros_run["items"] if k.startswith(prefix)}
+        assert atts == {gid_of[topic]}, topic
+
+
 def test_rmw_zenoh_graph_tokens_declared(ros_run):
     toks = ros_run["tokens"]
+    # rmw_zenoh's QoS chunk: reliable, volatile, keep last 10 (depth 42, rmw_zenoh's default, is empty)
+    assert all(t.endswith("/::,10:,:,:,,") for t in toks if t.split("/")[5] != "NN"), toks
     kinds = sorted(t.split("/")[5] for t in toks)
     # one node; publishers: odometry, fix, tf, diagnostics; subscriptions: the three inputs
     assert kinds == ["MP"] * 4 + ["MS"] * 3 + ["NN"], toks

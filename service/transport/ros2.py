@@ -17,23 +17,29 @@ right-forward-up (RFU): ``v_rfu = FLU_TO_RFU @ v_flu``. World frames are ENU in 
 leap_seconds``. An Imu message carries rates; fednav's ImuSample carries increments over the interval
 since the previous sample: the first Imu of a stream only opens the interval.
 
-Decoding produces the same JSON wire messages a fednav publisher sends; the service hands them to
-the same intake path (validation, acceptance rules, counters). CDR that does not decode is a counted
-rejection (``bad_cdr``), never an exception out of :meth:`RosInput.decode`.
+Decoding builds the fednav wire models (ImuSample, GnssFix) straight from the CDR values, validated
+by the models as any JSON input is (no JSON in between); the service hands them to the same intake
+path (acceptance rules, counters). CDR that does not decode (``bad_cdr``) and values the models
+refuse (``non_finite``, ``absurd_value``, ``out_of_range``, ``schema``, as the service's own
+classification) are counted rejections, never an exception out of :meth:`RosInput.decode` other
+than :class:`RosDecodeError`.
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import math
 import struct
+import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import ValidationError
 
 from fednav.service import earth
+from fednav.service.messages import GnssFix, ImuSample, WireModel
 from fednav.service.ros2_config import Ros2Config, Ros2Input
 
 INSTALL_HINT = "the ROS 2 bridge needs rosbags: install fednav[ros] (pip install -e '.[ros]')"
@@ -49,6 +55,12 @@ UNKNOWN_VARIANCE = 1.0e6
 PAIR_BUFFER = 16
 #: rmw_zenoh's GID storage (RMW_GID_STORAGE_SIZE since Jazzy)
 GID_SIZE = 16
+#: decoded samples whose exact header.stamp the bridge remembers for its outputs (per bridge)
+STAMP_MEMORY = 1 << 14
+#: what RosInput.counters counts (notes, not rejections: the messages still go on):
+#: a NavSatFix sent position-only because its Twist did not come within ``twist_wait_s``, and a
+#: Twist dropped because no NavSatFix of its epoch came
+COUNTER_NAMES = ("fix_without_velocity", "twist_without_fix")
 
 TYPES_OUT = {
     "odometry": "nav_msgs/msg/Odometry",
@@ -56,6 +68,8 @@ TYPES_OUT = {
     "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
     "tf": "tf2_msgs/msg/TFMessage",
 }
+
+_NS = 1_000_000_000
 
 
 class RosUnavailable(RuntimeError):
@@ -66,6 +80,33 @@ class RosDecodeError(ValueError):
     def __init__(self, reason: str, text: str):
         super().__init__(text)
         self.reason = reason
+
+
+_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
+
+
+def classify(err: ValidationError) -> str:
+    """Rejection reason of a pydantic validation error, as the service counts it (the same rules as
+    the service's own ``classify``, repeated here: the bridge imports nothing from the app)."""
+    types = {e["type"] for e in err.errors()}
+    if "json_invalid" in types or "json_type" in types:
+        return "malformed_json"
+    if "finite_number" in types:
+        return "non_finite"
+    if "value_error" in types:
+        return "absurd_value"
+    if types & _RANGE_ERRORS:
+        return "out_of_range"
+    return "schema"
+
+
+def _wire(model: type[WireModel], data: dict, what: str) -> WireModel:
+    """A wire model built (and validated) from decoded values; a refusal is a RosDecodeError with
+    the reason the service gives the same message in JSON."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise RosDecodeError(classify(err), f"{what}: {err.errors()[0]['msg']}") from None
 
 
 @functools.cache
@@ -79,20 +120,113 @@ def typestore(distro: str = "jazzy"):
 
 
 # --- time -------------------------------------------------------------------------------------------
+# fednav's time is float64 seconds of GPS time (~1.4e9 s): its resolution there is 2**-22 s
+# (238 ns) until 2048, so a nanosecond stamp does not survive a float in general. Two things make
+# output stamps exact: the conversion stamp -> t rounds once (to the nearest float), and t -> stamp
+# inverts it, returning the coarsest decimal stamp (1 s, 0.1 s, ... 1 ns) that converts back to t
+# (exact for stamps of microsecond resolution); and the bridge remembers the exact stamp of every
+# sample it decoded (:class:`StampMemory`), so outputs at an input's time carry its stamp to the ns.
+def _offset_ns(base: str, leap_seconds: int) -> int:
+    """header.stamp minus fednav time, ns: 0 for GPS stamps, (unix - GPS) for UTC (ROS time)."""
+    return 0 if base == "gps" else (GPS_EPOCH_UNIX_S - leap_seconds) * _NS
+
+
+def _round_div(a: int, b: int) -> int:
+    """a / b (b > 0) rounded to the nearest integer, ties to even."""
+    q, r = divmod(a, b)
+    if 2 * r > b or (2 * r == b and q & 1):
+        q += 1
+    return q
+
+
+def stamp_ns_to_t(stamp_ns: int, base: str = "utc", leap_seconds: int = 18) -> float:
+    """header.stamp as integer ns -> fednav sensor time (GPS seconds): the float nearest to the exact
+    value (one rounding: an integer division)."""
+    return (stamp_ns - _offset_ns(base, leap_seconds)) / _NS
+
+
 def stamp_to_t(sec: int, nanosec: int, base: str = "utc", leap_seconds: int = 18) -> float:
     """header.stamp -> fednav sensor time (GPS seconds)."""
-    unix = sec + nanosec * 1e-9
-    return unix if base == "gps" else unix - GPS_EPOCH_UNIX_S + leap_seconds
+    return stamp_ns_to_t(sec * _NS + nanosec, base, leap_seconds)
+
+
+_STEPS = tuple(10**k for k in range(9, -1, -1))
+
+
+def t_to_stamp_ns(t: float, base: str = "utc", leap_seconds: int = 18) -> int:
+    """fednav sensor time -> header.stamp in ns, the inverse of :func:`stamp_ns_to_t`: of the stamps
+    that convert to ``t``, the one of coarsest decimal resolution (1 s, 0.1 s, ..., 1 ns), found like
+    the shortest decimal that reads back as a float; else the nearest ns to ``t``'s exact value. A
+    stamp of 1 us resolution comes back exactly while the float spacing is below 1 us (GPS time
+    below 2**32 s, year 2116); a finer one within one float spacing (238 ns until 2048)."""
+    num, den = float(t).as_integer_ratio()
+    off = _offset_ns(base, leap_seconds)
+    for step in _STEPS:
+        cand = _round_div(num * _NS, den * step) * step
+        if cand / _NS == t:
+            return cand + off
+    return _round_div(num * _NS, den) + off
 
 
 def t_to_stamp(t: float, base: str = "utc", leap_seconds: int = 18) -> tuple[int, int]:
-    """fednav sensor time (GPS seconds) -> header.stamp (sec, nanosec), rounded to the nanosecond."""
-    unix = t if base == "gps" else t + GPS_EPOCH_UNIX_S - leap_seconds
-    sec = math.floor(unix)
-    ns = round((unix - sec) * 1e9)
-    if ns >= 1_000_000_000:
-        sec, ns = sec + 1, ns - 1_000_000_000
+    """fednav sensor time (GPS seconds) -> header.stamp (sec, nanosec): :func:`t_to_stamp_ns` split."""
+    sec, ns = divmod(t_to_stamp_ns(t, base, leap_seconds), _NS)
     return int(sec), int(ns)
+
+
+class StampMemory:
+    """fednav time -> the exact header.stamp (ns) a decoded sample had, for the last ``size`` samples
+    (written by the input thread, read by the output sink's). An output at an input's time gets that
+    input's stamp to the nanosecond; any other time falls back to :func:`t_to_stamp_ns`."""
+
+    def __init__(self, size: int = STAMP_MEMORY):
+        self.size = size
+        self._d: dict[float, int] = {}
+        self._lock = threading.Lock()
+
+    def remember(self, t: float, stamp_ns: int, *, replace: bool = True) -> None:
+        """``replace`` False: keep a stamp already remembered for ``t`` (IMU stamps win over fixes':
+        the outputs are at IMU times)."""
+        with self._lock:
+            if t in self._d:
+                if not replace:
+                    return
+                del self._d[t]
+            self._d[t] = stamp_ns
+            if len(self._d) > self.size:
+                del self._d[next(iter(self._d))]
+
+    def stamp_ns(self, t: float) -> int | None:
+        with self._lock:
+            return self._d.get(t)
+
+
+@dataclass
+class BridgeState:
+    """What the bridge's input side, output side and graph tokens share for one ``[ros2]``
+    configuration (the service builds RosInput, RosSink and the tokens from the same object):
+    the exact input stamps and the GIDs of the declared graph entities."""
+
+    cfg: Ros2Config
+    stamps: StampMemory = field(default_factory=StampMemory)
+    #: (MP or MS, topic, message type) -> GID of the entity's graph token
+    gids: dict[tuple[str, str, str], bytes] = field(default_factory=dict)
+
+
+_STATES: dict[int, BridgeState] = {}
+_STATES_LOCK = threading.Lock()
+_MAX_STATES = 64
+
+
+def bridge_state(cfg: Ros2Config) -> BridgeState:
+    """The shared state of ``cfg`` (this very object: keyed by identity, the entry holds it)."""
+    with _STATES_LOCK:
+        st = _STATES.get(id(cfg))
+        if st is None or st.cfg is not cfg:
+            st = _STATES[id(cfg)] = BridgeState(cfg)
+            while len(_STATES) > _MAX_STATES:
+                del _STATES[next(iter(_STATES))]
+        return st
 
 
 # --- keys -------------------------------------------------------------------------------------------
@@ -153,30 +287,274 @@ def rmw_attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes, k
     return seq + ts + g
 
 
-# --- rmw_zenoh graph (liveliness) tokens -----------------------------------------------------------------
-#: QoS chunk of a token for rmw_zenoh's default profile (reliable, volatile, keep last 10): every
-#: field equal to the default is left empty
-DEFAULT_QOS_CHUNK = "::,:,:,:,,"
+# --- rmw_zenoh graph (liveliness) tokens and GIDs ----------------------------------------------------------
+#: QoS enum values of rmw/types.h used in the tokens
+QOS_RELIABLE, QOS_BEST_EFFORT = 1, 2
+QOS_TRANSIENT_LOCAL, QOS_VOLATILE = 1, 2
+QOS_KEEP_LAST, QOS_KEEP_ALL = 1, 2
+#: rmw_zenoh's default profile (rmw_zenoh_cpp/src/detail/qos.cpp): reliable, volatile, keep last,
+#: depth 42; deadline, lifespan and liveliness lease infinite, liveliness automatic
+RMW_ZENOH_DEFAULT_QOS = {
+    "reliability": QOS_RELIABLE,
+    "durability": QOS_VOLATILE,
+    "history": QOS_KEEP_LAST,
+    "depth": 42,
+}
+#: depth the bridge declares for its publishers and subscriptions: 10, the depth of ROS 2's default
+#: profile (rmw_qos_profile_default: reliable, volatile, keep last 10)
+QOS_DEPTH = 10
+
+
+def qos_keyexpr(
+    reliability: int = QOS_RELIABLE,
+    durability: int = QOS_VOLATILE,
+    history: int = QOS_KEEP_LAST,
+    depth: int = QOS_DEPTH,
+) -> str:
+    """The QoS chunk of a token as rmw_zenoh's ``qos_to_keyexpr`` writes it:
+    ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,
+    <lease s>,<lease ns>`` (rmw/types.h enum values), each field left empty when it equals rmw_zenoh's
+    default (:data:`RMW_ZENOH_DEFAULT_QOS`). Deadline, lifespan and liveliness are the defaults here
+    (empty). Reliable, volatile, keep last 10 -> ``::,10:,:,:,,``; ``::,:,:,:,,`` would be depth 42."""
+    d = RMW_ZENOH_DEFAULT_QOS
+
+    def f(name: str, v: int) -> str:
+        return "" if v == d[name] else str(v)
+
+    return (
+        f"{f('reliability', reliability)}:{f('durability', durability)}:"
+        f"{f('history', history)},{f('depth', depth)}:,:,:,,"
+    )
+
+
+#: the QoS chunk of the bridge's tokens (reliable, volatile, keep last 10)
+QOS_CHUNK = qos_keyexpr()
+
+
+# --- XXH3-128 (rmw_zenoh's entity GIDs) --------------------------------------------------------------------
+# rmw_zenoh hashes each entity's liveliness key expression with XXH3-128 (its
+# simplified_xxhash3.cpp: the portable xxHash 0.8 code, default secret, seed 0) and stores
+# low64 then high64, each in host (little-endian) order, as the entity's 16-byte GID. The port
+# below follows that code path by path; tests check it against the reference implementation.
+_M64 = (1 << 64) - 1
+_P32_1, _P32_2, _P32_3 = 0x9E3779B1, 0x85EBCA77, 0xC2B2AE3D
+_P64_1, _P64_2, _P64_3 = 0x9E3779B185EBCA87, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9
+_P64_4, _P64_5 = 0x85EBCA77C2B2AE63, 0x27D4EB2F165667C5
+_PRIME_MX1, _PRIME_MX2 = 0x165667919E3779F9, 0x9FB21C651E98DF25
+_SECRET = bytes.fromhex(
+    "b8fe6c3923a44bbe7c01812cf721ad1cded46de9839097db7240a4a4b7b3671f"
+    "cb79e64eccc0e578825ad07dccff7221b8084674f743248ee03590e6813a264c"
+    "3c2852bb91c300cb88d0658b1b532ea371644897a20df94e3819ef46a9deacd8"
+    "a8fa763fe39c343ff9dcbbc7c70b4f1d8a51e04bcdb45931c89f7ec9d9787364"
+    "eac5ac8334d3ebc3c581a0fffa1363eb170ddd51b7f0da49d316552629d4689e"
+    "2b16be587d47a1fc8ff8b8d17ad031ce45cb3a8f95160428afd7fbcabb4b407e"
+)
+
+
+def _r64(b: bytes, i: int) -> int:
+    return int.from_bytes(b[i : i + 8], "little")
+
+
+def _r32(b: bytes, i: int) -> int:
+    return int.from_bytes(b[i : i + 4], "little")
+
+
+def _fold64(a: int, b: int) -> int:
+    p = a * b
+    return (p & _M64) ^ (p >> 64)
+
+
+def _avalanche(h: int) -> int:
+    h ^= h >> 37
+    h = (h * _PRIME_MX1) & _M64
+    return h ^ (h >> 32)
+
+
+def _avalanche64(h: int) -> int:
+    h ^= h >> 33
+    h = (h * _P64_2) & _M64
+    h ^= h >> 29
+    h = (h * _P64_3) & _M64
+    return h ^ (h >> 32)
+
+
+def _mix16(d: bytes, i: int, s: int) -> int:
+    return _fold64(_r64(d, i) ^ _r64(_SECRET, s), _r64(d, i + 8) ^ _r64(_SECRET, s + 8))
+
+
+def _mix32(lo: int, hi: int, d: bytes, i1: int, i2: int, s: int) -> tuple[int, int]:
+    lo = (lo + _mix16(d, i1, s)) & _M64
+    lo ^= (_r64(d, i2) + _r64(d, i2 + 8)) & _M64
+    hi = (hi + _mix16(d, i2, s + 16)) & _M64
+    hi ^= (_r64(d, i1) + _r64(d, i1 + 8)) & _M64
+    return lo, hi
+
+
+def _xxh3_mid_end(lo: int, hi: int, n: int) -> tuple[int, int]:
+    h_lo = (lo + hi) & _M64
+    h_hi = (lo * _P64_1 + hi * _P64_4 + n * _P64_2) & _M64
+    return _avalanche(h_lo), (-_avalanche(h_hi)) & _M64
+
+
+def _xxh3_long(d: bytes) -> tuple[int, int]:
+    n = len(d)
+    acc = [_P32_3, _P64_1, _P64_2, _P64_3, _P64_4, _P32_2, _P64_5, _P32_1]
+
+    def stripe(i: int, s: int) -> None:
+        for lane in range(8):
+            v = _r64(d, i + 8 * lane)
+            k = v ^ _r64(_SECRET, s + 8 * lane)
+            acc[lane ^ 1] = (acc[lane ^ 1] + v) & _M64
+            acc[lane] = (acc[lane] + (k & 0xFFFFFFFF) * (k >> 32)) & _M64
+
+    per_block = (len(_SECRET) - 64) // 8
+    block = 64 * per_block
+    blocks = (n - 1) // block
+    for b in range(blocks):
+        for j in range(per_block):
+            stripe(b * block + 64 * j, 8 * j)
+        for lane in range(8):
+            a = acc[lane]
+            a ^= a >> 47
+            a ^= _r64(_SECRET, len(_SECRET) - 64 + 8 * lane)
+            acc[lane] = (a * _P32_1) & _M64
+    for j in range(((n - 1) - block * blocks) // 64):
+        stripe(blocks * block + 64 * j, 8 * j)
+    stripe(n - 64, len(_SECRET) - 64 - 7)
+
+    def merge(s: int, start: int) -> int:
+        r = start
+        for i in range(4):
+            k = s + 16 * i
+            r += _fold64(acc[2 * i] ^ _r64(_SECRET, k), acc[2 * i + 1] ^ _r64(_SECRET, k + 8))
+        return _avalanche(r & _M64)
+
+    return merge(11, (n * _P64_1) & _M64), merge(len(_SECRET) - 64 - 11, ~(n * _P64_2) & _M64)
+
+
+def xxh3_128(data: bytes) -> tuple[int, int]:
+    """XXH3-128 of ``data`` (seed 0, default secret) as (low64, high64)."""
+    d, n = bytes(data), len(data)
+    if n == 0:
+        return (
+            _avalanche64(_r64(_SECRET, 64) ^ _r64(_SECRET, 72)),
+            _avalanche64(_r64(_SECRET, 80) ^ _r64(_SECRET, 88)),
+        )
+    if n <= 3:
+        lo32 = (d[0] << 16) | (d[n >> 1] << 24) | d[n - 1] | (n << 8)
+        sw = int.from_bytes(lo32.to_bytes(4, "little"), "big")
+        hi32 = ((sw << 13) | (sw >> 19)) & 0xFFFFFFFF
+        return (
+            _avalanche64(lo32 ^ (_r32(_SECRET, 0) ^ _r32(_SECRET, 4))),
+            _avalanche64(hi32 ^ (_r32(_SECRET, 8) ^ _r32(_SECRET, 12))),
+        )
+    if n <= 8:
+        keyed = (_r32(d, 0) + (_r32(d, n - 4) << 32)) ^ (_r64(_SECRET, 16) ^ _r64(_SECRET, 24))
+        p = keyed * ((_P64_1 + (n << 2)) & _M64)
+        lo, hi = p & _M64, p >> 64
+        hi = (hi + (lo << 1)) & _M64
+        lo ^= hi >> 3
+        lo ^= lo >> 35
+        lo = (lo * _PRIME_MX2) & _M64
+        lo ^= lo >> 28
+        return lo, _avalanche(hi)
+    if n <= 16:
+        in_lo, in_hi = _r64(d, 0), _r64(d, n - 8)
+        p = (in_lo ^ in_hi ^ (_r64(_SECRET, 32) ^ _r64(_SECRET, 40))) * _P64_1
+        m_lo, m_hi = (p & _M64) + ((n - 1) << 54), p >> 64
+        m_lo &= _M64
+        in_hi ^= _r64(_SECRET, 48) ^ _r64(_SECRET, 56)
+        m_hi = (m_hi + in_hi + (in_hi & 0xFFFFFFFF) * (_P32_2 - 1)) & _M64
+        m_lo ^= int.from_bytes(m_hi.to_bytes(8, "little"), "big")
+        p = m_lo * _P64_2
+        h_lo, h_hi = p & _M64, ((p >> 64) + m_hi * _P64_2) & _M64
+        return _avalanche(h_lo), _avalanche(h_hi)
+    if n <= 128:
+        lo, hi = (n * _P64_1) & _M64, 0
+        if n > 32:
+            if n > 64:
+                if n > 96:
+                    lo, hi = _mix32(lo, hi, d, 48, n - 64, 96)
+                lo, hi = _mix32(lo, hi, d, 32, n - 48, 64)
+            lo, hi = _mix32(lo, hi, d, 16, n - 32, 32)
+        lo, hi = _mix32(lo, hi, d, 0, n - 16, 0)
+        return _xxh3_mid_end(lo, hi, n)
+    if n <= 240:
+        lo, hi = (n * _P64_1) & _M64, 0
+        for i in range(32, 160, 32):
+            lo, hi = _mix32(lo, hi, d, i - 32, i - 16, i - 32)
+        lo, hi = _avalanche(lo), _avalanche(hi)
+        for i in range(160, n + 1, 32):
+            lo, hi = _mix32(lo, hi, d, i - 32, i - 16, 3 + i - 160)
+        lo, hi = _mix32(lo, hi, d, n - 16, n - 32, 136 - 17 - 16)
+        return _xxh3_mid_end(lo, hi, n)
+    return _xxh3_long(d)
+
+
+def entity_gid(token: str) -> bytes:
+    """An entity's GID as rmw_zenoh computes it (liveliness_utils.cpp, ``Entity::Entity``): XXH3-128
+    of the entity's liveliness key expression, low 64 bits then high 64 bits, little-endian."""
+    lo, hi = xxh3_128(token.encode())
+    return lo.to_bytes(8, "little") + hi.to_bytes(8, "little")
+
+
+def derived_gid(base_gid: bytes, topic: str, msgtype: str) -> bytes:
+    """A publisher's GID when no graph token names it (``liveliness = false``, or no token declared
+    for that topic): XXH3-128 (as :func:`entity_gid`) of ``<base gid hex>/<topic>/<dds type name>``,
+    so each publisher has its own, stable for a session."""
+    return entity_gid(f"{base_gid.hex()}/{'/' + topic.lstrip('/')}/{dds_type_name(msgtype)}")
 
 
 def _mangle(name: str) -> str:
     return name.replace("/", "%")
 
 
-def graph_tokens(cfg: Ros2Config, zid: str, publishers, subscriptions) -> list[str]:
-    """rmw_zenoh liveliness tokens of the bridge: one node (NN), one per publisher (MP) and per
-    subscription (MS), ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/
-    <node>[/<topic>/<type>/<type hash>/<qos>]`` with '/' inside names written '%' (rmw_zenoh's
-    liveliness_utils). ``publishers``/``subscriptions``: (topic, message type) pairs."""
+@dataclass(frozen=True)
+class GraphEntity:
+    """One rmw_zenoh graph entity of the bridge: its kind (NN node, MP publisher, MS subscription),
+    entity id, topic and type (None for the node), liveliness token and GID."""
+
+    kind: str
+    entity_id: int
+    topic: str | None
+    msgtype: str | None
+    token: str
+
+    @property
+    def gid(self) -> bytes:
+        return entity_gid(self.token)
+
+
+def graph_entities(cfg: Ros2Config, zid: str, publishers, subscriptions) -> list[GraphEntity]:
+    """The bridge's graph entities as rmw_zenoh declares them: one node (NN, entity id 0), then one
+    per publisher (MP) and per subscription (MS), ids 1, 2, ... in that order (rmw_zenoh numbers a
+    context's node and entities from one counter); tokens
+    ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/<node>[/<topic>/
+    <type>/<type hash>/<qos>]`` with '/' inside names written '%' (liveliness_utils.cpp), enclave
+    and namespace '/', the QoS chunk :data:`QOS_CHUNK`. ``publishers``/``subscriptions``: (topic,
+    message type) pairs."""
     base = f"@ros2_lv/{cfg.domain_id}/{zid}/0"
     node = f"%/%/{cfg.node_name}"
-    out = [f"{base}/0/NN/{node}"]
+    out = [GraphEntity("NN", 0, None, None, f"{base}/0/NN/{node}")]
     entities = [("MP", t, m) for t, m in publishers] + [("MS", t, m) for t, m in subscriptions]
     for n, (kind, topic, msgtype) in enumerate(entities, start=1):
         t = "/" + topic.lstrip("/")
         h = type_hash(msgtype, cfg.distro)
-        out.append(f"{base}/{n}/{kind}/{node}/{_mangle(t)}/{dds_type_name(msgtype)}/{h}/{DEFAULT_QOS_CHUNK}")
+        token = f"{base}/{n}/{kind}/{node}/{_mangle(t)}/{dds_type_name(msgtype)}/{h}/{QOS_CHUNK}"
+        out.append(GraphEntity(kind, n, t, msgtype, token))
     return out
+
+
+def graph_tokens(cfg: Ros2Config, zid: str, publishers, subscriptions) -> list[str]:
+    """The liveliness tokens of :func:`graph_entities`. Their GIDs are recorded for ``cfg``
+    (:func:`bridge_state`): the :class:`RosSink` of the same configuration puts each publisher's
+    GID in its samples' attachment, so a ROS 2 node can match ``publisher_gid`` to the graph."""
+    ents = graph_entities(cfg, zid, publishers, subscriptions)
+    gids = bridge_state(cfg).gids
+    for e in ents:
+        if e.topic is not None:
+            gids[(e.kind, e.topic, e.msgtype)] = e.gid
+    return [e.token for e in ents]
 
 
 def header_stamp_s(payload: bytes) -> float:
@@ -190,17 +568,22 @@ def header_stamp_s(payload: bytes) -> float:
 
 
 # --- conversions in ------------------------------------------------------------------------------------
-def _diag_std(cov, idx: tuple[int, int, int], default: float) -> list[float]:
+def _diag_std(cov, idx: tuple[int, int, int], default: float) -> tuple[float, float, float]:
     """1-sigma from covariance diagonal entries; a non-positive or non-finite one -> default."""
     out = []
     for i in idx:
         v = float(cov[i])
         out.append(math.sqrt(v) if math.isfinite(v) and v > 0.0 else default)
-    return out
+    return (out[0], out[1], out[2])
 
 
-def gnss_fix_from_ros(fix: dict, twist: dict | None) -> dict | None:
-    """The one place a NavSatFix (and the Twist paired with it) becomes a fednav GnssFix (JSON dict).
+def _vec3(v) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def gnss_fix_from_ros(fix: dict, twist: dict | None) -> GnssFix:
+    """The one place a NavSatFix (and the Twist paired with it) becomes a fednav GnssFix, built and
+    validated by the wire model (a refusal raises pydantic's ValidationError).
 
     ``fix``: t, lat_deg, lon_deg, height_m, pos_std_enu_m (optional fix_type, constellation);
     ``twist``: t, vel_enu_mps, vel_std_enu_mps. With a Twist: the 3-D velocity variant; without
@@ -211,14 +594,14 @@ def gnss_fix_from_ros(fix: dict, twist: dict | None) -> dict | None:
         "lat_deg": fix["lat_deg"],
         "lon_deg": fix["lon_deg"],
         "height_m": fix["height_m"],
-        "pos_std_enu_m": fix["pos_std_enu_m"],
+        "pos_std_enu_m": _vec3(fix["pos_std_enu_m"]),
         "fix_type": fix.get("fix_type", "single"),
         "constellation": fix.get("constellation", "GPS"),
     }
     if twist is not None:
-        out["vel_enu_mps"] = twist["vel_enu_mps"]
-        out["vel_std_enu_mps"] = twist["vel_std_enu_mps"]
-    return out
+        out["vel_enu_mps"] = _vec3(twist["vel_enu_mps"])
+        out["vel_std_enu_mps"] = _vec3(twist["vel_std_enu_mps"])
+    return GnssFix.model_validate(out)
 
 
 _SERVICE_CONSTELLATION = {1: "GPS", 2: "GLO", 4: "BDS", 8: "GAL"}
@@ -234,23 +617,52 @@ class _ImuState:
 
 
 @dataclass
+class _WaitingFix:
+    stamp_ns: int
+    fix: dict  # gnss_fix_from_ros's ``fix``
+    position: GnssFix  # the position-only fix, already validated
+
+
+@dataclass
+class _WaitingTwist:
+    stamp_ns: int
+    twist: dict  # gnss_fix_from_ros's ``twist`` (its velocity already validated)
+
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * _NS + int(header.stamp.nanosec)
+
+
+@dataclass
 class RosInput:
-    """Decodes ROS 2 samples of the configured topics into fednav wire messages (JSON bytes).
+    """Decodes ROS 2 samples of the configured topics into fednav wire models (ImuSample, GnssFix).
 
     Keeps what a stream needs across samples (the previous Imu of each sensor, a NavSatFix or Twist
-    waiting for its partner). Use from one thread."""
+    waiting for its partner). A NavSatFix whose Twist has not come once the bridge's stamp time
+    (the newest header.stamp decoded) is ``twist_wait_s`` past it, or when the receiver's next fix
+    arrives, goes on as a position-only fix, counted in :attr:`counters` (``fix_without_velocity``);
+    a Twist without its fix after the same wait is dropped (``twist_without_fix``). The exact
+    stamps of the decoded samples go to the configuration's :class:`StampMemory` (outputs at those
+    times carry them). Use from one thread; :attr:`counters` may be read from another (its keys are
+    all present from the start)."""
 
     cfg: Ros2Config
+    counters: Counter = field(default_factory=lambda: Counter(dict.fromkeys(COUNTER_NAMES, 0)))
     _by_key: dict[str, Ros2Input] = field(default_factory=dict)
     _imu: dict[str, _ImuState] = field(default_factory=dict)
-    _fix: dict[str, list[dict]] = field(default_factory=dict)  # waiting for their Twist, per sensor
-    _twist: dict[str, list[dict]] = field(default_factory=dict)  # waiting for their NavSatFix
+    _fix: dict[str, list[_WaitingFix]] = field(default_factory=dict)  # waiting for their Twist, per sensor
+    _twist: dict[str, list[_WaitingTwist]] = field(default_factory=dict)  # waiting for their NavSatFix
+    _ready: list = field(default_factory=list)  # position-only fixes given up on, for the next decode
+    _clock_ns: int | None = None  # the bridge's stamp time: the newest header.stamp decoded
 
     def __post_init__(self):
         self.store = typestore(self.cfg.distro)
+        self.stamps = bridge_state(self.cfg).stamps
         self._with_twist = {
             i.sensor_id for i in self.cfg.inputs if i.type == "geometry_msgs/msg/TwistWithCovarianceStamped"
         }
+        self._tol_ns = round(self.cfg.pair_tolerance_s * _NS)
+        self._wait_ns = round(self.cfg.twist_wait_s * _NS)
         for i in self.cfg.inputs:
             self._by_key[self._match_key(topic_key(self.cfg, i.topic, i.type, any_hash=True))] = i
 
@@ -264,35 +676,68 @@ class RosInput:
     def input_of(self, key: str) -> Ros2Input | None:
         return self._by_key.get(self._match_key(key))
 
-    def _t(self, header) -> float:
-        return stamp_to_t(
-            header.stamp.sec, header.stamp.nanosec, self.cfg.stamp_time_base, self.cfg.leap_seconds
-        )
+    def _t(self, stamp_ns: int) -> float:
+        return stamp_ns_to_t(stamp_ns, self.cfg.stamp_time_base, self.cfg.leap_seconds)
 
-    def decode(self, key: str, payload: bytes) -> list[tuple[str, str, bytes]]:
-        """(kind, sensor_id, JSON payload) for the intake; raises RosDecodeError (reason, text)."""
+    def decode(self, key: str, payload: bytes) -> list[tuple[str, str, WireModel]]:
+        """(kind, sensor_id, wire model) for the intake, oldest first; raises RosDecodeError
+        (reason, text). The models are validated: the intake takes them as they are."""
         inp = self.input_of(key)
         if inp is None:
             raise RosDecodeError("unknown_key", f"no [ros2] input for {key[:120]}")
         try:
             msg = self.store.deserialize_cdr(payload, inp.type)
+            stamp_ns = _stamp_ns(msg.header)
         except Exception as exc:  # rosbags raises several types on truncated or garbled CDR
             raise RosDecodeError("bad_cdr", f"{inp.topic}: {type(exc).__name__}: {str(exc)[:80]}") from None
         try:
             if inp.type == "sensor_msgs/msg/Imu":
-                return self._imu_in(inp, msg)
-            if inp.type == "sensor_msgs/msg/NavSatFix":
-                return self._fix_in(inp, msg)
-            return self._twist_in(inp, msg)
+                items = self._imu_in(inp, msg, stamp_ns)
+            elif inp.type == "sensor_msgs/msg/NavSatFix":
+                items = self._fix_in(inp, msg, stamp_ns)
+            else:
+                items = self._twist_in(inp, msg, stamp_ns)
         except RosDecodeError:
             raise
         except (TypeError, ValueError, AttributeError, IndexError) as exc:
             raise RosDecodeError("bad_cdr", f"{inp.topic}: {exc}") from None
+        finally:
+            self._advance(stamp_ns)
+        out, self._ready = self._ready + items, []
+        return out
+
+    def flush(self) -> list[tuple[str, str, WireModel]]:
+        """Every fix still waiting for its Twist, position-only (end of a stream)."""
+        for sid, waiting in self._fix.items():
+            for w in waiting:
+                self._give_up(sid, w)
+            waiting.clear()
+        out, self._ready = self._ready, []
+        return out
+
+    # waiting fixes and twists against the stamp time
+    def _advance(self, stamp_ns: int) -> None:
+        if self._clock_ns is None or stamp_ns > self._clock_ns:
+            self._clock_ns = stamp_ns
+        now = self._clock_ns
+        for sid, waiting in self._fix.items():
+            old = [w for w in waiting if now - w.stamp_ns > self._wait_ns]
+            for w in old:
+                waiting.remove(w)
+                self._give_up(sid, w)
+        for waiting in self._twist.values():
+            old = [w for w in waiting if now - w.stamp_ns > self._wait_ns]
+            for w in old:
+                waiting.remove(w)
+                self.counters["twist_without_fix"] += 1
+
+    def _give_up(self, sid: str, w: _WaitingFix) -> None:
+        """A fix whose Twist did not come: on as position only (never dropped), counted."""
+        self.counters["fix_without_velocity"] += 1
+        self._ready.append(("gnss_fix", sid, w.position))
 
     # Imu: rates (FLU) -> increments (RFU) over the interval since the previous stamp
-    def _imu_in(self, inp: Ros2Input, msg) -> list[tuple[str, str, bytes]]:
-        t = self._t(msg.header)
-        stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+    def _imu_in(self, inp: Ros2Input, msg, stamp_ns: int) -> list[tuple[str, str, WireModel]]:
         w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z], dtype=float)
         a = np.array(
             [msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z], dtype=float
@@ -305,25 +750,34 @@ class RosInput:
             return []
         if stamp_ns < prev.stamp_ns:
             # the interval reopens at this sample: a sensor restart or clock step backwards goes
-            # on to the intake on its new time base (its rules recognise a time jump)
+            # on to the intake on its new time base (its rules recognise a time jump); the stamp
+            # time restarts there too
+            self._clock_ns = stamp_ns
             raise RosDecodeError("time_backwards", f"{inp.topic}: Imu stamp went back; interval reopened")
-        dt_s = (stamp_ns - prev.stamp_ns) * 1e-9  # exact from the integer stamps
-        sample = imu_sample_from_rates(
-            t, dt_s, w, a, prev.rate_flu_rps, prev.accel_flu_mps2, self.cfg.imu_integration
-        )
-        return [("imu", inp.sensor_id, _dumps(sample))]
+        t = self._t(stamp_ns)
+        dt_s = (stamp_ns - prev.stamp_ns) / _NS  # from the integer stamps, one rounding
+        try:
+            sample = imu_sample_from_rates(
+                t, dt_s, w, a, prev.rate_flu_rps, prev.accel_flu_mps2, self.cfg.imu_integration
+            )
+        except ValidationError as err:
+            raise RosDecodeError(classify(err), f"imu/{inp.sensor_id}: {err.errors()[0]['msg']}") from None
+        self.stamps.remember(t, stamp_ns)
+        return [("imu", inp.sensor_id, sample)]
 
-    def _fix_in(self, inp: Ros2Input, msg) -> list[tuple[str, str, bytes]]:
+    def _fix_in(self, inp: Ros2Input, msg, stamp_ns: int) -> list[tuple[str, str, WireModel]]:
+        sid = inp.sensor_id
         if msg.status.status < 0:
             raise RosDecodeError("ros_no_fix", f"{inp.topic}: NavSatFix status NO_FIX")
         cov_known = msg.position_covariance_type != 0
         std = (
             _diag_std(msg.position_covariance, (0, 4, 8), self.cfg.fix_std_m)
             if cov_known
-            else [self.cfg.fix_std_m] * 3
+            else (self.cfg.fix_std_m,) * 3
         )
+        t = self._t(stamp_ns)
         fix = {
-            "t": self._t(msg.header),
+            "t": t,
             "lat_deg": float(msg.latitude),
             "lon_deg": float(msg.longitude),
             "height_m": float(msg.altitude),
@@ -331,42 +785,62 @@ class RosInput:
             "fix_type": _NAVSAT_FIX_TYPE.get(int(msg.status.status), "single"),
             "constellation": _SERVICE_CONSTELLATION.get(int(msg.status.service), "MULTI"),
         }
-        if inp.sensor_id not in self._with_twist:  # no Twist topic for this receiver: position only
-            return [("gnss_fix", inp.sensor_id, _dumps(gnss_fix_from_ros(fix, None)))]
-        return self._pair(inp.sensor_id, fix, self._fix, self._twist, fix_first=True)
+        try:  # the fix is checked alone first: with or without a Twist, a bad one goes no further
+            position = gnss_fix_from_ros(fix, None)
+        except ValidationError as err:
+            raise RosDecodeError(classify(err), f"gnss_fix/{sid}: {err.errors()[0]['msg']}") from None
+        self.stamps.remember(t, stamp_ns, replace=False)
+        if sid not in self._with_twist:  # no Twist topic for this receiver: position only
+            return [("gnss_fix", sid, position)]
+        # the receiver's next fix: a fix of another epoch still waiting gets no Twist any more
+        waiting = self._fix.setdefault(sid, [])
+        for w in [w for w in waiting if abs(w.stamp_ns - stamp_ns) >= self._tol_ns]:
+            waiting.remove(w)
+            self._give_up(sid, w)
+        twists = self._twist.get(sid, [])
+        best = min(twists, key=lambda o: abs(o.stamp_ns - stamp_ns), default=None)
+        if best is not None and abs(best.stamp_ns - stamp_ns) < self._tol_ns:
+            twists.remove(best)
+            return [("gnss_fix", sid, self._paired(sid, fix, best.twist))]
+        waiting.append(_WaitingFix(stamp_ns, fix, position))
+        while len(waiting) > PAIR_BUFFER:
+            self._give_up(sid, waiting.pop(0))
+        return []
 
-    def _twist_in(self, inp: Ros2Input, msg) -> list[tuple[str, str, bytes]]:
+    def _twist_in(self, inp: Ros2Input, msg, stamp_ns: int) -> list[tuple[str, str, WireModel]]:
+        sid = inp.sensor_id
         lin = msg.twist.twist.linear
         v = np.array([lin.x, lin.y, lin.z], dtype=float)
         std = _diag_std(msg.twist.covariance, (0, 7, 14), self.cfg.vel_std_mps)
         if inp.velocity_frame == "ned":
             v = NED_TO_ENU @ v
-            std = [std[1], std[0], std[2]]
-        tw = {"t": self._t(msg.header), "vel_enu_mps": [float(x) for x in v], "vel_std_enu_mps": std}
-        return self._pair(inp.sensor_id, tw, self._twist, self._fix, fix_first=False)
-
-    def _pair(self, sid: str, item: dict, mine: dict, theirs: dict, fix_first: bool):
-        """Pair ``item`` with the waiting partner closest in time (within pair_tolerance_s), else
-        keep it waiting (at most PAIR_BUFFER per sensor; the oldest unpaired one is dropped)."""
-        waiting = theirs.get(sid, [])
-        best = min(waiting, key=lambda o: abs(o["t"] - item["t"]), default=None)
-        if best is not None and abs(best["t"] - item["t"]) < self.cfg.pair_tolerance_s:
-            waiting.remove(best)
-            fix, tw = (item, best) if fix_first else (best, item)
-            return self._emit(sid, fix, tw)
-        q = mine.setdefault(sid, [])
-        q.append(item)
-        del q[:-PAIR_BUFFER]
+            std = (std[1], std[0], std[2])
+        t = self._t(stamp_ns)
+        tw = {"t": t, "vel_enu_mps": _vec3(v), "vel_std_enu_mps": std}
+        # the velocity checked alone first: a bad Twist never spoils or holds back its fix
+        probe = {"t": t, "lat_deg": 0.0, "lon_deg": 0.0, "height_m": 0.0, "pos_std_enu_m": (1.0,) * 3}
+        try:
+            gnss_fix_from_ros(probe, tw)
+        except ValidationError as err:
+            raise RosDecodeError(classify(err), f"gnss_fix/{sid}: Twist: {err.errors()[0]['msg']}") from None
+        fixes = self._fix.get(sid, [])
+        best = min(fixes, key=lambda o: abs(o.stamp_ns - stamp_ns), default=None)
+        if best is not None and abs(best.stamp_ns - stamp_ns) < self._tol_ns:
+            fixes.remove(best)
+            return [("gnss_fix", sid, self._paired(sid, best.fix, tw))]
+        waiting = self._twist.setdefault(sid, [])
+        waiting.append(_WaitingTwist(stamp_ns, tw))
+        while len(waiting) > PAIR_BUFFER:
+            waiting.pop(0)
+            self.counters["twist_without_fix"] += 1
         return []
 
-    def _emit(self, sensor_id: str, fix: dict, twist: dict) -> list[tuple[str, str, bytes]]:
-        out = gnss_fix_from_ros(fix, twist)
-        return [] if out is None else [("gnss_fix", sensor_id, _dumps(out))]
-
-
-def _dumps(d: dict) -> bytes:
-    # NaN/Inf are written as JSON's NaN/Infinity tokens: the wire model refuses them ('non_finite')
-    return json.dumps(d).encode()
+    @staticmethod
+    def _paired(sid: str, fix: dict, twist: dict) -> GnssFix:
+        try:  # both halves were validated on arrival
+            return gnss_fix_from_ros(fix, twist)
+        except ValidationError as err:
+            raise RosDecodeError(classify(err), f"gnss_fix/{sid}: {err.errors()[0]['msg']}") from None
 
 
 def imu_sample_from_rates(
@@ -377,19 +851,22 @@ def imu_sample_from_rates(
     prev_rate_flu_rps: np.ndarray,
     prev_accel_flu_mps2: np.ndarray,
     integration: str = "trapezoid",
-) -> dict:
-    """ImuSample (JSON dict) for the interval (t - dt_s, t] from two Imu samples' rates (FLU)."""
+) -> ImuSample:
+    """ImuSample for the interval (t - dt_s, t] from two Imu samples' rates (FLU), built and validated
+    by the wire model (a refusal raises pydantic's ValidationError)."""
     if integration == "trapezoid":
         w = 0.5 * (rate_flu_rps + prev_rate_flu_rps)
         a = 0.5 * (accel_flu_mps2 + prev_accel_flu_mps2)
     else:
         w, a = rate_flu_rps, accel_flu_mps2
-    return {
-        "t": t,
-        "dt_s": dt_s,
-        "dtheta_rad": [float(x) for x in FLU_TO_RFU @ w * dt_s],
-        "dvel_mps": [float(x) for x in FLU_TO_RFU @ a * dt_s],
-    }
+    return ImuSample.model_validate(
+        {
+            "t": t,
+            "dt_s": dt_s,
+            "dtheta_rad": _vec3(FLU_TO_RFU @ w * dt_s),
+            "dvel_mps": _vec3(FLU_TO_RFU @ a * dt_s),
+        }
+    )
 
 
 # --- conversions out -----------------------------------------------------------------------------------
@@ -443,6 +920,7 @@ class RosEncoder:
         self.cfg = cfg
         self.store = typestore(cfg.distro)
         self.T = self.store.types
+        self.stamps = bridge_state(cfg).stamps
         self.datum: dict[str, np.ndarray] = {}  # pipeline -> datum llh (rad)
         if cfg.outputs.datum is not None:
             lat, lon, h = cfg.outputs.datum
@@ -450,8 +928,19 @@ class RosEncoder:
         else:
             self._fixed_datum = None
 
+    def stamp(self, t: float | None) -> tuple[int, int]:
+        """header.stamp of a fednav time: the exact stamp of the input decoded at that time when the
+        bridge remembers one, else :func:`t_to_stamp`; (0, 0) for None."""
+        if t is None:
+            return 0, 0
+        ns = self.stamps.stamp_ns(t)
+        if ns is None:
+            ns = t_to_stamp_ns(t, self.cfg.stamp_time_base, self.cfg.leap_seconds)
+        sec, nsec = divmod(ns, _NS)
+        return int(sec), int(nsec)
+
     def _header(self, t: float | None, frame_id: str):
-        sec, ns = (0, 0) if t is None else t_to_stamp(t, self.cfg.stamp_time_base, self.cfg.leap_seconds)
+        sec, ns = self.stamp(t)
         return self.T["std_msgs/msg/Header"](
             stamp=self.T["builtin_interfaces/msg/Time"](sec=sec, nanosec=ns), frame_id=frame_id
         )
@@ -574,7 +1063,10 @@ class RosEncoder:
 class RosSink:
     """Engine sink (plus ``on_health``) that republishes one vehicle's outputs as ROS 2 messages.
 
-    ``put(key, payload, attachment)`` is the transport (Zenoh lives in zenoh_io/app)."""
+    ``put(key, payload, attachment)`` is the transport (Zenoh lives in zenoh_io/app). ``gid``: the
+    session's base GID (16 bytes). Each publisher's attachment carries its own GID
+    (:meth:`gid_of`): the GID of its graph token when :func:`graph_tokens` declared one for this
+    configuration (rmw_zenoh's XXH3-128 of the token), else :func:`derived_gid` of the base GID."""
 
     def __init__(self, cfg: Ros2Config, pipelines: list[str], put, gid: bytes | None = None):
         self.cfg = cfg
@@ -585,6 +1077,19 @@ class RosSink:
         self.tf_pipeline = o.tf_pipeline or (self.pipelines[0] if self.pipelines else None)
         self.gid = gid if gid is not None else bytes(GID_SIZE)
         self.seq: dict[str, int] = {}
+        self._state = bridge_state(cfg)
+        self._gids: dict[tuple[str, str], bytes] = {}  # GIDs taken from graph tokens
+
+    def gid_of(self, topic: str, msgtype: str) -> bytes:
+        """The GID of this bridge's publisher of ``topic`` (see the class docstring)."""
+        t = "/" + topic.lstrip("/")
+        g = self._gids.get((t, msgtype))
+        if g is None:
+            g = self._state.gids.get(("MP", t, msgtype))
+            if g is None:  # no token (yet): not cached, a token declared later still wins
+                return derived_gid(self.gid, t, msgtype)
+            self._gids[(t, msgtype)] = g
+        return g
 
     def _send(self, topic: str, msg) -> None:
         if not topic:
@@ -593,7 +1098,12 @@ class RosSink:
         att = None
         if self.cfg.carrier == "rmw_zenoh" and self.cfg.attachment != "none":
             n = self.seq[key] = self.seq.get(key, 0) + 1
-            att = rmw_attachment(n, time.time_ns(), self.gid, keyed=self.cfg.attachment == "rmw_zenoh_keyed")
+            att = rmw_attachment(
+                n,
+                time.time_ns(),
+                self.gid_of(topic, msg.__msgtype__),
+                keyed=self.cfg.attachment == "rmw_zenoh_keyed",
+            )
         self.put(key, self.enc.cdr(msg), att)
 
     def topics(self) -> list[tuple[str, str]]:
