@@ -1,7 +1,9 @@
 """Cost of the ROS 2 bridge per message (figures printed; not timed tests), in-process, one core:
 
-1. decode: CDR Imu -> ImuSample JSON, CDR NavSatFix + Twist -> GnssFix JSON (RosInput.decode);
-2. encode: one output epoch -> Odometry + NavSatFix (+ TF) CDR; one Health -> DiagnosticArray CDR.
+1. decode: CDR Imu -> ImuSample, CDR NavSatFix + Twist -> GnssFix (RosInput.decode: the wire models
+   built and validated straight from the CDR values, no JSON);
+2. encode: one output epoch -> Odometry + NavSatFix (+ TF) CDR (exact input stamps looked up);
+   one Health -> DiagnosticArray CDR.
 
 Usage: .venv/bin/python benchmarks/ros2_bridge.py [--n 5000]
 """
@@ -82,7 +84,7 @@ def main() -> int:
     for _ in range(n):
         enc.cdr(enc.diagnostics("v1", h))
     diag_us = (time.perf_counter() - t0) / n * 1e6
-    print(f"decode Imu -> ImuSample JSON:                 {imu_us:8.1f} us/message ({len(imu)} messages)")
+    print(f"decode Imu -> ImuSample (validated model):    {imu_us:8.1f} us/message ({len(imu)} messages)")
     print(f"decode NavSatFix or Twist (pairing included): {gnss_us:8.1f} us/message")
     print(f"encode Odometry + NavSatFix + TF (one epoch): {epoch_us:8.1f} us/epoch")
     print(f"encode DiagnosticArray (7 pipelines):         {diag_us:8.1f} us/message")

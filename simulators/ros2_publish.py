@@ -4,12 +4,16 @@ zenoh-bridge-ros2dds' keys (what a robot's drivers publish; docs/ros2.md). For t
 fednav-service's [ros2] bridge.
 
     python -m fednav.simulators.ros2_publish SCENARIO.toml --connect tcp/127.0.0.1:7447 [--carrier ros2dds]
+        [--no-twist]
 
 Imu: angular_velocity and linear_acceleration are each interval's mean rate (increment / dt) in
 body FLU (REP 103) stamped at the interval's end, the bridge's ``imu_integration = "rectangle"``
 reading recovers the increments exactly. NavSatFix: position with its diagonal covariance (ENU);
-Twist: ENU velocity with its covariance, stamped like the fix. InitialNav and Truth are not sent
-(a ROS robot has neither): the service aligns in motion from the first fix.
+Twist: ENU velocity with its covariance, stamped like the fix (``--no-twist``: none, as a robot
+whose GNSS driver publishes no velocity; the bridge then forwards each fix position-only after
+``twist_wait_s``). InitialNav and Truth are not sent (a ROS robot has neither): the service aligns
+in motion from the first fix with a Twist, statically (the vehicle standing still) without.
+Each publisher's attachment carries its own 16-byte GID.
 """
 
 from __future__ import annotations
@@ -59,8 +63,9 @@ def _header(T, t: float, frame: str, cfg: Ros2Config):
     )
 
 
-def to_ros(msg, cfg: Ros2Config) -> list[tuple[str, object]]:
-    """(topic, rosbags message) for one fednav sensor message (ImuSample, GnssFix; others: [])."""
+def to_ros(msg, cfg: Ros2Config, twist: bool = True) -> list[tuple[str, object]]:
+    """(topic, rosbags message) for one fednav sensor message (ImuSample, GnssFix; others: []);
+    ``twist`` False: a GnssFix gives its NavSatFix only."""
     T = ros2.typestore(cfg.distro).types
     v3 = T["geometry_msgs/msg/Vector3"]
     if isinstance(msg, ImuSample):
@@ -86,11 +91,13 @@ def to_ros(msg, cfg: Ros2Config) -> list[tuple[str, object]]:
             position_covariance=np.diag(np.square(msg.pos_std_enu_m)).reshape(9),
             position_covariance_type=2,  # DIAGONAL_KNOWN
         )
+        if not twist or msg.vel_enu_mps is None:
+            return [(FIX_TOPIC, fix)]
         cov = np.zeros((6, 6))
         cov[:3, :3] = np.diag(np.square(msg.vel_std_enu_mps))
         cov[3:, 3:] = np.eye(3) * ros2.UNKNOWN_VARIANCE
         v = msg.vel_enu_mps
-        twist = T["geometry_msgs/msg/TwistWithCovarianceStamped"](
+        tw = T["geometry_msgs/msg/TwistWithCovarianceStamped"](
             header=_header(T, msg.t, "gnss", cfg),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](
                 twist=T["geometry_msgs/msg/Twist"](
@@ -99,17 +106,20 @@ def to_ros(msg, cfg: Ros2Config) -> list[tuple[str, object]]:
                 covariance=cov.reshape(36),
             ),
         )
-        return [(FIX_TOPIC, fix), (VEL_TOPIC, twist)]
+        return [(FIX_TOPIC, fix), (VEL_TOPIC, tw)]
     return []
 
 
-def ros_samples(scenario, seed: int, cfg: Ros2Config) -> Iterator[tuple[str, bytes, object]]:
-    """(Zenoh key, CDR payload, fednav message) of a scenario run, in time order."""
+def ros_samples(
+    scenario, seed: int, cfg: Ros2Config, twist: bool = True
+) -> Iterator[tuple[str, bytes, object]]:
+    """(Zenoh key, CDR payload, fednav message) of a scenario run, in time order (``twist`` False:
+    no Twist messages)."""
     from fednav.simulators.stream import simulate
 
     store = ros2.typestore(cfg.distro)
     for _, m in simulate(scenario, seed=seed, vehicle=cfg.vehicle):
-        for topic, rmsg in to_ros(m, cfg):
+        for topic, rmsg in to_ros(m, cfg, twist):
             yield (
                 ros2.topic_key(cfg, topic, rmsg.__msgtype__),
                 bytes(store.serialize_cdr(rmsg, rmsg.__msgtype__)),
@@ -120,8 +130,9 @@ def ros_samples(scenario, seed: int, cfg: Ros2Config) -> Iterator[tuple[str, byt
 def publish(session, samples, *, attachment: bool = True, speed: float = 1.0) -> int:
     """Publish (key, payload, message) samples reliably, blocking on congestion, paced at ``speed``
     x real time by the messages' sensor time (0: as fast as possible), rmw_zenoh's attachment on
-    each. Pacing matters: the service subscribes each ROS topic separately (as a ROS node does), so
-    only samples published in time order across topics arrive in time order."""
+    each (a GID per publisher: :func:`ros2.entity_gid` of its key). Pacing matters: the service
+    subscribes each ROS topic separately (as a ROS node does), so only samples published in time
+    order across topics arrive in time order."""
     import time
 
     import zenoh
@@ -130,7 +141,7 @@ def publish(session, samples, *, attachment: bool = True, speed: float = 1.0) ->
 
     pubs: dict[str, object] = {}
     seq: dict[str, int] = {}
-    gid = bytes(range(ros2.GID_SIZE))
+    gids: dict[str, bytes] = {}
     n = 0
     for key, payload, m in samples:
         if speed > 0:
@@ -144,8 +155,9 @@ def publish(session, samples, *, attachment: bool = True, speed: float = 1.0) ->
             pub = pubs[key] = session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
             )
+            gids[key] = ros2.entity_gid(f"fednav.simulators.ros2_publish/{key}")
         seq[key] = seq.get(key, 0) + 1
-        att = ros2.rmw_attachment(seq[key], time.time_ns(), gid) if attachment else None
+        att = ros2.rmw_attachment(seq[key], time.time_ns(), gids[key]) if attachment else None
         pub.put(payload, attachment=att)
         n += 1
     for p in pubs.values():
@@ -167,6 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--speed", type=float, default=1.0, help="x real time, 0 = unpaced (default: %(default)s)"
     )
+    ap.add_argument(
+        "--no-twist", action="store_true", help="publish no Twist (a receiver without a velocity topic)"
+    )
     args = ap.parse_args(argv)
     import zenoh
 
@@ -182,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = example_config(carrier=args.carrier, domain_id=args.domain_id)
     seed = sc.seed if args.seed is None else args.seed
     with zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[args.connect])) as s:
-        n = publish(s, ros_samples(sc, seed, cfg), attachment=args.carrier == "rmw_zenoh", speed=args.speed)
+        samples = ros_samples(sc, seed, cfg, twist=not args.no_twist)
+        n = publish(s, samples, attachment=args.carrier == "rmw_zenoh", speed=args.speed)
     print(f"published {n} ROS 2 samples")
     return 0
 
