@@ -18,6 +18,7 @@ import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from fednav.service.imu_batch import batch_size_arg
 from fednav.service.messages import WireModel
 
 from .checks import Report, run_checks
@@ -83,6 +84,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--vehicle", default=None, help="override the mapping's vehicle name")
     ap.add_argument("--match-timeout", type=float, default=30.0, help="seconds to wait for the service")
     ap.add_argument("--force", action="store_true", help="publish even when a check fails")
+    ap.add_argument(
+        "--imu-batch",
+        type=batch_size_arg,
+        default=10,
+        metavar="N",
+        help="IMU samples per binary ImuBatch (default 10); 1 = one JSON ImuSample each",
+    )
     ap.add_argument("--json", action="store_true", help="print one JSON summary on stdout, no progress bar")
     return ap.parse_args(argv)
 
@@ -123,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             listen=args.listen,
             zenoh_config=args.zenoh_config,
             match_timeout_s=args.match_timeout,
+            imu_batch=args.imu_batch,
         )
     except MatchTimeout as exc:
         progress.close()

@@ -51,6 +51,7 @@ import numpy as np
 from fednav.service.config import ServiceConfig
 from fednav.service.estimation import snapshot
 from fednav.service.evaluation import errors_against_truth
+from fednav.service.imu_batch import ImuRow
 from fednav.service.ins import alignment
 from fednav.service.ins.mechanisation import NavState, Preintegrator
 from fednav.service.intake_rules import AcceptanceRules, Verdict
@@ -201,6 +202,28 @@ class VehicleEngine:
             self._schedule(kind, sensor_id, msg)
         return True
 
+    def handle_imu_batch(self, sensor_id: str, rows) -> int:
+        """The records of an ImuBatch (:mod:`service.imu_batch`; already validated record by record),
+        in order, each judged and used exactly as an ImuSample with the same values would be
+        (:meth:`handle`), without a message object per record. Returns the number accepted."""
+        if sensor_id in self._node_imus:
+            return sum(self._on_node_imu(sensor_id, ImuRow(r)) for r in rows)
+        if not self.rules.known_sensor("imu", sensor_id):
+            for r in rows:
+                self._watch_refusals("imu", sensor_id, float(r[0]), "unexpected_sensor")
+            self.rejected["unexpected_sensor"] += len(rows)
+            return 0
+        decide = self.rules.decide_imu
+        accepted = 0
+        for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist():
+            verdict = decide(t, dt, self.last_imu_t)
+            reason = verdict.reason
+            if reason is None or reason in ("imu_gap", "time_jump"):
+                self._note_stream("imu", sensor_id, t)
+            self._watch_refusals("imu", sensor_id, t, reason)
+            accepted += self._imu_values(t, dt, (a0, a1, a2), (v0, v1, v2), verdict)
+        return accepted
+
     def _keep_truth(self, msg: Truth) -> None:
         self._truth[self._tkey(msg.t)] = msg
         if len(self._truth) > 256:
@@ -307,21 +330,24 @@ class VehicleEngine:
 
     # --- IMU ------------------------------------------------------------------------------------
     def _on_imu(self, msg: ImuSample, verdict: Verdict) -> bool:
-        t, dt = msg.t, msg.dt_s
+        return self._imu_values(msg.t, msg.dt_s, msg.dtheta_rad, msg.dvel_mps, verdict, msg)
+
+    def _imu_values(self, t: float, dt: float, dtheta, dvel, verdict: Verdict, msg=None) -> bool:
+        """One IMU interval (a sample, or a record of a batch: ``msg`` None) after its verdict."""
         if verdict.reason in ("imu_gap", "time_jump"):
             self._imu_lost(t, verdict.reason)
             return True
         if not verdict.accepted:
             return self._reject(verdict.reason)
         if not self.initialised:
-            self._align.add(t, dt, msg.dtheta_rad, msg.dvel_mps)
+            self._align.add(t, dt, dtheta, dvel)
             self.last_imu_t = t
             self._try_initialise_from_aiding()
             return True
         span = t - self.last_imu_t
         scale = span / dt  # a short gap (< max_imu_gap_s) stretches the sample over it
-        dth = [v * scale for v in msg.dtheta_rad]
-        dv = [v * scale for v in msg.dvel_mps]
+        dth = [v * scale for v in dtheta]
+        dv = [v * scale for v in dvel]
         cur = self.last_imu_t
         while self.pending and self.pending[0][0] <= t + 1e-9:
             t_m, kind, sid, amsg = self.pending.pop(0)
@@ -334,8 +360,10 @@ class VehicleEngine:
             self._apply(kind, sid, amsg, dt_late=0.0)
         if t - cur > 1e-12:
             self._push(dth, dv, t - cur, t)
-        for p in self._sample_pipes:
-            p.push_imu_sample(msg)
+        if self._sample_pipes:
+            sample = msg if msg is not None else ImuRow((t, dt, *dtheta, *dvel))
+            for p in self._sample_pipes:
+                p.push_imu_sample(sample)
         self.last_imu_t = t
         self.last_t = t
         self._maybe_output(t)

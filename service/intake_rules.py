@@ -108,15 +108,24 @@ class AcceptanceRules:
         if kind not in _NO_ID and not self._known_sensor(kind, sensor_id):
             return Verdict("unexpected_sensor")
         if kind == "imu":
-            verdict = self._imu(msg.t, msg.dt_s, t_ins)
-            if verdict.reason in (None, "imu_gap", "time_jump"):
-                self.imu_t = msg.t
-            return verdict
+            return self.decide_imu(msg.t, msg.dt_s, t_ins)
         key = (kind, sensor_id)
         verdict = self._other(kind, msg.t, self.last_t.get(key), t_ins, initialised)
         if verdict.accepted or verdict.reason == "not_initialised":
             self.last_t[key] = msg.t
         return verdict
+
+    def decide_imu(self, t: float, dt_s: float, t_ins: float | None) -> Verdict:
+        """The verdict on one IMU interval of an id already known (:meth:`known_sensor`): a
+        sample, or one record of a batch (the same rules, no message object)."""
+        verdict = self._imu(t, dt_s, t_ins)
+        if verdict.reason in (None, "imu_gap", "time_jump"):
+            self.imu_t = t
+        return verdict
+
+    def known_sensor(self, kind: str, sensor_id: str) -> bool:
+        """Whether ``sensor_id`` is accepted for ``kind`` (adopts the first id of an unlisted kind)."""
+        return kind in _NO_ID or self._known_sensor(kind, sensor_id)
 
     def _known_sensor(self, kind: str, sensor_id: str) -> bool:
         allowed = self.intake.sensor_ids.get(kind)

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from fednav.service.imu_batch import batch_size_arg
+
 SCENARIO_HELP = (
     "a scenario file, or the name of a shipped one (simulators/scenarios/<name>.toml), e.g. "
     "demo_aircraft, seed000_faults, seed001_montecarlo"
@@ -18,6 +20,9 @@ EVAL_EXAMPLES = """examples:
   fednav-sim eval demo_aircraft
   fednav-sim eval seed000_faults --runs 5 --seed 7 --window 400 550 --json
   fednav-sim eval seed001_montecarlo --seed 11"""
+
+
+DEFAULT_IMU_BATCH = 10  # simulators.publisher.DEFAULT_IMU_BATCH (not imported: zenoh loads lazily)
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -43,6 +48,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     r.add_argument("--vehicle", default="v1", help="vehicle name in the keys (default v1)")
     r.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
     r.add_argument("--prefix", default="fednav", help="key prefix (default fednav)")
+    r.add_argument(
+        "--imu-batch",
+        type=batch_size_arg,
+        default=DEFAULT_IMU_BATCH,
+        metavar="N",
+        help=f"IMU samples per binary ImuBatch (default {DEFAULT_IMU_BATCH}); 1 = one JSON ImuSample each",
+    )
     e = sub.add_parser(
         "eval",
         help="run a scenario through the service pipelines in-process",
@@ -71,6 +83,10 @@ def main(argv: list[str] | None = None) -> int:
         from fednav.simulators.rinex_eval import cli
 
         return cli(rest)
+    if rest and rest[0] == "fleet":  # N vehicles from one process (fleet load and tests)
+        from fednav.simulators.fleet import main as fleet_main
+
+        return fleet_main(rest[1:])
     args = parse_args(argv)
     from fednav.simulators.scenario import ScenarioError, load_scenario
 
@@ -97,7 +113,11 @@ def main(argv: list[str] | None = None) -> int:
         sim = make(scenario, seed=args.seed, vehicle=args.vehicle, prefix=args.prefix)
         try:
             stats = publish_stream(
-                sim, speed=args.speed, connect=args.connect, zenoh_config=args.zenoh_config
+                sim,
+                speed=args.speed,
+                connect=args.connect,
+                zenoh_config=args.zenoh_config,
+                imu_batch=args.imu_batch,
             )
         except MatchTimeout as exc:
             print(f"fednav-sim: {exc}", file=sys.stderr)

@@ -12,9 +12,13 @@ from collections.abc import Iterable
 
 import zenoh
 
+from fednav.service import imu_batch as imu_batch_codec
 from fednav.service.config import ZenohConfig
-from fednav.service.messages import WireModel
+from fednav.service.messages import ImuSample, WireModel
 from fednav.service.transport.zenoh_io import make_config
+
+#: IMU samples per published ImuBatch by default (``--imu-batch``; 1 = one JSON ImuSample each)
+DEFAULT_IMU_BATCH = 10
 
 
 class MatchTimeout(RuntimeError):
@@ -47,17 +51,24 @@ def publish_stream(
     zenoh_config: str | None = None,
     match_timeout_s: float = 30.0,
     linger_s: float = 0.5,
+    imu_batch: int = DEFAULT_IMU_BATCH,
 ) -> dict:
-    """Publish (key, message) pairs in order; returns counts and timing."""
+    """Publish (key, message) pairs in order; returns counts and timing.
+
+    ``imu_batch`` N > 1: consecutive IMU samples of a key go out as one ImuBatch of N samples
+    (:mod:`service.imu_batch`, binary, encoding ``application/octet-stream;fednav.ImuBatch/1``),
+    published when its last sample is due; every other message goes out at its own time, so an
+    aiding message still precedes the IMU samples after it. N = 1: one JSON ImuSample each."""
     session = zenoh.open(session_config(connect=connect, listen=listen, zenoh_config=zenoh_config))
     pubs: dict[str, zenoh.Publisher] = {}
+    batches: dict[str, list[ImuSample]] = {}
 
-    def pub_for(key: str, msg: WireModel) -> zenoh.Publisher:
+    def pub_for(key: str, encoding: str) -> zenoh.Publisher:
         p = pubs.get(key)
         if p is None:
             p = session.declare_publisher(
                 key,
-                encoding=zenoh.Encoding(type(msg).encoding()),
+                encoding=zenoh.Encoding(encoding),
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
             )
@@ -69,7 +80,8 @@ def publish_stream(
     wall0 = None
     try:
         for key, msg in stream:
-            p = pub_for(key, msg)
+            batched = imu_batch > 1 and isinstance(msg, ImuSample)
+            p = pub_for(key, imu_batch_codec.ENCODING if batched else type(msg).encoding())
             if t_first is None:
                 deadline = time.monotonic() + match_timeout_s
                 while not p.matching_status.matching:
@@ -78,12 +90,24 @@ def publish_stream(
                     time.sleep(0.01)
                 t_first = msg.t
                 wall0 = time.monotonic()
+            if batched:
+                pending = batches.setdefault(key, [])
+                pending.append(msg)
+                n += 1
+                if len(pending) < imu_batch:
+                    continue
             if speed > 0:
                 delay = wall0 + (msg.t - t_first) / speed - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            p.put(msg.to_json())
-            n += 1
+            if batched:
+                p.put(imu_batch_codec.encode_samples(batches.pop(key)))
+            else:
+                p.put(msg.to_json())
+                n += 1
+        for key, pending in batches.items():  # the last, partial batches
+            if pending:
+                pubs[key].put(imu_batch_codec.encode_samples(pending))
         wall = time.monotonic() - (wall0 or time.monotonic())
         time.sleep(linger_s)  # let the transmission queues drain before the session closes
     finally:

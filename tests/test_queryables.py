@@ -63,7 +63,8 @@ def test_late_joiner_finds_the_service_and_the_latest_solution(tmp_path):
 
 def _validate_against_shipped_schemas(samples) -> None:
     """Every live sample validates, with a standard 2020-12 validator, against the shipped schema
-    its encoding names (application/json;fednav.<Type>/<version>)."""
+    its encoding names (application/json;fednav.<Type>/<version>); the simulator's binary ImuBatch
+    (application/octet-stream;fednav.ImuBatch/1) decodes by its declared layout."""
     from pathlib import Path
 
     from jsonschema import Draft202012Validator
@@ -73,9 +74,15 @@ def _validate_against_shipped_schemas(samples) -> None:
     seen: dict[str, int] = {}
     for encoding, payload in samples:
         kind = encoding.split(";fednav.")[1].split("/")[0]
+        if encoding.startswith("application/octet-stream;"):  # the binary ImuBatch: its declared layout
+            from fednav.service import imu_batch
+
+            assert encoding == imu_batch.ENCODING
+            seen[kind] = seen.get(kind, 0) + len(imu_batch.decode(payload))
+            continue
         if kind not in validators:
             validators[kind] = Draft202012Validator(json.loads((folder / f"{kind}.schema.json").read_text()))
         validators[kind].validate(json.loads(payload))
         seen[kind] = seen.get(kind, 0) + 1
-    assert {"ImuSample", "GnssFix", "InitialNav", "Truth", "Solution", "Health"} <= set(seen), seen
+    assert {"ImuBatch", "GnssFix", "InitialNav", "Truth", "Solution", "Health"} <= set(seen), seen
     assert sum(seen.values()) > 30000

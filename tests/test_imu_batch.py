@@ -1,0 +1,198 @@
+"""ImuBatch: the binary layout, vectorised validation, the engine's record-by-record rules, and the
+same solutions as one JSON ImuSample per sample (service/imu_batch.py, service/vehicle.py)."""
+
+from __future__ import annotations
+
+import math
+import signal
+import struct
+import time
+
+import numpy as np
+import pytest
+
+from fednav.service import imu_batch, keys
+from fednav.service.config import from_dict
+from fednav.service.messages import ImuSample
+from fednav.service.vehicle import VehicleLoop
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.scenario import load_scenario
+from fednav.simulators.stream import Simulation
+
+from .scenario_utils import SCENARIOS
+
+
+def _rows(n: int, t0: float = 1000.0, dt: float = 0.005) -> np.ndarray:
+    rng = np.random.default_rng(1)
+    r = np.zeros((n, 8))
+    r[:, 0] = t0 + dt * np.arange(1, n + 1)
+    r[:, 1] = dt
+    r[:, 2:5] = rng.normal(0, 1e-4, (n, 3))
+    r[:, 5:8] = rng.normal(0, 1e-3, (n, 3)) + [0.0, 0.0, 9.8 * dt]
+    return r
+
+
+def test_layout_round_trip_and_declared_size():
+    rows = _rows(7)
+    payload = imu_batch.encode(rows)
+    assert payload[:4] == b"FNIB" and len(payload) == 16 + 64 * 7
+    magic, version, flags, count, reserved = struct.unpack_from("<4sHHII", payload)
+    assert (magic, version, flags, count, reserved) == (b"FNIB", 1, 0, 7, 0)
+    assert np.array_equal(imu_batch.decode(payload), rows)
+    # the records are plain little-endian float64 (a client in any language can write them)
+    assert struct.unpack_from("<8d", payload, 16) == tuple(rows[0])
+    assert imu_batch.is_batch(payload) and not imu_batch.is_batch(b'{"t": 1.0}')
+    assert imu_batch.ENCODING == "application/octet-stream;fednav.ImuBatch/1"
+
+
+@pytest.mark.parametrize(
+    ("mutate", "reason"),
+    [
+        (lambda p: p[:-1], "batch_truncated"),
+        (lambda p: p[:10], "batch_truncated"),
+        (lambda p: p + b"\0" * 64, "batch_size"),
+        (lambda p: p[:4] + struct.pack("<H", 2) + p[6:], "batch_header"),
+        (lambda p: p[:6] + struct.pack("<H", 1) + p[8:], "batch_header"),
+        (lambda p: p[:8] + struct.pack("<I", 0) + p[12:], "batch_oversize"),
+        (lambda p: p[:8] + struct.pack("<I", imu_batch.MAX_SAMPLES + 1) + p[12:], "batch_oversize"),
+    ],
+)
+def test_refused_whole(mutate, reason):
+    with pytest.raises(imu_batch.BatchError) as exc:
+        imu_batch.decode(mutate(imu_batch.encode(_rows(5))))
+    assert exc.value.reason == reason
+
+
+def test_vectorised_validation_names_each_bad_record():
+    rows = _rows(10).copy()
+    rows[1, 3] = np.nan  # non-finite
+    rows[3, 1] = 0.0  # interval out of range
+    rows[5, 1] = 2.0  # interval out of range (MAX_DT_S = 1)
+    rows[7, 2] = 1.0  # 1 rad in 5 ms: 200 rad/s, absurd
+    rows[8, 7] = 10.0  # 10 m/s in 5 ms: 2000 m/s^2, absurd
+    ok, bad = imu_batch.validate(rows)
+    assert bad == {"non_finite": 1, "out_of_range": 2, "absurd_value": 2}
+    assert list(np.flatnonzero(~ok)) == [1, 3, 5, 7, 8]
+    # the same limits as the per-sample JSON model
+    for i in range(10):
+        r = rows[i]
+        payload = (
+            '{"t": %r, "dt_s": %r, "dtheta_rad": [%r, %r, %r], "dvel_mps": [%r, %r, %r]}'
+            % tuple(float(v) for v in r)
+        ).replace("nan", "NaN")
+        try:
+            ImuSample.model_validate_json(payload)
+            valid = True
+        except ValueError:
+            valid = False
+        assert valid == bool(ok[i]), i
+
+
+def _loop(cfg=None) -> VehicleLoop:
+    sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
+    return VehicleLoop("v1", cfg or service_config(sc), CollectingSink())
+
+
+def test_bad_record_loses_only_itself_and_time_rules_per_record():
+    loop = _loop()
+    rows = _rows(20).copy()
+    rows[4, 5] = np.inf  # non-finite
+    rows[9, 0] = rows[8, 0]  # same time as the previous record: duplicate
+    rows[14, 0] = rows[12, 0] - 0.001  # behind the running time: time_backwards
+    loop.process("imu", "main", imu_batch.encode(rows))
+    assert loop.received == 20
+    assert loop.counters == {"non_finite": 1, "duplicate": 1, "time_backwards": 1}
+    assert loop.accepted == 17
+    assert loop.engine.last_imu_t == rows[-1, 0]
+    # a truncated batch is refused whole: one received, one refusal
+    loop.process("imu", "main", imu_batch.encode(_rows(5, t0=rows[-1, 0]))[:-8])
+    assert loop.received == 21 and loop.counters["batch_truncated"] == 1
+    # an oversized payload (over the 1 MiB message limit) is refused before decoding
+    loop.process("imu", "main", b"FNIB" + b"\0" * (1 << 20))
+    assert loop.counters["oversize"] == 1
+    # a second IMU id is refused for every record, as for JSON samples
+    loop.process("imu", "other", imu_batch.encode(_rows(3, t0=2000.0)))
+    assert loop.counters["unexpected_sensor"] == 3
+
+
+def _run(scenario, batch: int, duration_s: float = 60.0):
+    cfg = service_config(scenario)
+    loop = VehicleLoop("v1", cfg, CollectingSink(keep_solutions=True))
+    pending: list[ImuSample] = []
+    t_end = None
+    for key, msg in Simulation(scenario, seed=3):
+        t_end = msg.t if t_end is None else t_end
+        if msg.t - t_end > duration_s:
+            break
+        pk = keys.parse_input(key, cfg.prefix)
+        if pk.kind == "imu" and batch > 1:
+            pending.append(msg)
+            if len(pending) == batch:
+                loop.process("imu", pk.sensor_id, imu_batch.encode_samples(pending))
+                pending = []
+            continue
+        loop.process(pk.kind, pk.sensor_id, msg.to_json() if pk.kind != "truth" else msg)
+    return loop
+
+
+def test_batches_give_the_same_solutions_as_json_samples():
+    sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
+    json_loop, batch_loop = _run(sc, 1), _run(sc, 10)
+    a = json_loop.engine.sink.records
+    b = batch_loop.engine.sink.records
+    assert a.keys() == b.keys() and a
+    for name in a:
+        sa, sb = a[name].solutions, b[name].solutions
+        assert len(sa) == len(sb) > 500
+        for x, y in zip(sa, sb, strict=True):
+            assert x == y  # identical to the last bit (same floats, same order of operations)
+        assert a[name].solutions[-1].status == "aided"
+    assert json_loop.accepted == batch_loop.accepted
+    assert json_loop.counters == batch_loop.counters
+
+
+@pytest.mark.integration
+def test_service_takes_batches_and_counts_bad_ones(tmp_path):
+    """Real processes: the simulator publishes ImuBatches (the default), the service navigates
+    ('aided'); a plain Zenoh client's truncated batch and a batch with one NaN record are counted."""
+    from fednav.simulators.processes import free_port, query_status, start_service, start_sim, wait_idle
+
+    from .plain_zenoh import client as zenoh_client
+
+    scenario = SCENARIOS / "demo_aircraft.toml"
+    port = free_port()
+    svc = start_service(port, config=scenario, table="service")
+    try:
+        sim = start_sim(port, scenario, speed=0.0)
+        assert sim.wait(timeout=120) == 0, sim.output()
+        st = wait_idle(port, timeout_s=60)
+        h = st["health"]
+        assert h["pipelines"]["lc"]["status"] in ("aided", "coasting"), h
+        assert h["pipelines"]["lc"]["updates"] > 20
+        assert h["received"] >= 30000 and not {"non_finite", "batch_truncated"} & set(h["rejected"])
+        t_last = h["t"]
+        s = zenoh_client(port)
+        try:
+            key = keys.sensor("v1", "imu", "main")
+            rows = _rows(10, t0=t_last)
+            rows[3, 6] = math.nan
+            pub = s.declare_publisher(key)
+            deadline = time.monotonic() + 10
+            while not pub.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.01)
+            pub.put(imu_batch.encode(rows))
+            pub.put(imu_batch.encode(_rows(4, t0=rows[-1, 0]))[:-3])
+            time.sleep(1.0)
+        finally:
+            s.close()
+        h2 = query_status(port)["health"]
+        assert h2["rejected"].get("non_finite") == 1
+        assert h2["rejected"].get("batch_truncated") == 1
+        assert h2["received"] - h["received"] == 11  # 10 records + 1 refused batch
+    finally:
+        svc.signal(signal.SIGTERM)
+        assert svc.wait(timeout=60) == 0, svc.output()
+
+
+def test_max_vehicles_default_is_a_fleet():
+    assert from_dict({}).intake.max_vehicles == 1000
