@@ -25,9 +25,8 @@ import numpy as np
 from fednav.service import keys
 from fednav.service.app import OutputSink
 from fednav.service.config import ServiceConfig, recording_kinds
-from fednav.service.engine import VehicleEngine
-from fednav.service.messages import Health
 from fednav.service.transport.rerun_sink import RerunSink
+from fednav.service.vehicle import VehicleLoop
 from fednav.simulators.evaluate import service_config
 from fednav.simulators.scenario import Scenario, load_scenario
 
@@ -72,8 +71,9 @@ def record(
         slow_flush_interval_s=cfg.rrd_slow_flush_interval_s,
         optimize_on_close=cfg.rrd_optimize if optimize is None else optimize,
     )
-    outputs = OutputSink(cfg.prefix, _NoPublish(), sink)
-    engine = VehicleEngine(vehicle, cfg, outputs)
+    outputs = OutputSink(cfg.prefix, _NoPublish(), sink, vehicle_interval_s=cfg.rrd_vehicle_interval_s)
+    # the service's per-vehicle loop: the same judging, counting and raw-fix recording
+    loop = VehicleLoop(vehicle, cfg, outputs, on_fix=outputs.log_fix)
     if sc.wing is not None:  # transfer alignment (seed 002): wing nodes too
         from fednav.simulators.wing import WingSimulation
 
@@ -83,10 +83,9 @@ def record(
 
         sim = Simulation(sc, seed=seed, vehicle=vehicle, prefix=cfg.prefix)
     wall0 = time.perf_counter()
-    received = accepted = 0
-    lat_ms: list[float] = []
     t_first: float | None = None
     next_health = -np.inf
+    engine = loop.engine
     for key, msg in sim:
         pk = keys.parse_input(key, cfg.prefix)
         t = getattr(msg, "t", None)
@@ -95,40 +94,16 @@ def record(
             t_first = float(t) if t_first is None else t_first
             if duration_s is not None and t - t_first > duration_s:
                 break
-        w = time.perf_counter()
-        received += 1
-        ok = bool(engine.handle(pk.kind, pk.sensor_id, msg))
-        accepted += ok
-        if ok and pk.kind == "gnss_fix":
-            sink.log_fix(vehicle, pk.sensor_id, msg)
-        lat_ms.append((time.perf_counter() - w) * 1e3)
+        loop.process(pk.kind, pk.sensor_id, msg)
         if engine.last_t is not None and engine.last_t >= next_health:
             next_health = engine.last_t + cfg.output.health_period_s
-            lat = np.asarray(lat_ms[-2000:])
-            sink.log_health(
-                vehicle,
-                Health(
-                    t=engine.last_t,
-                    uptime_s=time.perf_counter() - wall0,
-                    received=received,
-                    accepted=accepted,
-                    rejected=dict(engine.rejected),
-                    dropped_overload=0,
-                    queue_depth=0,
-                    latency_ms={
-                        "p50": float(np.percentile(lat, 50)),
-                        "p99": float(np.percentile(lat, 99)),
-                        "max": float(lat.max()),
-                    },
-                    pipelines={},
-                ),
-            )
+            outputs.log_health(vehicle, loop.health())
     sink.close()
     t_span = 0.0 if t_first is None else clock[0] - t_first
     return {
         "scenario": sc.name,
         "rrd": str(out),
-        "messages": received,
+        "messages": loop.received,
         "scenario_s": t_span,
         "wall_s": time.perf_counter() - wall0,
         "bytes": out.stat().st_size if out.is_file() else 0,

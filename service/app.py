@@ -1,7 +1,10 @@
 """Process wiring of fednav-service: Zenoh intake -> per-vehicle workers -> Zenoh + Rerun.
 
-Threads: the Zenoh intake thread (reads the subscriber FIFO, routes by vehicle), one worker per
-vehicle (validates, runs the engine in sensor-time order, publishes), the query server. Signals
+Threads: the Zenoh intake thread (reads the subscriber FIFO, routes by vehicle), a bounded pool
+of workers (``[intake] workers``), each owning many vehicles (a vehicle lives on one worker, so its
+events keep their order; each runs the vehicle's loop, :mod:`service.vehicle`: validates, runs
+the engine in sensor-time order, publishes), the query server. Where the GIL is the limit, a
+fleet is split over processes (``--shard I/K``, :mod:`service.shards`). Signals
 (SIGINT/SIGTERM) set a stop event; ``stop()`` then stops intake, lets each worker drain its queue,
 emits the last solutions and health, closes the recording (complete, readable) and the session.
 """
@@ -14,35 +17,33 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from datetime import datetime
 from pathlib import Path
 
 import numpy as np
-from pydantic import ValidationError
 
-from fednav.service import keys
+from fednav.service import fleet, keys
 from fednav.service.config import ServiceConfig, recording_kinds
-from fednav.service.engine import EstimateOutput, VehicleEngine
+from fednav.service.engine import EstimateOutput
 from fednav.service.evaluation import recording_errors
 from fednav.service.messages import (
-    SENSOR_MESSAGES,
     Alignment,
     Faults,
     Health,
     ImmModels,
     Integrity,
-    PipelineHealth,
     ServiceHealth,
     Solution,
     Truth,
     WireModel,
 )
 from fednav.service.transport import rerun_paths as paths
+from fednav.service.vehicle import MAX_PAYLOAD_BYTES, RateLimitedLog, VehicleLoop
+from fednav.service.vehicle import classify as classify  # re-exported (tests, ROS 2 bridge)
 
 log = logging.getLogger("fednav.service")
 
-MAX_PAYLOAD_BYTES = 1 << 20
 #: at shutdown the vehicles' queues drain for at most this long together (then the rest is
 #: counted in the log and the recording is closed: SIGTERM returns within seconds)
 _SHUTDOWN_DRAIN_S = 5.0
@@ -50,23 +51,6 @@ _MAX_LOGGED_NAMES = 100
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
 STATUS_ENCODING = "application/json;fednav.Status/1"
 CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
-#: wall seconds without a message from a stream after which Health calls it stale
-STALE_WALL_S = 2.0
-_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
-
-
-def classify(err: ValidationError) -> str:
-    """Rejection reason of a pydantic validation error (counted in Health)."""
-    types = {e["type"] for e in err.errors()}
-    if "json_invalid" in types or "json_type" in types:
-        return "malformed_json"
-    if "finite_number" in types:
-        return "non_finite"
-    if "value_error" in types:
-        return "absurd_value"
-    if types & _RANGE_ERRORS:
-        return "out_of_range"
-    return "schema"
 
 
 def _blueprint_plugin(pipelines: dict[str, str]):
@@ -129,28 +113,20 @@ def alignment_scalars(msg: Alignment, truth=None) -> dict[str, dict[str, float]]
     return out
 
 
-class _RateLimitedLog:
-    def __init__(self, period_s: float = 5.0):
-        self.period_s = period_s
-        self._last: dict[str, float] = {}
-
-    def warn(self, reason: str, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last.get(reason, -1e9) >= self.period_s:
-            self._last[reason] = now
-            log.warning("%s: %s", reason, text)
-
-
 class OutputSink:
     """Engine sink of the service: publish on Zenoh, record to Rerun."""
 
-    def __init__(self, prefix: str, publishers, rerun_sink, extra=()):
+    def __init__(self, prefix: str, publishers, rerun_sink, extra=(), vehicle_interval_s: float = 0.0):
         self.prefix = prefix
         self.pubs = publishers
         self.rr = rerun_sink
+        #: per-vehicle recording decimation (``rrd_vehicle_interval_s``): last recorded sensor time
+        #: and status per (vehicle, stream)
+        self.vehicle_interval_s = vehicle_interval_s
+        self._recorded: dict[tuple[str, str], tuple[float, str]] = {}
         self.extra = list(extra)  # more sinks (the ROS 2 bridge); their failures are logged, not raised
         self.last_solution: dict[tuple[str, str], Solution] = {}
-        self._rlog = _RateLimitedLog()
+        self._rlog = RateLimitedLog()
 
     def _forward(self, method: str, *args) -> None:
         for s in self.extra:
@@ -166,12 +142,33 @@ class OutputSink:
         sol = out.solution()
         self.pubs.publish(keys.nav(vehicle, sol.pipeline, "solution", self.prefix), sol)
         self.last_solution[(vehicle, sol.pipeline)] = sol
-        if self.rr is not None:
+        if self.rr is not None and self.record_due(vehicle, sol.pipeline, sol.t, sol.status):
             self.rr.log_solution(vehicle, sol)
             if out.err9 is not None:
                 errors, bounds = recording_errors(out.err9, out.P9)
                 self.rr.log_errors(vehicle, sol.pipeline, sol.t, errors, bounds)
         self._forward("on_estimate", vehicle, out)
+
+    def record_due(self, vehicle: str, stream: str, t: float, state: str = "") -> bool:
+        """Per-vehicle recording decimation: True when a row of ``stream`` at sensor time ``t`` is
+        to be recorded (always when ``state``, e.g. a status, changed or time went back)."""
+        if self.vehicle_interval_s <= 0.0:
+            return True
+        key = (vehicle, stream)
+        last = self._recorded.get(key)
+        if last is None or t - last[0] >= self.vehicle_interval_s - 1e-9 or t < last[0] or state != last[1]:
+            self._recorded[key] = (t, state)
+            return True
+        return False
+
+    def log_fix(self, vehicle: str, sensor_id: str, fix) -> None:
+        """A raw GNSS fix on the recording's trajectory view (decimated per vehicle)."""
+        if self.rr is not None and self.record_due(vehicle, "fix/" + sensor_id, fix.t):
+            self.rr.log_fix(vehicle, sensor_id, fix)
+
+    def log_health(self, vehicle: str, health: Health) -> None:
+        if self.rr is not None and (health.t is None or self.record_due(vehicle, "health", health.t)):
+            self.rr.log_health(vehicle, health)
 
     def on_output(self, vehicle: str, msg: WireModel, err9=None) -> None:
         self._forward("on_output", vehicle, msg, err9)
@@ -204,154 +201,128 @@ class OutputSink:
 
 
 class VehicleWorker:
-    """One vehicle: a bounded queue and a thread running its engine in arrival (= sensor) order."""
+    """One vehicle inside a pool worker: its :class:`~service.vehicle.VehicleLoop` and what the
+    service adds (health publication, the raw-fix recording hook, its share of the queue)."""
 
-    def __init__(self, vehicle: str, config: ServiceConfig, sink: OutputSink, publishers, rr):
+    def __init__(self, vehicle: str, config: ServiceConfig, sink: OutputSink, publishers, rr, pool_worker):
         self.vehicle = vehicle
         self.config = config
         self.sink = sink
         self.pubs = publishers
         self.rr = rr
-        self.counters: Counter = Counter()
-        self.received = 0
-        self.accepted = 0
-        self.dropped = 0
-        self.engine = VehicleEngine(vehicle, config, sink, self.counters)
-        self.q: queue.Queue = queue.Queue(maxsize=config.intake.queue_size)
-        self.latency_s: deque = deque(maxlen=2000)
-        self.arrivals: dict[str, float] = {}  # stream -> monotonic arrival time of its last message
-        self.started = time.monotonic()
-        self._rlog = _RateLimitedLog()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"fednav-{vehicle}", daemon=True)
-        self._thread.start()
+        self.pool_worker = pool_worker
+        on_fix = sink.log_fix if rr is not None else None  # raw fixes on the ENU trajectory view
+        self.loop = VehicleLoop(vehicle, config, sink, on_fix=on_fix)
+        self.engine = self.loop.engine
+        self.counters = self.loop.counters
+        self.queued = 0  # items of this vehicle waiting in its pool worker's queue
+        self.next_health = time.monotonic() + config.output.health_period_s
 
-    def submit(self, wall: float, kind: str, sensor_id: str, payload: bytes) -> None:
-        item = (wall, kind, sensor_id, payload)
-        if self.config.intake.overload == "block":
-            self.q.put(item)
-        else:
-            try:
-                self.q.put_nowait(item)
-            except queue.Full:
-                self.dropped += 1
+    @property
+    def received(self) -> int:
+        return self.loop.received
+
+    @received.setter
+    def received(self, n: int) -> None:
+        self.loop.received = n
+
+    @property
+    def dropped(self) -> int:
+        return self.loop.dropped
+
+    def submit(self, wall: float, kind: str | None, sensor_id: str, payload) -> None:
+        self.pool_worker.submit(self, (wall, kind, sensor_id, payload))
 
     def submit_rejection(self, wall: float, reason: str, text: str) -> None:
         """A message refused before it became a wire message (e.g. ROS 2 CDR that does not decode):
-        counted by the worker like every other rejection."""
+        counted by the vehicle like every other rejection."""
         self.submit(wall, None, reason, text.encode())
 
     def reject(self, reason: str, text: str = "") -> None:
-        self.counters[reason] += 1
-        self._rlog.warn(reason, f"{self.vehicle}: {text}")
-
-    def _process(self, item) -> None:
-        wall, kind, sensor_id, payload = item
-        self.received += 1
-        if kind is None:  # submit_rejection: sensor_id is the reason
-            self.reject(sensor_id, payload.decode())
-            return
-        if len(payload) > MAX_PAYLOAD_BYTES:
-            self.reject("oversize", f"{kind} payload of {len(payload)} bytes")
-            return
-        try:
-            msg = SENSOR_MESSAGES[kind].model_validate_json(payload)
-        except ValidationError as err:
-            reason = classify(err)
-            self.reject(reason, f"{kind}/{sensor_id}: {err.errors()[0]['msg']}")
-            return
-        try:
-            ok = self.engine.handle(kind, sensor_id, msg)
-        except Exception:  # never let a pipeline bug kill the vehicle worker
-            log.exception("engine failure on %s/%s", kind, sensor_id)
-            self.counters["internal_error"] += 1
-            return
-        if ok:
-            self.accepted += 1
-            self.arrivals[f"{kind}/{sensor_id}" if sensor_id else kind] = wall
-            if kind == "gnss_fix" and self.rr is not None:  # raw fixes on the ENU trajectory view
-                self.rr.log_fix(self.vehicle, sensor_id, msg)
-        self.latency_s.append(time.monotonic() - wall)
-
-    def _run(self) -> None:
-        period = self.config.output.health_period_s
-        next_health = time.monotonic() + period
-        while True:
-            try:
-                item = self.q.get(timeout=0.05)
-            except queue.Empty:
-                item = None
-            try:  # nothing a message or a sink does may end this vehicle's thread
-                if item is not None:
-                    self._process(item)
-                now = time.monotonic()
-                if now >= next_health:
-                    next_health = now + period
-                    self.publish_health()
-            except Exception:
-                log.exception("vehicle %s: worker error", self.vehicle)
-                self.counters["internal_error"] += 1
-            if item is None and self._stop.is_set():
-                break
+        self.loop.reject(reason, text)
 
     def health(self) -> Health:
-        lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(1)
-        states = self.engine.pipeline_states()
-        # the sensor-time view cannot see a stream that stopped arriving: streams silent for
-        # STALE_WALL_S of wall time are stale, and no pipeline is aided while its input is silent
-        now = time.monotonic()
-        silent = {
-            k for k, w in self.arrivals.items() if now - w > STALE_WALL_S and k not in ("truth", "init")
-        }
-        stale = sorted(set(self.engine.stale_streams()) | silent)
-        if self.arrivals and now - max(self.arrivals.values()) > STALE_WALL_S:
-            for st in states.values():
-                if st["status"] in ("aided", "degraded", "unaided"):
-                    st["status"] = "coasting"
-        return Health(
-            t=self.engine.last_t,
-            uptime_s=time.monotonic() - self.started,
-            received=self.received,
-            accepted=self.accepted,
-            rejected=dict(self.counters),
-            dropped_overload=self.dropped,
-            queue_depth=self.q.qsize(),
-            latency_ms={
-                "p50": float(np.percentile(lat, 50)),
-                "p99": float(np.percentile(lat, 99)),
-                "max": float(lat.max()),
-            },
-            pipelines={k: PipelineHealth(**v) for k, v in states.items()},
-            sensors={k: t for k, (t, _) in self.engine.streams.items()},
-            stale=stale,
-            time_base_mismatch=dict(self.engine.time_base_mismatch),
-        )
+        return self.loop.health(queue_depth=self.queued)
 
     def publish_health(self) -> None:
         h = self.health()
         self.pubs.publish(keys.service(self.vehicle, "health", self.config.prefix), h)
         self.sink.on_health(self.vehicle, h)
-        if self.rr is not None:
-            self.rr.log_health(self.vehicle, h)
+        self.sink.log_health(self.vehicle, h)
 
-    def request_stop(self) -> None:
-        """Ask the thread to finish: it drains its queue, then ends."""
-        self._stop.set()
-
-    def stop(self, deadline: float | None = None) -> None:
-        """Drain the queue (until ``deadline``, monotonic seconds), emit the last solutions and
-        health."""
-        self._stop.set()
-        self._thread.join(timeout=None if deadline is None else max(0.0, deadline - time.monotonic()))
-        if self._thread.is_alive():
-            log.warning("vehicle %s: %d events not processed at shutdown", self.vehicle, self.q.qsize())
-            return
+    def final_outputs(self) -> None:
         try:
             if self.engine.initialised:
                 self.engine.emit_solutions()
             self.publish_health()
         except Exception:
             log.exception("vehicle %s: final outputs failed", self.vehicle)
+
+
+class PoolWorker:
+    """A thread that owns many vehicles: one bounded queue of (vehicle, item), consumed in
+    arrival order (a vehicle's events keep their order: a vehicle always lives on one worker)."""
+
+    def __init__(self, index: int, config: ServiceConfig):
+        self.index = index
+        self.config = config
+        self.vehicles: list[VehicleWorker] = []
+        self.q: queue.Queue = queue.Queue(maxsize=config.intake.queue_size)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"fednav-worker-{index}", daemon=True)
+        self._thread.start()
+
+    def submit(self, vw: VehicleWorker, item) -> None:
+        if self.config.intake.overload == "block":
+            self.q.put((vw, item))
+        else:
+            try:
+                self.q.put_nowait((vw, item))
+            except queue.Full:
+                vw.loop.dropped += 1
+                return
+        vw.queued += 1
+
+    def _run(self) -> None:
+        next_scan = 0.0
+        while True:
+            try:
+                vw, item = self.q.get(timeout=0.05)
+            except queue.Empty:
+                vw = item = None
+            try:  # nothing a message or a sink does may end this worker
+                if item is not None:
+                    vw.queued -= 1
+                    wall, kind, sensor_id, payload = item
+                    vw.loop.process(kind, sensor_id, payload, wall)
+                now = time.monotonic()
+                if now >= next_scan:  # health: a scan of the vehicles every 50 ms, not per event
+                    next_scan = now + 0.05
+                    for v in list(self.vehicles):
+                        if now >= v.next_health:
+                            v.next_health = now + self.config.output.health_period_s
+                            v.publish_health()
+            except Exception:
+                log.exception("worker %d: error", self.index)
+                if vw is not None:
+                    vw.counters["internal_error"] += 1
+            if item is None and self._stop.is_set():
+                break
+
+    def request_stop(self) -> None:
+        """Ask the thread to finish: it drains its queue, then ends."""
+        self._stop.set()
+
+    def stop(self, deadline: float | None = None) -> None:
+        """Drain the queue (until ``deadline``, monotonic seconds), emit the vehicles' last
+        solutions and health."""
+        self._stop.set()
+        self._thread.join(timeout=None if deadline is None else max(0.0, deadline - time.monotonic()))
+        if self._thread.is_alive():
+            log.warning("worker %d: %d events not processed at shutdown", self.index, self.q.qsize())
+            return
+        for v in self.vehicles:
+            v.final_outputs()
 
 
 class Service:
@@ -364,13 +335,19 @@ class Service:
         connect: list[str] | None = None,
         zenoh_config_file: str | None = None,
         record: bool = True,
+        shard: tuple[int, int] | None = None,
     ):
         self.config = config
+        #: (index, count): this process serves only the vehicles that rendezvous hashing gives its
+        #: shard (``--shards``, :mod:`service.shards`); None: every served vehicle
+        self.shard = shard if shard is not None and shard[1] > 1 else None
+        self._shard_cache: dict[str, bool] = {}
         self.rrd_path = rrd or config.rrd or Path("recordings") / f"fednav-{datetime.now():%Y%m%d-%H%M%S}.rrd"
         self.viewer = viewer or config.viewer
         self.listen, self.connect, self.zenoh_config_file = listen, connect, zenoh_config_file
         self.record = record
         self.workers: dict[str, VehicleWorker] = {}
+        self.pool: list[PoolWorker] = []
         self.unrouted = Counter()  # data refused before any vehicle: by reason
         self.unserved = Counter()  # messages per vehicle name not served (first _MAX_LOGGED_NAMES)
         self.started = time.monotonic()
@@ -407,10 +384,12 @@ class Service:
             )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
+        # a bounded pool of worker threads, each owning many vehicles (no thread per vehicle)
+        self.pool = [PoolWorker(i, cfg) for i in range(cfg.intake.workers)]
         self.liveliness = zenoh_io.Liveliness(self.session)
         self.ros_in = None
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
-        self.sink = OutputSink(cfg.prefix, self.pubs, self.rr, extra)
+        self.sink = OutputSink(cfg.prefix, self.pubs, self.rr, extra, cfg.rrd_vehicle_interval_s)
         sel = "*" if "*" in cfg.vehicles else None
         # by default every vehicle's inputs, served or not: data under a name the service does not
         # serve is counted (ServiceHealth) and logged once per name instead of meeting silence;
@@ -433,7 +412,7 @@ class Service:
         qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
-        for v in [] if sel else cfg.vehicles:
+        for v in [] if sel else self._served_list():
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
         self._health_key = keys.service_health(str(self.session.zid()), cfg.prefix)
         self._health_thread = threading.Thread(
@@ -488,7 +467,9 @@ class Service:
             with self._lock:
                 w = self.workers.get(vehicle)
                 if w is None:
-                    w = VehicleWorker(vehicle, self.config, self.sink, self.pubs, self.rr)
+                    pw = min(self.pool, key=lambda p: len(p.vehicles))  # the least loaded worker
+                    w = VehicleWorker(vehicle, self.config, self.sink, self.pubs, self.rr, pw)
+                    pw.vehicles.append(w)
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w
@@ -537,6 +518,8 @@ class Service:
         vehicle = parts[1] if len(parts) > 1 else ""
         if not keys.valid_name(vehicle):
             return self._refuse("bad_vehicle_name", vehicle)
+        if self.shard is not None and not self._mine(vehicle):
+            return  # another shard of this service serves it (validated name first)
         serve_all = "*" in self.config.vehicles
         if not serve_all and vehicle not in self.config.vehicles:
             return self._refuse("unserved_vehicle", vehicle)
@@ -549,13 +532,25 @@ class Service:
             return
         w.submit(wall, pk.kind, pk.sensor_id, payload)
 
+    def _served_list(self) -> list[str]:
+        """The configured vehicle names this process serves (its shard's share)."""
+        return [v for v in self.config.vehicles if self.shard is None or self._mine(v)]
+
+    def _mine(self, vehicle: str) -> bool:
+        mine = self._shard_cache.get(vehicle)
+        if mine is None:
+            if len(self._shard_cache) > 100_000:
+                self._shard_cache.clear()
+            mine = self._shard_cache[vehicle] = fleet.shard_of(vehicle, self.shard[1]) == self.shard[0]
+        return mine
+
     def _answer(self, query_ke) -> list[tuple[str, bytes, str]]:
         """Replies to a query: for each vehicle (served, or seen with ``*``) its status, its
         configuration and each pipeline's latest Solution whose key intersects the query."""
         from fednav.service.transport.zenoh_io import intersects
 
         prefix = self.config.prefix
-        vehicles = sorted(self.workers) if "*" in self.config.vehicles else self.config.vehicles
+        vehicles = sorted(self.workers) if "*" in self.config.vehicles else self._served_list()
         latest = list(self.sink.last_solution.items())
         out = []
         for v in vehicles:
@@ -594,12 +589,11 @@ class Service:
         self.intake.stop()
         if self.ros_intake is not None:
             self.ros_intake.stop()
-        workers = list(self.workers.values())
-        for w in workers:
-            w.request_stop()
+        for pw in self.pool:
+            pw.request_stop()
         deadline = time.monotonic() + _SHUTDOWN_DRAIN_S
-        for w in workers:
-            w.stop(deadline)
+        for pw in self.pool:
+            pw.stop(deadline)
         self.queries.stop()
         self.liveliness.undeclare_all()
         if self.rr is not None:

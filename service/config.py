@@ -495,8 +495,15 @@ class IntakeConfig(Model):
         "not serve is counted and named (a typo shows); 'served': only the listed vehicles' keys (several "
         "services sharing a fleet on one bus: none receives or counts the others' vehicles)",
     )
+    workers: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description="Worker threads of the service, each owning many vehicles (a vehicle lives on one "
+        "worker, so its events keep their order); more processes: [service] shards / --shard",
+    )
     max_vehicles: int = Field(
-        64,
+        1000,
         ge=1,
         description="With vehicles = ['*']: at most this many vehicles get a worker; data for more is "
         "refused and counted ('vehicle_limit')",
@@ -573,6 +580,14 @@ class ServiceConfig(Model):
         description="Diagnostic recording streams (fault tests, sharing, 1-sigma, health, per-satellite "
         "tests) are sent this often (at least rrd_flush_interval_s): fewer chunks, a smaller file; "
         "a crash loses up to this much of them",
+    )
+    rrd_vehicle_interval_s: float = Field(
+        0.0,
+        ge=0,
+        le=3600,
+        description="Recording a fleet: each vehicle's solutions, raw fixes and health are recorded at "
+        "most once per this many seconds of sensor time (0: every one). A pipeline's status change is "
+        "always recorded; Zenoh outputs are never decimated. 1.0 records 200 vehicles (docs/SCALING.md)",
     )
     rrd_optimize: bool = Field(
         False, description="Compact the recording when the service stops (rerun rrd optimize, ~10x smaller)"

@@ -18,7 +18,7 @@ import numpy as np
 
 from fednav.service import config as config_mod
 from fednav.service import keys
-from fednav.service.engine import EstimateOutput, VehicleEngine
+from fednav.service.engine import EstimateOutput
 from fednav.service.evaluation import (
     INTEGRITY_CLASSES,
     REPORT_KEYS,
@@ -31,6 +31,7 @@ from fednav.service.evaluation import (
     nees,
 )
 from fednav.service.messages import Faults, Integrity, Solution, Truth, WireModel
+from fednav.service.vehicle import VehicleLoop
 from fednav.simulators.papers import reference
 from fednav.simulators.scenario import Scenario
 from fednav.simulators.stream import Simulation
@@ -96,12 +97,13 @@ def run_once(
     scenario time (progress bars)."""
     cfg = cfg or service_config(scenario)
     sink = CollectingSink(keep_solutions)
-    engine = VehicleEngine(vehicle, cfg, sink)
+    loop = VehicleLoop(vehicle, cfg, sink)  # the service's per-vehicle loop, in-process
+    engine = loop.engine
     sim = Simulation(scenario, seed=seed, vehicle=vehicle, trajectory=trajectory, prefix=cfg.prefix)
     next_tick = -math.inf
     for key, msg in sim:
         pk = keys.parse_input(key, cfg.prefix)
-        engine.handle(pk.kind, pk.sensor_id, msg)
+        loop.process(pk.kind, pk.sensor_id, msg)
         if on_time is not None and engine.last_t is not None and engine.last_t >= next_tick:
             next_tick = engine.last_t + 1.0
             on_time(engine.last_t)

@@ -33,7 +33,7 @@ class LooselyCoupled(Pipeline):
         }
         self.private = tuple(b for m in self.models.values() for b in m.private_states)
         self.last_nis: float | None = None
-        self.nis_history: deque = deque(maxlen=100_000)  # (t, kind, NIS, dof) for consistency checks
+        self.nis_history: deque = deque(maxlen=2048)  # (t, kind, NIS, dof): the latest, for consistency checks
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
         self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
         self._gate_reported: set[str] = set()  # kinds whose last published Faults refused rows

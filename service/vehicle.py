@@ -1,0 +1,192 @@
+"""One vehicle's loop: decode and validate an input, run the engine, count, report health.
+
+The one per-vehicle loop of fednav: the service's worker pool (:mod:`service.app`), the
+in-process recorder (``fednav-record``) and the evaluator (``fednav-sim eval``) all feed their
+events through :meth:`VehicleLoop.process`, so a message is judged, counted and used the same way
+on every route. An input is one of
+
+- JSON bytes of a sensor message (validated by its pydantic model, refusals classified),
+- an ImuBatch payload (:mod:`service.imu_batch`: refused whole, or record by record),
+- a wire message already validated (in-process simulators, the ROS 2 bridge's decoded CDR),
+- a rejection decided before (``kind`` None: ``sensor_id`` is the reason, the payload its text).
+
+No thread here: the caller owns scheduling (the service's pool runs many vehicles per worker).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter, deque
+
+import numpy as np
+from pydantic import ValidationError
+
+from fednav.service import imu_batch
+from fednav.service.config import ServiceConfig
+from fednav.service.engine import VehicleEngine
+from fednav.service.messages import SENSOR_MESSAGES, Health, PipelineHealth, WireModel
+
+log = logging.getLogger("fednav.service")
+
+MAX_PAYLOAD_BYTES = 1 << 20
+#: wall seconds without a message from a stream after which Health calls it stale
+STALE_WALL_S = 2.0
+_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
+
+
+def classify(err: ValidationError) -> str:
+    """Rejection reason of a pydantic validation error (counted in Health)."""
+    types = {e["type"] for e in err.errors()}
+    if "json_invalid" in types or "json_type" in types:
+        return "malformed_json"
+    if "finite_number" in types:
+        return "non_finite"
+    if "value_error" in types:
+        return "absurd_value"
+    if types & _RANGE_ERRORS:
+        return "out_of_range"
+    return "schema"
+
+
+class RateLimitedLog:
+    def __init__(self, period_s: float = 5.0):
+        self.period_s = period_s
+        self._last: dict[str, float] = {}
+
+    def warn(self, reason: str, text: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(reason, -1e9) >= self.period_s:
+            self._last[reason] = now
+            log.warning("%s: %s", reason, text)
+
+
+class VehicleLoop:
+    """A vehicle's engine with its counters (Health): ``received`` counts samples (an ImuBatch of
+    N records is N received), ``accepted`` those the engine took, ``counters`` every refusal by
+    reason. ``on_fix(vehicle, sensor_id, fix)`` is called for every accepted GNSS fix (the
+    recording's raw-fix layer)."""
+
+    def __init__(self, vehicle: str, config: ServiceConfig, sink, on_fix=None, latency_window: int = 2000):
+        self.vehicle = vehicle
+        self.config = config
+        self.counters: Counter = Counter()
+        self.received = 0
+        self.accepted = 0
+        self.dropped = 0
+        self.engine = VehicleEngine(vehicle, config, sink, self.counters)
+        self.on_fix = on_fix
+        self.latency_s: deque = deque(maxlen=latency_window)
+        self.arrivals: dict[str, float] = {}  # stream -> monotonic arrival time of its last message
+        self.started = time.monotonic()
+        self._rlog = RateLimitedLog()
+
+    def reject(self, reason: str, text: str = "", n: int = 1) -> None:
+        self.counters[reason] += n
+        self._rlog.warn(reason, f"{self.vehicle}: {text}")
+
+    def process(self, kind: str | None, sensor_id: str, payload, wall: float | None = None) -> None:
+        """One input (module docstring); ``wall``: its arrival, monotonic seconds (latency)."""
+        wall = time.monotonic() if wall is None else wall
+        if kind is None:  # a rejection decided before: sensor_id is the reason
+            self.received += 1
+            self.reject(sensor_id, payload.decode() if isinstance(payload, bytes) else str(payload))
+            return
+        if isinstance(payload, WireModel):
+            self.received += 1
+            self._handle(kind, sensor_id, payload, wall)
+            return
+        if kind == "imu" and imu_batch.is_batch(payload):
+            self._batch(sensor_id, payload, wall)
+            return
+        self.received += 1
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.reject("oversize", f"{kind} payload of {len(payload)} bytes")
+            return
+        try:
+            msg = SENSOR_MESSAGES[kind].model_validate_json(payload)
+        except ValidationError as err:
+            self.reject(classify(err), f"{kind}/{sensor_id}: {err.errors()[0]['msg']}")
+            return
+        self._handle(kind, sensor_id, msg, wall)
+
+    def _handle(self, kind: str, sensor_id: str, msg: WireModel, wall: float) -> None:
+        try:
+            ok = self.engine.handle(kind, sensor_id, msg)
+        except Exception:  # never let a pipeline bug end the vehicle
+            log.exception("engine failure on %s/%s", kind, sensor_id)
+            self.counters["internal_error"] += 1
+            return
+        if ok:
+            self.accepted += 1
+            self.arrivals[f"{kind}/{sensor_id}" if sensor_id else kind] = wall
+            if kind == "gnss_fix" and self.on_fix is not None:
+                self.on_fix(self.vehicle, sensor_id, msg)
+        self.latency_s.append(time.monotonic() - wall)
+
+    def _batch(self, sensor_id: str, payload, wall: float) -> None:
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            self.received += 1
+            self.reject("oversize", f"imu/{sensor_id}: ImuBatch of {len(payload)} bytes")
+            return
+        try:
+            rows = imu_batch.decode(payload)
+        except imu_batch.BatchError as exc:
+            self.received += 1
+            self.reject(exc.reason, f"imu/{sensor_id}: {exc}")
+            return
+        self.received += len(rows)
+        ok, bad = imu_batch.validate(rows)
+        for reason, n in bad.items():
+            self.reject(reason, f"imu/{sensor_id}: {n} of {len(rows)} records of an ImuBatch", n)
+        if bad:
+            rows = rows[ok]
+        if len(rows) == 0:
+            return
+        try:
+            n = self.engine.handle_imu_batch(sensor_id, rows)
+        except Exception:
+            log.exception("engine failure on an ImuBatch of imu/%s", sensor_id)
+            self.counters["internal_error"] += 1
+            return
+        self.accepted += n
+        if n:
+            self.arrivals[f"imu/{sensor_id}"] = wall
+        self.latency_s.append(time.monotonic() - wall)
+
+    def health(self, queue_depth: int = 0) -> Health:
+        lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(1)
+        engine = self.engine
+        states = engine.pipeline_states()
+        # the sensor-time view cannot see a stream that stopped arriving: streams silent for
+        # STALE_WALL_S of wall time are stale, and no pipeline is aided while its input is silent
+        now = time.monotonic()
+        silent = {
+            k for k, w in self.arrivals.items() if now - w > STALE_WALL_S and k not in ("truth", "init")
+        }
+        stale = sorted(set(engine.stale_streams()) | silent)
+        if self.arrivals and now - max(self.arrivals.values()) > STALE_WALL_S:
+            for st in states.values():
+                if st["status"] in ("aided", "degraded", "unaided"):
+                    st["status"] = "coasting"
+        return Health(
+            t=engine.last_t,
+            uptime_s=now - self.started,
+            received=self.received,
+            accepted=self.accepted,
+            rejected=dict(self.counters),
+            dropped_overload=self.dropped,
+            queue_depth=queue_depth,
+            latency_ms={
+                "p50": float(np.percentile(lat, 50)),
+                "p99": float(np.percentile(lat, 99)),
+                "max": float(lat.max()),
+            },
+            pipelines={k: PipelineHealth(**v) for k, v in states.items()},
+            sensors={k: t for k, (t, _) in engine.streams.items()},
+            stale=stale,
+            time_base_mismatch=dict(engine.time_base_mismatch),
+        )
+
+
+__all__ = ["MAX_PAYLOAD_BYTES", "STALE_WALL_S", "RateLimitedLog", "VehicleLoop", "classify"]
