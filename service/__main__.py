@@ -61,6 +61,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--vehicle", action="append", help="vehicle(s) to serve, '*' for all (default: the config's)"
     )
     ap.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING, ERROR (default INFO)")
+    ap.add_argument(
+        "--shards",
+        type=int,
+        default=1,
+        help="spread the vehicles over this many processes (rendezvous hashing; each writes its own "
+        "recording, run.shardI.rrd): where one process's Python (GIL) is the limit, e.g. one per core",
+    )
+    ap.add_argument("--shard", help=argparse.SUPPRESS)  # I/K: a shard started by --shards
     return ap.parse_args(argv)
 
 
@@ -84,6 +92,15 @@ def _usage_error(args: argparse.Namespace) -> str | None:
         return f"--zenoh-config {args.zenoh_config}: no such file"
     if args.config and not Path(args.config).is_file():
         return f"--config {args.config}: no such file"
+    if not 1 <= args.shards <= 64:
+        return f"--shards {args.shards}: use 1..64"
+    if args.shard:
+        from fednav.service.shards import parse_shard
+
+        try:
+            parse_shard(args.shard)
+        except ValueError as exc:
+            return str(exc)
     return None
 
 
@@ -110,10 +127,23 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fednav-service: [ros2] is configured but {exc}", file=sys.stderr)
             return 2
     from fednav.service.app import Service
+    from fednav.service.shards import READY_TEXT, ShardSupervisor, parse_shard
 
     listen = args.listen
     if args.connect and not args.listen:
         listen = []
+    shard = parse_shard(args.shard) if args.shard else (0, args.shards) if args.shards > 1 else None
+    supervisor = None
+    if shard is not None and args.shard is None:  # shard 0: the children connect to it
+        client = cfg.zenoh.mode == "client"
+        supervisor = ShardSupervisor(
+            sys.argv[1:] if argv is None else argv,
+            args.shards,
+            connect=(args.connect or cfg.zenoh.connect) if client else None,
+            rrd=None if args.no_record else args.rrd,
+        )
+        if not client:
+            listen = list(listen if listen is not None else cfg.zenoh.listen) + [supervisor.socket_endpoint]
     svc = Service(
         cfg,
         rrd=args.rrd,
@@ -122,7 +152,10 @@ def main(argv: list[str] | None = None) -> int:
         connect=args.connect,
         zenoh_config_file=args.zenoh_config,
         record=not args.no_record,
+        shard=shard,
     )
+    if supervisor is not None and not args.no_record:
+        supervisor.rrd = Path(svc.rrd_path)  # each shard's recording beside shard 0's
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -141,9 +174,21 @@ def main(argv: list[str] | None = None) -> int:
         )
         svc.stop()
         return 2
-    print(f"fednav-service ready (recording: {svc.rrd_path if not args.no_record else 'off'})", flush=True)
+    if args.shard:
+        print(READY_TEXT.format(i=shard[0], k=shard[1]), flush=True)
+    if supervisor is not None and not supervisor.start():
+        print("fednav-service: a shard did not start (see its output above)", file=sys.stderr)
+        supervisor.stop()
+        svc.stop()
+        return 2
+    if not args.shard:  # a shard said its own ready line above
+        print(
+            f"fednav-service ready (recording: {svc.rrd_path if not args.no_record else 'off'})", flush=True
+        )
     while not stop.wait(0.2):
         pass
+    if supervisor is not None:
+        supervisor.stop()
     svc.stop()
     print("fednav-service stopped", flush=True)
     return 0

@@ -11,6 +11,8 @@ adaptive R and fading factors), published at the output epochs.
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from fednav.service import earth
@@ -65,6 +67,14 @@ def bank_from_config(cfg: TransferAlignmentConfig, t0: float = 0.0) -> ta.Transf
     )
 
 
+#: samples a node or the master may wait for the other (4 s at 100 Hz)
+_MAX_WAITING = 400
+
+
+def _tkey(t: float) -> int:
+    return int(round(t * 1e6))
+
+
 class TransferAlignment(LooselyCoupled):
     """Master navigation as a loosely coupled pipeline plus the slave nodes' transfer alignment."""
 
@@ -75,7 +85,11 @@ class TransferAlignment(LooselyCoupled):
         self.ta_cfg = cfg
         self.node_ids = [n.id for n in cfg.nodes]
         self.ta: ta.TransferAlignmentBank | None = None
-        self._pending: dict[str, ImuSample] = {}
+        #: node samples waiting for the master sample of their instant, per node, by time (us)
+        self._pending: dict[str, dict[int, ImuSample]] = {}
+        #: master samples waiting for their nodes' samples (batches of the nodes may arrive after
+        #: the master's: the join is by time, not by arrival order)
+        self._masters: deque = deque()
         self._t_prev: float | None = None
         self.node_resets = 0
         self._out: list[WireModel] = []
@@ -94,19 +108,53 @@ class TransferAlignment(LooselyCoupled):
         super().initialise(nav, std)
         self.ta = bank_from_config(self.ta_cfg, t0=nav.t)  # the node filters start with the INS
         self._pending.clear()
+        self._masters.clear()
 
     def push_node_imu(self, sensor_id: str, msg: ImuSample) -> None:
-        self._pending[sensor_id] = msg
+        pending = self._pending.setdefault(sensor_id, {})
+        pending[_tkey(msg.t)] = msg
+        if len(pending) > _MAX_WAITING:  # a node far ahead of the master: keep the newest
+            for k in sorted(pending)[: len(pending) - _MAX_WAITING]:
+                del pending[k]
+        self._join()
 
     def push_imu_sample(self, msg: ImuSample) -> None:
-        """A master sample at t: step the node filters with the nodes' samples ending at t. A node
+        """A master sample at t: queued until every node's sample ending at t is in (or a node
+        has passed t without one), then the node filters step (:meth:`_step`)."""
+        self._masters.append(msg)
+        if len(self._masters) > _MAX_WAITING:  # nodes silent: the oldest master cannot be joined
+            self._step(self._masters.popleft(), None)
+        self._join()
+
+    def _join(self) -> None:
+        """Step the node filters for every queued master sample whose nodes are decided."""
+        while self._masters:
+            msg = self._masters[0]
+            k = _tkey(msg.t)
+            got, waiting = [], False
+            for i in self.node_ids:
+                pending = self._pending.get(i, {})
+                m = pending.get(k)
+                if m is None and not any(kk > k for kk in pending):
+                    waiting = True  # this node has not reached t yet
+                    break
+                got.append(m)
+            if waiting:
+                return
+            self._masters.popleft()
+            for i in self.node_ids:  # what is at or before t is used or missing now
+                pending = self._pending.get(i, {})
+                for kk in [kk for kk in pending if kk <= k]:
+                    del pending[kk]
+            self._step(msg, got)
+
+    def _step(self, msg: ImuSample, got: list | None) -> None:
+        """A master sample at t with the nodes' samples ending at t (None: missing). A node
         missing at t (lost or late) restarts the node filters at the next complete set (the
         relative mechanisation needs every interval of every node; counted in ``node_resets``)."""
-        got = [self._pending.get(i) for i in self.node_ids]
-        complete = all(
+        complete = got is not None and all(
             m is not None and abs(m.t - msg.t) < 1e-6 and abs(m.dt_s - msg.dt_s) < 1e-9 for m in got
         )
-        self._pending.clear()
         if not complete:
             if self.ta is not None:
                 self.ta = None

@@ -63,9 +63,15 @@ def _explicit(content: dict, loaded: zenoh.Config, key: str) -> bool:
     return json.loads(loaded.get_json(key)) != json.loads(zenoh.Config().get_json(key))
 
 
+#: Zenoh link protocols that reach another machine or user (the outputs guard applies to them)
+NETWORK_LINK_PROTOCOLS = ("tcp", "tls", "udp", "quic", "ws", "serial", "unixpipe", "vsock")
+
+
 def outputs_guard(prefix: str) -> dict:
     """Zenoh access control that refuses, from every remote session, publications and queryables
-    under the service's output keys (``{prefix}/*/nav/**``, ``{prefix}/*/service/**``): only the
+    under the service's output keys (``{prefix}/*/nav/**``, ``{prefix}/*/service/**``) over any
+    network link (:data:`NETWORK_LINK_PROTOCOLS`; the service's own shards connect over a private
+    unix socket and publish their vehicles' outputs through it): only the
     service itself publishes solutions and health and answers status, so a client on the bus cannot
     spoof them to the other clients routed through the service. Everything else is allowed."""
     outputs = [f"{prefix}/*/nav/**", f"{prefix}/*/service/**"]
@@ -81,7 +87,10 @@ def outputs_guard(prefix: str) -> dict:
                 "key_exprs": outputs,
             }
         ],
-        "subjects": [{"id": "every-remote-session"}],
+        # every network link; a session over a local unix socket (the service's own shard
+        # processes, ``--shards``: the socket lives in a directory only the service's user can
+        # open) is the service itself
+        "subjects": [{"id": "every-remote-session", "link_protocols": list(NETWORK_LINK_PROTOCOLS)}],
         "policies": [
             {
                 "id": "outputs-are-the-services",

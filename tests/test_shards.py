@@ -1,0 +1,131 @@
+"""Rendezvous assignment (service/fleet.py) and local shards (fednav-service --shards, service/shards.py)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+from collections import Counter
+
+import pytest
+
+from fednav.service import fleet
+from fednav.simulators.fleet import vehicle_names
+
+
+def test_rendezvous_is_balanced_over_1000_vehicles():
+    names = vehicle_names(1000)
+    for k in (2, 3, 4, 8):
+        members = [fleet.shard_name(i) for i in range(k)]
+        load = Counter(fleet.owner(v, members) for v in names)
+        mean = 1000 / k
+        assert set(load) == set(members)
+        # a binomial count's spread: max/mean stays within ~4 sigma of 1 for these sizes
+        assert max(load.values()) / mean < 1.0 + 4.0 * ((k - 1) / 1000) ** 0.5, (k, load)
+
+
+def test_rendezvous_moves_only_the_dead_or_new_members_share():
+    names = vehicle_names(1000)
+    members = ["svc-a", "svc-b", "svc-c"]
+    before = {v: fleet.owner(v, members) for v in names}
+    after = {v: fleet.owner(v, ["svc-a", "svc-c"]) for v in names}  # svc-b died
+    moved = {v for v in names if before[v] != after[v]}
+    assert moved == {v for v in names if before[v] == "svc-b"}
+    joined = {v: fleet.owner(v, [*members, "svc-d"]) for v in names}  # svc-d joined
+    moved = {v for v in names if before[v] != joined[v]}
+    assert moved and all(joined[v] == "svc-d" for v in moved)
+    assert 150 < len(moved) < 350  # about a quarter of the fleet
+    # every instance computes the same owner whatever the order of its member list
+    assert all(fleet.owner(v, list(reversed(members))) == before[v] for v in names)
+    assert fleet.owner("v1", []) is None
+
+
+def test_shard_of_is_stable_and_covers_every_shard():
+    names = vehicle_names(200)
+    got = [fleet.shard_of(v, 4) for v in names]
+    assert set(got) == {0, 1, 2, 3}
+    assert got == [fleet.shard_of(v, 4) for v in names]
+    assert all(fleet.shard_of(v, 1) == 0 for v in names)
+
+
+@pytest.mark.integration
+def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
+    """Real processes: fednav-service --shards 2 (two processes) and the fleet simulator with 8
+    vehicles: every vehicle gets solutions from exactly one shard (no duplicate solution times),
+    status answers once per vehicle, and each shard writes its own complete recording."""
+    import zenoh
+
+    from fednav.simulators.processes import Proc, free_port, query_status, start_service
+
+    from .plain_zenoh import client as zenoh_client
+
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n')
+    port = free_port()
+    rrd = tmp_path / "run.rrd"
+    svc = start_service(port, config=cfg, rrd=rrd, extra=["--shards", "2"])
+    session = zenoh_client(port)
+    sols: dict[str, list[float]] = {}
+    lock = threading.Lock()
+
+    def on_sol(sample: zenoh.Sample) -> None:
+        v = str(sample.key_expr).split("/")[1]
+        with lock:
+            sols.setdefault(v, []).append(json.loads(sample.payload.to_bytes())["t"])
+
+    sub = session.declare_subscriber("fednav/*/nav/lc/solution", on_sol)
+    n = 8
+    names = vehicle_names(n)
+    try:
+        gen = Proc(
+            [
+                sys.executable,
+                "-m",
+                "fednav.simulators",
+                "fleet",
+                "--vehicles",
+                str(n),
+                "--duration",
+                "20",
+                "--speed",
+                "4",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+            ],
+            "fleet",
+        )
+        assert gen.wait(timeout=120) == 0, gen.output()
+        replies = {}
+        for v in names:
+            replies[v] = []
+            for reply in session.get(f"fednav/{v}/service/status", timeout=5.0):
+                if reply.ok is not None:
+                    replies[v].append(json.loads(reply.ok.payload.to_bytes()))
+        st = query_status(port, names[0])
+        assert st is not None
+    finally:
+        sub.undeclare()
+        session.close()
+        svc.signal(signal.SIGTERM)
+        rc = svc.wait(timeout=90)
+    assert rc == 0, svc.output()
+    owners = {v: fleet.shard_of(v, 2) for v in names}
+    assert set(owners.values()) == {0, 1}, owners  # both shards have vehicles
+    for v in names:
+        t = sols.get(v, [])
+        assert len(t) > 150, (v, len(t))
+        assert len(t) == len(set(t)), f"{v}: {len(t) - len(set(t))} solutions published twice"
+        assert len(replies[v]) == 1, (v, replies[v])
+        h = replies[v][0]["health"]
+        assert h["pipelines"]["lc"]["status"] in ("aided", "coasting"), h
+    # each shard's own recording, readable by Rerun's reader, holding only its vehicles
+    from fednav.dashboards.inspect import read_series
+
+    for i, path in enumerate((rrd, tmp_path / "run.shard1.rrd")):
+        assert path.is_file(), path
+        _, series = read_series(path)
+        ents = set(series)
+        mine = {v for v in names if owners[v] == i}
+        assert all(any(e.startswith(f"/{v}/") for e in ents) for v in mine), (path, sorted(ents)[:20])
+        assert not any(e.startswith(f"/{v}/") for v in set(names) - mine for e in ents), path
