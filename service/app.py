@@ -216,6 +216,7 @@ class VehicleWorker:
         self.engine = self.loop.engine
         self.counters = self.loop.counters
         self.queued = 0  # items of this vehicle waiting in its pool worker's queue
+        self.notes = None  # () -> counted non-refusal events (the ROS 2 bridge's), for Health
         self.next_health = time.monotonic() + config.output.health_period_s
 
     @property
@@ -242,7 +243,7 @@ class VehicleWorker:
         self.loop.reject(reason, text)
 
     def health(self) -> Health:
-        return self.loop.health(queue_depth=self.queued)
+        return self.loop.health(queue_depth=self.queued, notes=self.notes() if self.notes else None)
 
     def publish_health(self) -> None:
         h = self.health()
@@ -470,6 +471,8 @@ class Service:
                     pw = min(self.pool, key=lambda p: len(p.vehicles))  # the least loaded worker
                     w = VehicleWorker(vehicle, self.config, self.sink, self.pubs, self.rr, pw)
                     pw.vehicles.append(w)
+                    if self.ros_in is not None and vehicle == self.config.ros2.vehicle:
+                        w.notes = lambda: dict(self.ros_in.counters)
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w

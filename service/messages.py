@@ -663,6 +663,11 @@ class Health(WireModel):
         description="Streams ('kind/id') whose latest time is more than 60 s from the vehicle's IMU time, "
         "with that offset, s: a time base mismatch (every stream must carry GPS seconds)",
     )
+    notes: dict[str, int] = Field(
+        default_factory=dict,
+        description="Counted events that are not refusals, by name: e.g. fix_without_velocity (a ROS 2 "
+        "NavSatFix used position-only because its Twist did not come), twist_without_fix",
+    )
 
 
 class ServiceHealth(WireModel):

@@ -154,7 +154,7 @@ class VehicleLoop:
             self.arrivals[f"imu/{sensor_id}"] = wall
         self.latency_s.append(time.monotonic() - wall)
 
-    def health(self, queue_depth: int = 0) -> Health:
+    def health(self, queue_depth: int = 0, notes: dict[str, int] | None = None) -> Health:
         lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(1)
         engine = self.engine
         states = engine.pipeline_states()
@@ -186,6 +186,7 @@ class VehicleLoop:
             sensors={k: t for k, (t, _) in engine.streams.items()},
             stale=stale,
             time_base_mismatch=dict(engine.time_base_mismatch),
+            notes={k: int(v) for k, v in (notes or {}).items() if v},
         )
 
 

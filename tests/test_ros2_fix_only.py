@@ -143,6 +143,8 @@ def test_imu_and_navsatfix_alone_reach_aided_with_the_stock_config(fix_only_run)
     assert set(rejected) <= {"not_initialised"} and rejected.get("not_initialised", 0) <= 61, rejected
     assert h["accepted"] == (n_imu - 1) + n_fix - rejected.get("not_initialised", 0)
     assert n_fix - rejected.get("not_initialised", 0) >= 15  # fixes taken as aiding
+    # counted, not silent: every fix went on position-only (Health notes of the bridge's vehicle)
+    assert h["notes"].get("fix_without_velocity", 0) >= n_fix - 1, h["notes"]
     lc = run["status"]["health"]["pipelines"]["lc"]
     assert lc["status"] == "aided", lc
     assert run["idle"]["health"]["pipelines"]["lc"]["updates"] >= 15
