@@ -76,9 +76,10 @@ def test_vectorised_validation_names_each_bad_record():
     # the same limits as the per-sample JSON model
     for i in range(10):
         r = rows[i]
+        t, dt, a0, a1, a2, v0, v1, v2 = (float(v) for v in r)
         payload = (
-            '{"t": %r, "dt_s": %r, "dtheta_rad": [%r, %r, %r], "dvel_mps": [%r, %r, %r]}'
-            % tuple(float(v) for v in r)
+            f'{{"t": {t!r}, "dt_s": {dt!r}, "dtheta_rad": [{a0!r}, {a1!r}, {a2!r}], '
+            f'"dvel_mps": [{v0!r}, {v1!r}, {v2!r}]}}'
         ).replace("nan", "NaN")
         try:
             ImuSample.model_validate_json(payload)

@@ -33,7 +33,8 @@ class LooselyCoupled(Pipeline):
         }
         self.private = tuple(b for m in self.models.values() for b in m.private_states)
         self.last_nis: float | None = None
-        self.nis_history: deque = deque(maxlen=2048)  # (t, kind, NIS, dof): the latest, for consistency checks
+        #: (t, kind, NIS, dof) of the latest updates, for consistency checks
+        self.nis_history: deque = deque(maxlen=2048)
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
         self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
         self._gate_reported: set[str] = set()  # kinds whose last published Faults refused rows
