@@ -76,7 +76,6 @@ import numpy as np
 from scipy import integrate, special
 
 from fednav.service.estimation import kalman
-from fednav.service.estimation.kalman import symmetrise
 
 H_IDX = (0, 1)  # east, north position error (ENU metres) in the INS error state
 V_IDX = 2  # up
@@ -161,20 +160,149 @@ def cross_update(
 
 
 # --- results ----------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
 class BankUpdate:
     """Per-member statistics of one bank update.
 
     innovation (B, m) r = z - H x (zero on masked rows); whitened (B, m) L^-1 r; nis (B,);
     dof (B,) rows used; K (B, n, m) gains; IKH (B, n, n) = I - K H.
+
+    The bank's update works with the factors of the gains (:func:`_masked_gain`) and never forms
+    K, I - K H as returned here nor the Cholesky factor of each S: those are computed on first
+    access (the integrity logic reads none of them).
     """
 
+    __slots__ = ("innovation", "dof", "_K", "_IKH", "_whitened", "_nis", "_gain")
+
+    def __init__(
+        self,
+        innovation: np.ndarray,
+        dof: np.ndarray,
+        K: np.ndarray | None = None,
+        IKH: np.ndarray | None = None,
+        whitened: np.ndarray | None = None,
+        nis: np.ndarray | None = None,
+        gain: _Gain | None = None,
+    ):
+        self.innovation, self.dof = innovation, dof
+        self._K, self._IKH, self._whitened, self._nis, self._gain = K, IKH, whitened, nis, gain
+
+    @property
+    def K(self) -> np.ndarray:
+        if self._K is None:
+            self._K = self._gain.K()
+        return self._K
+
+    @property
+    def IKH(self) -> np.ndarray:
+        if self._IKH is None:
+            self._IKH = self._gain.IKH()
+        return self._IKH
+
+    @property
+    def whitened(self) -> np.ndarray:
+        if self._whitened is None:
+            self._whitened, self._nis = self._gain.whitened()
+        return self._whitened
+
+    @property
+    def nis(self) -> np.ndarray:
+        if self._nis is None:
+            self._whitened, self._nis = self._gain.whitened()
+        return self._nis
+
+
+@dataclass(frozen=True)
+class _Gain:
+    """The gains of one bank update in factored form (:func:`_masked_gain`).
+
+    x (B, n) updated states; U = P E' (B, n, s); Vt = (S^-1 G_a)' (B, s, m), so K = U Vt;
+    Psi = Vt G (B, s, s), so K H = U Psi E; C = E P E' (B, s, s); sel (s,) the observed states;
+    G = H[:, sel]; keep (B, m) rows used; r_var (m,); innovation (B, m); dof (B,).
+    """
+
+    x: np.ndarray
+    U: np.ndarray
+    Vt: np.ndarray
+    Psi: np.ndarray
+    C: np.ndarray
+    sel: np.ndarray
+    G: np.ndarray
+    keep: np.ndarray
+    r_var: np.ndarray
     innovation: np.ndarray
-    whitened: np.ndarray
-    nis: np.ndarray
     dof: np.ndarray
-    K: np.ndarray
-    IKH: np.ndarray
+
+    def K(self) -> np.ndarray:
+        return self.U @ self.Vt
+
+    def IKH(self) -> np.ndarray:
+        B, n = self.x.shape
+        out = np.broadcast_to(np.eye(n), (B, n, n)).copy()
+        out[:, :, self.sel] -= self.U @ self.Psi
+        return out
+
+    def whitened(self) -> tuple[np.ndarray, np.ndarray]:
+        """L^-1 r and r' S^-1 r with S = H_a P H_a' + R (R = identity on masked rows) = L L'."""
+        Ga = self.G * self.keep[:, :, None]
+        S = Ga @ self.C @ np.swapaxes(Ga, 1, 2)
+        m = S.shape[-1]
+        S.reshape(len(S), -1)[:, :: m + 1] += np.where(self.keep, self.r_var, 1.0)
+        L = np.linalg.cholesky(0.5 * (S + np.swapaxes(S, 1, 2)))
+        w = np.linalg.solve(L, self.innovation[:, :, None])[:, :, 0]
+        return w, np.einsum("bi,bi->b", w, w)
+
+
+@dataclass(frozen=True)
+class _Factors:
+    """The factors of one bank update that :meth:`MhssBank._joseph_all` multiplies: ikh = I - K H
+    (B, n, n); K = U V' with U (B, n, s), V (B, m, s); VR = V' R (B, s, m); RF = [I - K H | U]'
+    (B, n + s, n)."""
+
+    ikh: np.ndarray
+    U: np.ndarray
+    VR: np.ndarray
+    V: np.ndarray
+    RF: np.ndarray
+
+
+def _masked_gain(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, keep: np.ndarray
+) -> _Gain | None:
+    """Gains of a bank whose members share H and a diagonal R and differ by row masks.
+
+    The same gains as :func:`~service.estimation.kalman.gain` (K = P H_a' S^-1, S = H_a P H_a' + R,
+    zero gain on masked rows), solved in the space of the s states that H observes instead of the
+    m rows: with E selecting those states (H = G E, G (m, s)), C = E P E', G_a = G with masked
+    rows zero and J = G_a' R^-1 G_a, the push-through identity (exact, no approximation) gives
+
+        S^-1 G_a = R^-1 G_a (I + C J)^-1,    K = (P E') (S^-1 G_a)',    K H = K G_a E,
+
+    one s x s inverse per member (s = 8 for pseudoranges and range rates: position, velocity,
+    clock) instead of an m x m Cholesky factor and two triangular solves (m = 24 for 12
+    satellites). Returns None when a member's C is not positive definite or a noise variance is
+    not positive (then S may not be: the caller takes the general path, which raises
+    NotPositiveDefinite exactly when S is not positive definite).
+    """
+    B, n = x.shape
+    sel = np.flatnonzero(np.any(H != 0.0, axis=0))
+    s = len(sel)
+    if s == 0 or not np.all(r_var > 0.0):
+        return None
+    kf = keep.astype(float)
+    r = (z - x @ H.T) * kf  # innovations, zero on masked rows
+    G = H[:, sel]
+    U = P[:, :, sel]  # P E' (B, n, s)
+    C = U[:, sel, :]  # E P E' (B, s, s)
+    try:
+        np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return None
+    GW = (kf / r_var)[:, :, None] * G  # R^-1 G_a (B, m, s)
+    M = C @ (G.T @ GW)  # C J
+    M.reshape(B, -1)[:, :: s + 1] += 1.0
+    Vt = np.swapaxes(GW @ np.linalg.inv(M), 1, 2)  # (S^-1 G_a)' (B, s, m)
+    x_new = x + (U @ (Vt @ r[:, :, None]))[:, :, 0]
+    return _Gain(x_new, U, Vt, Vt @ G, C, sel, G, keep, r_var, r, keep.sum(axis=1))
 
 
 @dataclass(frozen=True)
@@ -235,15 +363,17 @@ def solution_separation(
     kh = kfa if kfa_h is None else kfa_h
     h = np.asarray(h_idx)
     dx = x_ref[None, :] - x_sub
-    dP = P_ref[None] - P_cross - np.swapaxes(P_cross, 1, 2) + P_sub  # eq 27
-    dPh = dP[:, h[:, None], h[None, :]]
-    Psh = P_sub[:, h[:, None], h[None, :]]
+    # only the horizontal and vertical rows/columns of the covariances enter the tests
+    hv = np.append(h, v_idx)
+    ix = (slice(None), hv[:, None], hv[None, :])
+    Pc, Ps = P_cross[ix], P_sub[ix]
+    dP = P_ref[ix[1:]][None] - Pc - np.swapaxes(Pc, 1, 2) + Ps  # eq 27, (N, 3, 3)
     d_h = np.linalg.norm(dx[:, h], axis=1)  # eq 28
-    T_h = kh * np.sqrt(np.maximum(lambda_max_2x2(dPh), 0.0))  # eq 29
-    a_h = kmd * np.sqrt(np.maximum(lambda_max_2x2(Psh), 0.0))  # eq 31
+    T_h = kh * np.sqrt(np.maximum(lambda_max_2x2(dP[:, :2, :2]), 0.0))  # eq 29
+    a_h = kmd * np.sqrt(np.maximum(lambda_max_2x2(Ps[:, :2, :2]), 0.0))  # eq 31
     d_v = np.abs(dx[:, v_idx])
-    T_v = kfa * np.sqrt(np.maximum(dP[:, v_idx, v_idx], 0.0))
-    a_v = kmd * np.sqrt(np.maximum(P_sub[:, v_idx, v_idx], 0.0))
+    T_v = kfa * np.sqrt(np.maximum(dP[:, 2, 2], 0.0))
+    a_v = kmd * np.sqrt(np.maximum(Ps[:, 2, 2], 0.0))
     # fault-free term (binds only when N = 0 or a child is better than the reference)
     hpl0 = kmd * math.sqrt(max(float(lambda_max_2x2(P_ref[h[:, None], h[None, :]])), 0.0))
     vpl0 = kmd * math.sqrt(max(float(P_ref[v_idx, v_idx]), 0.0))
@@ -253,6 +383,26 @@ def solution_separation(
 
 
 # --- the bank ---------------------------------------------------------------------------------------------
+class _Work:
+    """Scratch arrays reused from epoch to epoch (no allocation, warm caches); never returned."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
+        a = self._arrays.get(name)
+        if a is None or a.shape != shape:
+            a = self._arrays[name] = np.empty(shape)
+        return a
+
+    def identity(self, B: int, n: int) -> np.ndarray:
+        """(B, n, n) identity matrices (read only)."""
+        a = self._arrays.get("identity")
+        if a is None or a.shape != (B, n, n):
+            a = self._arrays["identity"] = np.broadcast_to(np.eye(n), (B, n, n)).copy()
+        return a
+
+
 def _layout(N: int, depth: int):
     members: list[tuple[int, ...]] = [()]
     if depth >= 1:
@@ -329,6 +479,7 @@ class MhssBank:
         self.blocks = np.array(blocks, dtype=float)
         self.n = self.x.shape[1]
         self.sources: np.ndarray | None = None  # after rebuild: old member index of each member
+        self._work = _Work()
 
     # --- construction -----------------------------------------------------------------------------
     @classmethod
@@ -408,19 +559,35 @@ class MhssBank:
                 raise RuntimeError(f"rebuild: no cross-covariance for old members {key}")
         blocks = self.blocks[idx]
         blocks[trans] = np.swapaxes(blocks[trans], 1, 2)
-        out = MhssBank(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx)
+        out = type(self)(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx)
         out.sources = src
         return out
 
     # --- filtering ---------------------------------------------------------------------------------
+    def _next_blocks(self) -> np.ndarray:
+        """The scratch array the next time or measurement update writes: of two, the one that is not
+        ``blocks`` (views of ``blocks`` stay valid until the second update after)."""
+        a = self._work.get("blocks_a", self.blocks.shape)
+        return self._work.get("blocks_b", self.blocks.shape) if a is self.blocks else a
+
     def predict(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
-        """Time update of every member and cross block (one batched product)."""
+        """Time update of every member and cross block: two batched products, P <- (Phi P) Phi' + Q."""
+        Phi = np.asarray(Phi, dtype=float)
         self.x = self.x @ Phi.T
-        # batched 17x17 products (numpy loops small GEMMs; one big GEMM would wake BLAS threads)
-        blocks = Phi @ self.blocks @ Phi.T + Qd
-        B = self.B
-        blocks[:B] = symmetrise(blocks[:B])
-        self.blocks = blocks
+        tmp = self._work.get("phi_p", self.blocks.shape)
+        np.matmul(Phi, self.blocks, out=tmp)
+        out = self._next_blocks()
+        np.matmul(tmp, np.ascontiguousarray(Phi.T), out=out)
+        out += Qd
+        self._symmetrise_members(out)
+        self.blocks = out
+
+    def _symmetrise_members(self, blocks: np.ndarray) -> None:
+        """P <- (P + P') / 2 in place for the member covariances (the first B blocks)."""
+        P = blocks[: self.B]
+        t = self._work.get("sym", P.shape)
+        np.add(P, np.swapaxes(P, 1, 2), out=t)
+        np.multiply(t, 0.5, out=P)
 
     def update(self, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, row_sat: np.ndarray) -> BankUpdate:
         """Measurement update of every member (row mask per member) and every cross block.
@@ -431,33 +598,83 @@ class MhssBank:
         row_sat : (m,) index into ``sats`` of each row's satellite.
         """
         B = self.B
+        z = np.asarray(z, dtype=float)
+        H = np.asarray(H, dtype=float)
+        r_var = np.asarray(r_var, dtype=float)
         m = len(z)
         keep_b = ~self.excl[:, np.asarray(row_sat, dtype=int)] if self.N else np.ones((B, m), dtype=bool)
-        g = kalman.gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
+        g = _masked_gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
+        if g is None:  # general path (raises NotPositiveDefinite when an S is not positive definite)
+            ref = kalman.gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
+            factors = self._dense_factors(ref.IKH, ref.K, r_var)
+            self.x = ref.x
+            self.blocks = self._joseph_all(factors)
+            res = ref.result
+            return BankUpdate(res.innovation, res.dof, ref.K, ref.IKH, res.whitened, res.nis)
+        factors = self._gain_factors(g)
         self.x = g.x
-        self.blocks = self._joseph_all(g.IKH, g.K, r_var)
-        res = g.result
-        return BankUpdate(res.innovation, res.whitened, res.nis, res.dof, g.K, g.IKH)
+        self.blocks = self._joseph_all(factors)
+        return BankUpdate(g.innovation, g.dof, gain=g)
 
-    def _joseph_all(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> np.ndarray:
-        """:func:`cross_update` of every block, by segment: members (a = b), main-sub (a = 0,
-        broadcast), sub-subsub (a = sub n, broadcast over its N-1 sub-subs; b gathered).
-        Right factors are pre-transposed into contiguous arrays (numpy's matmul is ~3x slower on
-        transposed views)."""
-        B, N, n = self.B, self.N, self.n
-        IKHt = np.ascontiguousarray(np.swapaxes(IKH, 1, 2))
-        Kt = np.ascontiguousarray(np.swapaxes(K, 1, 2))
-        KR = K * r_var
-        out = np.empty_like(self.blocks)
-        out[:B] = symmetrise(IKH @ self.blocks[:B] @ IKHt + KR @ Kt)
+    def _dense_factors(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> _Factors:
+        """Factors of :meth:`_joseph_all` from explicit gains K (B, n, m) and I - K H: U = K, V = I."""
+        m = K.shape[-1]
+        B = self.B
+        V = np.broadcast_to(np.eye(m), (B, m, m))
+        return self._factors(np.ascontiguousarray(IKH), np.ascontiguousarray(K), V * r_var[None, :, None], V)
+
+    def _gain_factors(self, g: _Gain) -> _Factors:
+        """Factors of :meth:`_joseph_all` from the factored gains K = U Vt, K H = U Psi E."""
+        B, n, s = self.B, self.n, len(g.sel)
+        PsiE = self._work.get("psi_e", (B, s, n))
+        PsiE.fill(0.0)
+        PsiE[:, :, g.sel] = g.Psi
+        ikh = self._work.get("ikh", (B, n, n))
+        np.matmul(g.U, PsiE, out=ikh)  # K H
+        np.subtract(self._work.identity(B, n), ikh, out=ikh)
+        V = np.ascontiguousarray(np.swapaxes(g.Vt, 1, 2))
+        return self._factors(ikh, g.U, V * g.r_var[None, :, None], V)
+
+    def _factors(self, ikh: np.ndarray, U: np.ndarray, RV: np.ndarray, V: np.ndarray) -> _Factors:
+        """RF = [I - K H | U]' (B, n + s, n) of every member, with K R K_b' = U (RV' V_b) U_b'."""
+        B, n, s = self.B, self.n, U.shape[-1]
+        RF = self._work.get("rf", (B, n + s, n))
+        RF[:, :n, :] = np.swapaxes(ikh, 1, 2)
+        RF[:, n:, :] = np.swapaxes(U, 1, 2)
+        return _Factors(ikh, U, np.ascontiguousarray(np.swapaxes(RV, 1, 2)), V, RF)
+
+    def _joseph_all(self, f: _Factors) -> np.ndarray:
+        """:func:`cross_update` of every block, P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b', with
+        the gains in factored form K = U V' (U (B, n, s), V = S^-1 G_a (B, m, s); explicit gains:
+        U = K, V = I), so K_a R K_b' = U_a (V_a' R V_b) U_b', and one product per block:
+
+            [(I - K_a H) P_ab | U_a (V_a' R V_b)] [I - K_b H | U_b]'
+
+        by segment: members (a = b), main-sub (a = 0, broadcast), sub-subsub (a = sub n,
+        broadcast over its N-1 sub-subs; the factors of b gathered)."""
+        B, N, n, W = self.B, self.N, self.n, self._work
+        ikh, U, VR, V, RF = f.ikh, f.U, f.VR, f.V, f.RF
+        w = RF.shape[1]
+        out = self._next_blocks()
+        LF = W.get("lf", (B, n, w))
+        np.matmul(ikh, self.blocks[:B], out=LF[:, :, :n])
+        np.matmul(U, VR @ V, out=LF[:, :, n:])
+        np.matmul(LF, RF, out=out[:B])
+        self._symmetrise_members(out)
         if self.depth >= 1 and N:
             subs = slice(1, 1 + N)
-            out[B : B + N] = IKH[0] @ self.blocks[B : B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
+            L0 = W.get("lf0", (N, n, w))
+            np.matmul(ikh[0], self.blocks[B : B + N], out=L0[:, :, :n])
+            np.matmul(U[0], VR[0] @ V[subs], out=L0[:, :, n:])
+            np.matmul(L0, RF[subs], out=out[B : B + N])
             if self.depth >= 2 and N > 1:
                 mem = self.subsub_members  # (N, N-1)
-                blk = self.blocks[B + N :].reshape(N, N - 1, n, n)
-                a, ka = IKH[subs][:, None], KR[subs][:, None]
-                out[B + N :] = (a @ blk @ IKHt[mem] + ka @ Kt[mem]).reshape(-1, n, n)
+                L2 = W.get("lf2", (N, N - 1, n, w))
+                np.matmul(ikh[subs, None], self.blocks[B + N :].reshape(N, N - 1, n, n), out=L2[..., :n])
+                Vm = np.take(V, mem, axis=0, out=W.get("vm", mem.shape + V.shape[1:]), mode="clip")
+                np.matmul(U[subs, None], VR[subs, None] @ Vm, out=L2[..., n:])
+                RFm = np.take(RF, mem, axis=0, out=W.get("rfm", mem.shape + RF.shape[1:]), mode="clip")
+                np.matmul(L2, RFm, out=out[B + N :].reshape(N, N - 1, n, n))
         return out
 
     def shift(self, dx: np.ndarray) -> None:
@@ -481,13 +698,13 @@ class MhssBank:
                 self.v_idx,
                 kfa_h,
             )
-        subs = 1 + np.arange(self.N)
+        B, N = self.B, self.N
         return solution_separation(
             self.x[0],
             self.P[0],
-            self.x[subs],
-            self.P[subs],
-            self.blocks[self.main_blocks],
+            self.x[1 : 1 + N],  # sub-filters: members 1..N; their main blocks: B..B+N-1
+            self.blocks[1 : 1 + N],
+            self.blocks[B : B + N],
             kfa,
             kmd,
             self.h_idx,
@@ -566,9 +783,9 @@ class MhssBank:
             return z0, z0, z0
         rows = np.asarray(rows, dtype=int)
         Hn = H[rows]
-        subs = 1 + np.arange(self.N)
+        subs = slice(1, 1 + self.N)
         e = z[rows] - np.einsum("ij,ij->i", Hn, self.x[subs])
-        hph = np.einsum("ij,ijk,ik->i", Hn, self.P[subs], Hn)
+        hph = np.einsum("ij,ijk,ik->i", Hn, self.blocks[subs], Hn)
         return e, np.maximum(hph, 0.0), np.asarray(r_var, dtype=float)[rows]
 
 

@@ -55,7 +55,6 @@ restarts the clock. Re-admitted satellites enter the bank like rising satellites
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -69,7 +68,7 @@ from fednav.service.estimation.integrity.mhss import (
     k_md,
     residual_test,
 )
-from fednav.service.estimation.kalman import NotPositiveDefinite, is_positive_definite
+from fednav.service.estimation.kalman import NotPositiveDefinite
 from fednav.service.estimation.measurements.base import Measurement
 
 PhaseName = str
@@ -196,17 +195,22 @@ class ResidualTests:
         return np.max(self.statistic / np.maximum(self.threshold, 1e-300), axis=1)
 
 
-@dataclass
 class ResidualWindows:
-    """Per-satellite buffers of the satellite residual test (module docstring)."""
+    """Per-satellite buffers of the satellite residual test (module docstring).
 
-    windows: tuple[int, ...] = (1, 10)
-    _buf: dict[str, deque] = field(default_factory=dict)
+    Each satellite in the buffers owns a row of ``_hist`` (3, rows, depth): the channels e,
+    sqrt(hph), r of its last ``depth`` epochs, oldest first, zeros before its first sample.
+    """
 
-    def __post_init__(self) -> None:
-        if any(int(w) < 1 for w in self.windows):
-            raise ValueError(f"residual windows must be >= 1 epoch, got {self.windows}")
-        self.windows = tuple(int(w) for w in self.windows)
+    def __init__(self, windows: Sequence[int] = (1, 10)):
+        if any(int(w) < 1 for w in windows):
+            raise ValueError(f"residual windows must be >= 1 epoch, got {tuple(windows)}")
+        self.windows: tuple[int, ...] = tuple(int(w) for w in windows)
+        self._depth = max(self.windows, default=1)
+        self._row: dict[str, int] = {}
+        self._free: list[int] = []
+        self._hist = np.zeros((3, 0, self._depth))
+        self._count = np.zeros(0, dtype=int)
 
     @property
     def n_families(self) -> int:
@@ -215,19 +219,43 @@ class ResidualWindows:
     def retain(self, sats: Sequence[str]) -> None:
         """Forget satellites no longer in the bank (one that comes back starts empty)."""
         keep = set(sats)
-        for sid in [s for s in self._buf if s not in keep]:
-            del self._buf[sid]
+        for sid in [s for s in self._row if s not in keep]:
+            self._free.append(self._row.pop(sid))
 
     def clear(self) -> None:
-        self._buf.clear()
+        self._row.clear()
+        self._free.clear()
+        self._hist = np.zeros((3, 0, self._depth))
+        self._count = np.zeros(0, dtype=int)
+
+    def _rows_for(self, sats: Sequence[str]) -> np.ndarray:
+        """Rows of ``sats``, new (empty) rows for satellites not in the buffers."""
+        rows = []
+        for sid in sats:
+            row = self._row.get(sid)
+            if row is None:
+                if not self._free:
+                    n = self._hist.shape[1]
+                    grow = max(n, 16)
+                    self._hist = np.concatenate([self._hist, np.zeros((3, grow, self._depth))], axis=1)
+                    self._count = np.concatenate([self._count, np.zeros(grow, dtype=int)])
+                    self._free.extend(range(n + grow - 1, n - 1, -1))
+                row = self._row[sid] = self._free.pop()
+                self._hist[:, row] = 0.0
+                self._count[row] = 0
+            rows.append(row)
+        return np.array(rows, dtype=int)
 
     def push(self, sats: Sequence[str], e: np.ndarray, hph: np.ndarray, r: np.ndarray) -> None:
-        depth = max(self.windows, default=1)
-        for j, sid in enumerate(sats):
-            b = self._buf.get(sid)
-            if b is None:
-                b = self._buf[sid] = deque(maxlen=depth)
-            b.append((float(e[j]), float(np.sqrt(hph[j])), float(r[j])))
+        if not len(sats):
+            return
+        rows = self._rows_for(sats)
+        h = self._hist
+        h[:, rows, :-1] = h[:, rows, 1:]
+        h[0, rows, -1] = e
+        h[1, rows, -1] = np.sqrt(hph)
+        h[2, rows, -1] = r
+        self._count[rows] = np.minimum(self._count[rows] + 1, self._depth)
 
     def tests(self, sats: Sequence[str], k: float) -> ResidualTests:
         """Statistics and thresholds (multiplier ``k``) of every window for ``sats``."""
@@ -237,18 +265,31 @@ class ResidualWindows:
             np.full((len(sats), nw), np.inf),
             np.zeros((len(sats), nw)),
         )
-        for j, sid in enumerate(sats):
-            b = self._buf.get(sid)
-            if not b:
-                continue
-            arr = np.array(b)
+        idx = [(j, self._row[sid]) for j, sid in enumerate(sats) if sid in self._row]
+        if idx and nw:
+            j, rows = (np.array(v, dtype=int) for v in zip(*idx, strict=True))
+            has = self._count[rows] > 0
+            j, rows = j[has], rows[has]
+            h = self._hist[:, rows]  # (3, len(rows), depth)
             for i, w in enumerate(self.windows):
-                a = arr[-w:]
-                n = len(a)
-                stat[j, i] = abs(a[:, 0].sum()) / n
-                thr[j, i] = k * np.sqrt((a[:, 1].sum() / n) ** 2 + a[:, 2].sum() / (n * n))
+                n = np.minimum(self._count[rows], w).astype(float)
+                sums = h[:, :, self._depth - w :].sum(axis=2)  # zeros before the first sample
+                stat[j, i] = np.abs(sums[0]) / n
+                thr[j, i] = k * np.sqrt((sums[1] / n) ** 2 + sums[2] / (n * n))
                 cnt[j, i] = n
         return ResidualTests(tuple(sats), self.windows, stat, thr, cnt)
+
+
+def _positive_definite(P: np.ndarray) -> bool:
+    """:func:`~service.estimation.kalman.is_positive_definite` of one matrix: finite, symmetric
+    (to 1e-9 relative) and positive definite (smallest eigenvalue of its symmetric part > 0)."""
+    if not np.isfinite(P).all():
+        return False
+    if (P == P.T).all():  # the bank symmetrises its members: then 0.5 (P + P') is P itself
+        return bool(np.linalg.eigvalsh(P)[0] > 0.0)
+    if not (np.abs(P - P.T) <= 1e-9 * (1.0 + np.abs(P))).all():
+        return False
+    return bool(np.linalg.eigvalsh(0.5 * (P + P.T))[0] > 0.0)
 
 
 # --- the monitor ---------------------------------------------------------------------------------------
@@ -351,7 +392,7 @@ class MhssMonitor:
             sel = sat_col[groups] >= 0
             z, H, rv, rcol = meas.z[sel], meas.H[sel], r_var[sel], sat_col[groups[sel]]
             upd = mh.update(z, H, rv, rcol)
-            if not is_positive_definite(mh.P[:1])[0]:
+            if not _positive_definite(mh.P[0]):
                 raise NotPositiveDefinite("main filter covariance after the MHSS update")
             if mh.depth >= 1 and self.residual.windows:
                 # the pseudorange row of each bank column (one per used satellite)
@@ -391,9 +432,10 @@ class MhssMonitor:
         by_sat = {}
         if res.statistic.size:
             ratio = res.statistic / np.maximum(res.threshold, 1e-300)
-            for j, sid in enumerate(res.sats):
-                w = int(np.argmax(ratio[j]))
-                by_sat[sid] = (float(res.statistic[j, w]), float(res.threshold[j, w]))
+            rows = np.arange(len(res.sats))
+            w = np.argmax(ratio, axis=1)
+            st, th = res.statistic[rows, w].tolist(), res.threshold[rows, w].tolist()
+            by_sat = {sid: (st[j], th[j]) for j, sid in enumerate(res.sats)}
         detected_by = (
             ("separation" if ss_detected else "")
             + ("+" if ss_detected and res_detected else "")

@@ -71,8 +71,13 @@ def earth_rotation_matrices(angle_rad: np.ndarray) -> np.ndarray:
     """R3(angle) for (N,) angles -> (N, 3, 3): coordinates of an inertially fixed point in an ECEF
     frame that has turned by ``angle`` since are ``R3 @ r``."""
     c, s = np.cos(angle_rad), np.sin(angle_rad)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, s, z], -1), np.stack([-s, c, z], -1), np.stack([z, z, o], -1)], -2)
+    out = np.zeros(np.shape(c) + (3, 3))
+    out[..., 0, 0] = c
+    out[..., 0, 1] = s
+    out[..., 1, 0] = -s
+    out[..., 1, 1] = c
+    out[..., 2, 2] = 1.0
+    return out
 
 
 @dataclass(frozen=True)
@@ -90,6 +95,17 @@ class RangeGeometry:
     light_time_s: np.ndarray
     range_rate_mps: np.ndarray | None = None
     doppler_factor: np.ndarray | None = None
+
+
+def _rotate(c: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` (N, 3) rotated by R3 (cosines ``c``, sines ``s``): what
+    ``einsum("nij,nj->ni", earth_rotation_matrices(angle), v)`` gives, bit for bit, without the
+    3x3 matrices."""
+    out = np.empty_like(v)
+    out[:, 0] = c * v[:, 0] + s * v[:, 1]
+    out[:, 1] = (-s) * v[:, 0] + c * v[:, 1]
+    out[:, 2] = v[:, 2]
+    return out
 
 
 def range_geometry(
@@ -110,12 +126,13 @@ def range_geometry(
     r_rx = np.asarray(rx_pos_ecef_m, dtype=float).reshape(3)
     r_s = np.atleast_2d(np.asarray(sat_pos_ecef_m, dtype=float))
     rho = np.linalg.norm(r_s - r_rx, axis=1)
-    rot = earth_rotation_matrices(np.zeros(len(r_s)))
+    c, s = np.ones(len(r_s)), np.zeros(len(r_s))  # R3 of the earth rotation angle: cos, sin
     r_rot = r_s
     d = r_s - r_rx
     for _ in range(RANGE_ITERATIONS):
-        rot = earth_rotation_matrices(earth.OMEGA_IE_RPS * rho / earth.C_MPS)
-        r_rot = np.einsum("nij,nj->ni", rot, r_s)
+        angle = earth.OMEGA_IE_RPS * rho / earth.C_MPS
+        c, s = np.cos(angle), np.sin(angle)
+        r_rot = _rotate(c, s, r_s)
         d = r_rot - r_rx
         rho = np.linalg.norm(d, axis=1)
     los = d / rho[:, None]
@@ -124,9 +141,11 @@ def range_geometry(
         v_rx = np.asarray(rx_vel_ecef_mps, dtype=float).reshape(3)
         v_s = np.atleast_2d(np.asarray(sat_vel_ecef_mps, dtype=float))
         # inertial velocity of the satellite (ECEF velocity + omega x r), then rotated like r
-        v_in = v_s + earth.OMEGA_IE_RPS * np.stack([-r_s[:, 1], r_s[:, 0], np.zeros(len(r_s))], axis=-1)
-        v_rot = np.einsum("nij,nj->ni", rot, v_s)
-        v_in_rot = np.einsum("nij,nj->ni", rot, v_in)
+        w = np.zeros_like(r_s)
+        w[:, 0], w[:, 1] = -r_s[:, 1], r_s[:, 0]
+        v_in = v_s + earth.OMEGA_IE_RPS * w
+        v_rot = _rotate(c, s, v_s)
+        v_in_rot = _rotate(c, s, v_in)
         factor = 1.0 / (1.0 + np.sum(los * v_in_rot, axis=1) / earth.C_MPS)
         rate = np.sum(los * (v_rot - v_rx), axis=1) * factor
     return RangeGeometry(rho, los, r_rot, rho / earth.C_MPS, rate, factor)
@@ -163,16 +182,34 @@ class SatArrays:
 
 def sat_arrays(msg: GnssRaw) -> SatArrays:
     s = msg.sats
+    # one pass over the observations, one array: columns pseudorange, range rate, their sigmas,
+    # satellite clock and drift, position (3), velocity (3)
+    a = np.array(
+        [
+            (
+                o.pseudorange_m,
+                o.range_rate_mps,
+                o.pseudorange_sigma_m,
+                o.range_rate_sigma_mps,
+                o.sat_clock_m,
+                o.sat_clock_drift_mps,
+                *o.sat_pos_ecef_m,
+                *o.sat_vel_ecef_mps,
+            )
+            for o in s
+        ],
+        dtype=float,
+    ).reshape(-1, 12)
     return SatArrays(
         tuple(o.id for o in s),
-        np.array([o.pseudorange_m for o in s], dtype=float),
-        np.array([o.range_rate_mps for o in s], dtype=float),
-        np.array([o.pseudorange_sigma_m for o in s], dtype=float),
-        np.array([o.range_rate_sigma_mps for o in s], dtype=float),
-        np.array([o.sat_pos_ecef_m for o in s], dtype=float).reshape(-1, 3),
-        np.array([o.sat_vel_ecef_mps for o in s], dtype=float).reshape(-1, 3),
-        np.array([o.sat_clock_m for o in s], dtype=float),
-        np.array([o.sat_clock_drift_mps for o in s], dtype=float),
+        a[:, 0].copy(),
+        a[:, 1].copy(),
+        a[:, 2].copy(),
+        a[:, 3].copy(),
+        a[:, 6:9].copy(),
+        a[:, 9:12].copy(),
+        a[:, 4].copy(),
+        a[:, 5].copy(),
     )
 
 
