@@ -5,13 +5,23 @@
    states plus 12 + 132 cross-covariance blocks, 100 Hz IMU, 10 Hz pseudoranges and range rates
    (24 rows), MHSS tests, the satellite residual test and exclusion search every epoch. The
    pipeline is driven directly (no engine, no message decoding): what the service's worker
-   spends per vehicle. Goal: >= 20x real time.
-2. The same bank (predict at 10 Hz + one update per epoch, members and cross blocks) against a
+   spends per vehicle. Goal (issue 21): >= 100x real time.
+2. The bank's arithmetic per GNSS epoch, counted from the shapes (:func:`bank_flops`: every
+   matrix product 2 m k n, Cholesky n^3 / 3, inverse 2 n^3; elementwise work not counted), the
+   GFLOP/s it achieves (per epoch of the whole pipeline and per second spent in the bank's
+   predict + update) and the fraction of one core's peak, measured here as the best of a few
+   1000 x 1000 @ 1000 x 1000 float64 products on one thread.
+3. ``--baseline REV``: the same pipeline run from another revision (``git archive REV``, e.g. the
+   commit before issue 21), alternating with this tree in fresh processes, ``--repeat`` times
+   each: the before/after ratio measured on the same machine at the same time (the machine is
+   shared; the median of the ratios of neighbouring runs is reported).
+4. The same bank (predict at 10 Hz + one update per epoch, members and cross blocks) against a
    loop of independent filter objects doing the same arithmetic one member / one block at a time
    (numpy per object, the usual way of writing MHSS), on identical inputs; both results agree to
    rounding and the speed-up ratio is measured in the same run.
 
-Usage: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mhss_bank.py [--duration 60] [--epochs 100] [--json]
+Usage: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/mhss_bank.py [--duration 60] [--epochs 100]
+       [--baseline REV [--repeat 3]] [--json]
 """
 
 from __future__ import annotations
@@ -20,6 +30,10 @@ import argparse
 import itertools
 import json
 import os
+import statistics
+import subprocess
+import sys
+import tempfile
 import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -73,7 +87,9 @@ def make_inputs(duration_s: float):
     return traj, msgs
 
 
-def bench_pipeline(duration_s: float) -> dict:
+def bench_pipeline(duration_s: float, time_bank: bool = True) -> dict:
+    """Run the pipeline over ``duration_s`` of data; ``time_bank`` also times the bank's own
+    predict and update calls (``bank_s``)."""
     traj, msgs = make_inputs(duration_s)
     p = TightlyCoupled(TightlyCoupledConfig(name="tc"), ImuModel(), 0.1)
     s0 = traj.state_at(T0)
@@ -89,15 +105,36 @@ def bench_pipeline(duration_s: float) -> dict:
     dth = [tuple(r) for r in traj.dtheta_rad]
     dv = [tuple(r) for r in traj.dvel_mps]
     dt = traj.dt_s
-    wall0, cpu0 = time.perf_counter(), time.process_time()
-    detections = 0
-    for k in range(1, len(traj.t_s)):
-        p.push_imu(dth[k], dv[k], dt, float(traj.t_s[k]))
-        if k in msgs:
-            p.sync()
-            p.apply("gnss_raw", "main", msgs[k], 0.0)
-            detections += p.last.detected
-    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    bank_s = [0.0]
+    originals = {name: getattr(MhssBank, name) for name in ("predict", "update")}
+
+    def timed(f):
+        def g(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                bank_s[0] += time.perf_counter() - t
+
+        return g
+
+    if time_bank:
+        for name, f in originals.items():
+            setattr(MhssBank, name, timed(f))
+    try:
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        detections = epochs = 0
+        for k in range(1, len(traj.t_s)):
+            p.push_imu(dth[k], dv[k], dt, float(traj.t_s[k]))
+            if k in msgs:
+                p.sync()
+                p.apply("gnss_raw", "main", msgs[k], 0.0)
+                detections += p.last.detected
+                epochs += 1
+        wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    finally:
+        for name, f in originals.items():
+            setattr(MhssBank, name, f)
     mh = p.bank.mhss
     return {
         "satellites": mh.N,
@@ -110,7 +147,141 @@ def bench_pipeline(duration_s: float) -> dict:
         "cpu_s": cpu,
         "realtime_factor": duration_s / wall,
         "realtime_factor_cpu": duration_s / cpu,
+        "gnss_epochs": epochs,
+        "bank_s": bank_s[0] if time_bank else None,
         "detections": detections,
+    }
+
+
+# --- arithmetic per epoch -----------------------------------------------------------------------------
+def _mm(m: int, k: int, n: int) -> int:
+    """FLOPs of an (m, k) @ (k, n) product."""
+    return 2 * m * k * n
+
+
+def bank_flops(N: int = N_SAT, n: int = 17, s: int = 8, rows_per_sat: int = 2) -> dict:
+    """FLOPs of one GNSS epoch of the bank (one predict + one update, depth 2), from the shapes of
+    the products in ``service/estimation/integrity/mhss.py`` (``MhssBank.predict``,
+    ``_masked_gain``, ``_gain_factors``, ``_joseph_all``): N satellites, n states, s states the
+    rows observe (position, velocity, clock), m = rows_per_sat N rows. Also the same epoch as the
+    bank computed it before issue 21 (``kalman.gain``: m x m Cholesky and triangular solves on
+    the dense H; Joseph as (I - K_a H) P (I - K_b H)' + K_a R K_b'), for comparison."""
+    m = rows_per_sat * N
+    B = 1 + N + N * (N - 1) // 2
+    K = B + N + N * (N - 1)  # member covariances + main-sub + sub-subsub cross blocks
+    predict = K * 2 * _mm(n, n, n)
+    gain = B * (
+        _mm(1, n, m)  # innovations z - H x
+        + _mm(s, m, s)  # J = G_a' R^-1 G_a
+        + _mm(s, s, s)  # C J
+        + s**3 // 3  # Cholesky of C (the positive-definiteness check)
+        + 2 * s**3  # (I + C J)^-1
+        + _mm(m, s, s)  # V = R^-1 G_a (I + C J)^-1
+        + _mm(s, m, 1)
+        + _mm(n, s, 1)  # x update
+        + _mm(s, m, s)  # Psi = V' G
+        + _mm(n, s, n)  # K H = U Psi E
+    )
+    joseph = K * (_mm(n, n, n) + _mm(s, m, s) + _mm(n, s, s) + _mm(n, n + s, n))
+    ref_gain = B * (
+        _mm(n, n, m)  # P H'
+        + _mm(m, n, m)  # H P H'
+        + m**3 // 3  # Cholesky of S
+        + m * m * (n + 1)  # forward substitution, n + 1 right-hand sides
+        + m * m * n  # back substitution
+        + _mm(n, m, 1)
+        + _mm(n, m, n)  # K H
+    )
+    ref_joseph = K * (2 * _mm(n, n, n) + _mm(n, m, n))
+    return {
+        "satellites": N,
+        "members": B,
+        "blocks": K,
+        "rows": m,
+        "predict": predict,
+        "gain": gain,
+        "joseph": joseph,
+        "total": predict + gain + joseph,
+        "before_issue_21": predict + ref_gain + ref_joseph,
+    }
+
+
+def peak_gflops(size: int = 1000, repeat: int = 5) -> float:
+    """One core's float64 matrix-product rate: best of ``repeat`` (size x size) @ (size x size)."""
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=(size, size)), rng.normal(size=(size, size))
+    a @ b
+    best = min(_timed(lambda: a @ b) for _ in range(repeat))
+    return _mm(size, size, size) / best / 1e9
+
+
+def _timed(f) -> float:
+    t = time.perf_counter()
+    f()
+    return time.perf_counter() - t
+
+
+# --- before / after on the same machine ------------------------------------------------------------------
+_RUN = "import json, sys; sys.path.insert(0, sys.argv[1]); import mhss_bank as mb; "
+_RUN += (
+    "r = mb.bench_pipeline(float(sys.argv[2]), **({} if sys.argv[3] == 'old' else {'time_bank': False})); "
+)
+_RUN += "print(json.dumps({k: r[k] for k in ('realtime_factor', 'realtime_factor_cpu', 'wall_s')}))"
+
+
+def _run_tree(bench_dir: str, duration_s: float, pythonpath: str | None, kind: str) -> dict:
+    env = dict(os.environ, OPENBLAS_NUM_THREADS=os.environ.get("OPENBLAS_NUM_THREADS", "1"))
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath + os.pathsep + env.get("PYTHONPATH", "")
+    out = subprocess.run(
+        [sys.executable, "-c", _RUN, bench_dir, str(duration_s), kind],
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def bench_baseline(rev: str, duration_s: float, repeat: int) -> dict:
+    """Real-time factors of revision ``rev`` and of this tree, alternating in fresh processes.
+
+    ``rev`` is exported with ``git archive`` and imported as ``fednav`` ahead of the installed
+    (editable) package through a throw-away namespace folder of links."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    repo = subprocess.run(
+        ["git", "-C", here, "rev-parse", "--show-toplevel"], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    commit = subprocess.run(
+        ["git", "-C", repo, "rev-parse", "--short", rev], check=True, capture_output=True, text=True
+    ).stdout.strip()
+    with tempfile.TemporaryDirectory(prefix="mhss_baseline_") as tmp:
+        tree = os.path.join(tmp, "tree")
+        os.makedirs(tree)
+        archive = subprocess.run(
+            ["git", "-C", repo, "archive", commit], check=True, capture_output=True
+        ).stdout
+        subprocess.run(["tar", "-x", "-C", tree], input=archive, check=True)
+        shim = os.path.join(tmp, "shim", "fednav")
+        os.makedirs(shim)
+        for d in ("service", "simulators", "dashboards", "replay"):
+            if os.path.isdir(os.path.join(tree, d)):
+                os.symlink(os.path.join(tree, d), os.path.join(shim, d))
+        before, after = [], []
+        for _ in range(repeat):
+            before.append(
+                _run_tree(os.path.join(tree, "benchmarks"), duration_s, os.path.dirname(shim), "old")
+            )
+            after.append(_run_tree(here, duration_s, None, "new"))
+    ratios = [a["realtime_factor"] / b["realtime_factor"] for a, b in zip(after, before, strict=True)]
+    return {
+        "baseline": commit,
+        "repeat": repeat,
+        "before_realtime_factor": [r["realtime_factor"] for r in before],
+        "after_realtime_factor": [r["realtime_factor"] for r in after],
+        "before_realtime_factor_cpu": [r["realtime_factor_cpu"] for r in before],
+        "after_realtime_factor_cpu": [r["realtime_factor_cpu"] for r in after],
+        "speedup_median": statistics.median(ratios),
     }
 
 
@@ -222,22 +393,65 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="MHSS bank benchmark (seed 001)")
     ap.add_argument("--duration", type=float, default=60.0, help="pipeline run, sensor seconds")
     ap.add_argument("--epochs", type=int, default=100, help="epochs of the bank-vs-loop comparison")
+    ap.add_argument("--baseline", help="also run this git revision (e.g. the commit before issue 21)")
+    ap.add_argument("--repeat", type=int, default=3, help="alternating runs of each with --baseline")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     pipe = bench_pipeline(a.duration)
+    flops = bank_flops(pipe["satellites"])
+    peak = peak_gflops()
+    epoch_s = pipe["wall_s"] / pipe["gnss_epochs"]
+    bank_epoch_s = pipe["bank_s"] / pipe["gnss_epochs"]
+    perf = {
+        "flops_per_epoch": flops["total"],
+        "gflops_per_pipeline_second": flops["total"] / epoch_s / 1e9,
+        "gflops_per_bank_second": flops["total"] / bank_epoch_s / 1e9,
+        "peak_gflops_one_core": peak,
+        "bank_ms_per_epoch": 1e3 * bank_epoch_s,
+        "pipeline_ms_per_epoch": 1e3 * epoch_s,
+    }
+    perf["fraction_of_peak_pipeline"] = perf["gflops_per_pipeline_second"] / peak
+    perf["fraction_of_peak_bank"] = perf["gflops_per_bank_second"] / peak
+    base = bench_baseline(a.baseline, a.duration, a.repeat) if a.baseline else None
     cmp_ = bench_bank_vs_loop(a.epochs)
     if a.json:
-        print(json.dumps({"pipeline": pipe, "bank_vs_loop": cmp_}, indent=2))
+        out = {"pipeline": pipe, "flops": flops, "performance": perf, "bank_vs_loop": cmp_}
+        if base:
+            out["baseline"] = base
+        print(json.dumps(out, indent=2))
         return 0
     print(
         f"tightly coupled + MHSS, {pipe['satellites']} satellites, {pipe['members']} filters "
         f"({len(list(itertools.combinations(range(pipe['satellites']), 2)))} sub-sub), "
-        f"{pipe['blocks']} covariance blocks, IMU {pipe['imu_hz']} Hz, GNSS {pipe['gnss_hz']} Hz:"
+        f"{pipe['blocks']} covariance blocks, IMU {pipe['imu_hz']} Hz, GNSS {pipe['gnss_hz']} Hz "
+        f"(OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}):"
     )
     print(
         f"  {pipe['sensor_s']:.0f} s of data in {pipe['wall_s']:.2f} s wall ({pipe['cpu_s']:.2f} s cpu): "
-        f"{pipe['realtime_factor']:.1f}x real time (cpu {pipe['realtime_factor_cpu']:.1f}x; goal >= 20x)"
+        f"{pipe['realtime_factor']:.1f}x real time (cpu {pipe['realtime_factor_cpu']:.1f}x; goal >= 100x); "
+        f"{perf['pipeline_ms_per_epoch']:.2f} ms per GNSS epoch, of which the bank's predict + update "
+        f"{perf['bank_ms_per_epoch']:.2f} ms"
     )
+    print(
+        f"  bank arithmetic per epoch: {flops['total'] / 1e6:.2f} MFLOP "
+        f"(predict {flops['predict'] / 1e6:.2f}, "
+        f"gains {flops['gain'] / 1e6:.2f}, Joseph of {flops['blocks']} blocks {flops['joseph'] / 1e6:.2f}; "
+        f"{flops['before_issue_21'] / 1e6:.2f} MFLOP as computed before issue 21)"
+    )
+    print(
+        f"  {perf['gflops_per_pipeline_second']:.1f} GFLOP/s over the whole epoch, "
+        f"{perf['gflops_per_bank_second']:.1f} GFLOP/s over the bank's own time; one-core peak "
+        f"(1000 x 1000 matmul) {peak:.1f} GFLOP/s: {100 * perf['fraction_of_peak_pipeline']:.1f} % / "
+        f"{100 * perf['fraction_of_peak_bank']:.1f} % of it"
+    )
+    if base:
+        print(
+            f"  same machine, alternating fresh processes, {base['repeat']} each: {base['baseline']} "
+            + " ".join(f"{v:.1f}x" for v in base["before_realtime_factor"])
+            + " | this tree "
+            + " ".join(f"{v:.1f}x" for v in base["after_realtime_factor"])
+            + f" -> speed-up {base['speedup_median']:.2f}x (median of neighbouring pairs)"
+        )
     print(
         f"bank vs a loop of {cmp_['members']} filter objects + {cmp_['cross_blocks']} cross blocks, "
         f"{cmp_['epochs']} epochs (predict + update): bank {cmp_['bank_ms_per_epoch']:.2f} ms/epoch, "
