@@ -42,6 +42,22 @@ def cpu_s(pid: int) -> float:
     return (int(parts[11]) + int(parts[12])) / CLK_TCK  # utime + stime
 
 
+def thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds per thread name (``comm``) of a process: Python's own threads are named after
+    the interpreter, Zenoh's runtime threads after their pools."""
+    out: dict[str, float] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm") as f:
+                name = f.read().strip()
+            with open(f"/proc/{pid}/task/{tid}/stat") as f:
+                parts = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out[name] = out.get(name, 0.0) + (int(parts[11]) + int(parts[12])) / CLK_TCK
+    return out
+
+
 def rss_mb(pid: int) -> float:
     with open(f"/proc/{pid}/status") as f:
         for line in f:
@@ -119,10 +135,12 @@ def run_case(n: int, mode: str, record: bool, duration: float, workers: int, sha
         if not gen.wait_for("publishing", timeout=600):
             raise RuntimeError(gen.output())
         c0 = sum(cpu_s(p) for p in pids)
+        th0 = thread_cpu_s(svc.p.pid)
         w0 = time.monotonic()
         assert gen.wait(timeout=duration * 20 + 120) == 0, gen.output()
         w1 = time.monotonic()
         c1 = sum(cpu_s(p) for p in pids)
+        th1 = thread_cpu_s(svc.p.pid)
         rss1 = sum(rss_mb(p) for p in pids)
         time.sleep(1.0)
     finally:
@@ -147,6 +165,10 @@ def run_case(n: int, mode: str, record: bool, duration: float, workers: int, sha
         "latency_ms": {k: round(float(v), 2) for k, v in lat.items()},
         "service_cpu_cores": round((c1 - c0) / (w1 - w0), 3),
         "cpu_ms_per_vehicle_s": round((c1 - c0) / (w1 - w0) / n * 1e3, 3),
+        "shard0_threads_cores": {
+            k: round((th1.get(k, 0.0) - th0.get(k, 0.0)) / (w1 - w0), 3)
+            for k in sorted(th1, key=lambda k: th0.get(k, 0.0) - th1[k])[:6]
+        },
         "rss_mb": round(rss1, 1),
         "rss_mb_per_vehicle": round((rss1 - rss0) / n, 3),
     }

@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -22,6 +23,7 @@ from datetime import datetime
 from pathlib import Path
 
 import numpy as np
+from pydantic import ValidationError
 
 from fednav.service import fleet, keys
 from fednav.service.config import ServiceConfig, recording_kinds
@@ -30,6 +32,7 @@ from fednav.service.evaluation import recording_errors
 from fednav.service.messages import (
     Alignment,
     Faults,
+    HandoverState,
     Health,
     ImmModels,
     Integrity,
@@ -47,6 +50,8 @@ log = logging.getLogger("fednav.service")
 #: at shutdown the vehicles' queues drain for at most this long together (then the rest is
 #: counted in the log and the recording is closed: SIGTERM returns within seconds)
 _SHUTDOWN_DRAIN_S = 5.0
+#: control item of a pool worker: the vehicle moved to another service of the fleet
+RETIRE = "__retire__"
 _MAX_LOGGED_NAMES = 100
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
 STATUS_ENCODING = "application/json;fednav.Status/1"
@@ -216,6 +221,9 @@ class VehicleWorker:
         self.engine = self.loop.engine
         self.counters = self.loop.counters
         self.queued = 0  # items of this vehicle waiting in its pool worker's queue
+        self.retired = False  # moved to another service of the fleet
+        self.on_retired = None  # (VehicleWorker) -> None, set by the service
+        self.next_state = time.monotonic() + config.fleet.handover_period_s
         self.notes = None  # () -> counted non-refusal events (the ROS 2 bridge's), for Health
         self.next_health = time.monotonic() + config.output.health_period_s
 
@@ -251,6 +259,83 @@ class VehicleWorker:
         self.sink.on_health(self.vehicle, h)
         self.sink.log_health(self.vehicle, h)
 
+    # --- fleet handover ([fleet] sharding = "rendezvous") ---------------------------------------
+    def handover_states(self, service: str) -> list[HandoverState]:
+        """Each running pipeline's state for the service that may take the vehicle over."""
+        engine = self.engine
+        if not engine.initialised:
+            return []
+        out = []
+        for p in engine.pipelines:
+            status = p.current_status(engine.last_t)
+            if status in ("initialising", "failed") or p.bank is None:
+                continue
+            p.sync()
+            est = p.estimate()
+            nav = est.nav
+            if not engine._usable(est):
+                continue
+            Pb = np.clip(np.diagonal(p.bank.P[0])[9:15], 0.0, None)
+            out.append(
+                HandoverState(
+                    t=nav.t,
+                    vehicle=self.vehicle,
+                    pipeline=p.name,
+                    service=service,
+                    lat_deg=math.degrees(nav.lat_rad),
+                    lon_deg=(math.degrees(nav.lon_rad) + 180.0) % 360.0 - 180.0,
+                    height_m=nav.h_m,
+                    vel_enu_mps=tuple(float(v) for v in nav.vel_enu_mps),
+                    q_nb=tuple(float(v) for v in nav.q_nb / np.linalg.norm(nav.q_nb)),
+                    P9=[float(v) for v in est.P9.ravel()],
+                    gyro_bias_rps=tuple(float(v) for v in nav.gyro_bias_rps),
+                    accel_bias_mps2=tuple(float(v) for v in nav.accel_bias_mps2),
+                    bias_std=tuple(float(v) for v in np.sqrt(Pb)),
+                    status=status,
+                )
+            )
+        return out
+
+    def publish_states(self, group: str, service: str) -> None:
+        for st in self.handover_states(service):
+            self.pubs.publish(keys.fleet_state(group, self.vehicle, st.pipeline, self.config.prefix), st)
+
+    def take_over(self, payloads: dict[str, bytes], t_start: float) -> None:
+        """Start the vehicle from the last handover state another service published (called once,
+        before its first IMU sample: ``t_start`` is that sample's start); a state older than
+        ``[fleet] handover_max_age_s`` (or unreadable) is not used: the vehicle aligns itself."""
+        states = []
+        for payload in payloads.values():
+            try:
+                states.append(HandoverState.model_validate_json(payload))
+            except ValidationError:
+                self.loop.reject("bad_handover_state", "a handover state that does not validate")
+        rank = {"aided": 0, "degraded": 1, "coasting": 2, "unaided": 3}
+        states.sort(key=lambda st: (rank.get(st.status, 9), -st.t))
+        max_age = self.config.fleet.handover_max_age_s
+        usable = [st for st in states if -1.0 <= t_start - st.t <= max_age]
+        if not usable:
+            if states:
+                self.engine.notes["handover_state_too_old"] += 1
+            return
+        st = usable[0]
+        nav, std = fleet.handover_nav(st, t_start)
+        hand_over = getattr(self.engine, "hand_over", None)
+        if hand_over is not None:
+            hand_over(nav, std, st.service)
+        else:  # the engine's lifecycle without a handover transition: a plain start
+            self.engine._start(nav, std)
+        self.engine.notes[f"handed_over_from:{st.service}"] += 1
+        log.info(
+            "vehicle %s handed over from service %s (state %.2f s old, status %s)",
+            self.vehicle,
+            st.service,
+            t_start - st.t,
+            st.status,
+        )
+        if self.rr is not None:
+            self.rr.log_event(self.vehicle, t_start, f"handed over from {st.service} ({st.status} state)")
+
     def final_outputs(self) -> None:
         try:
             if self.engine.initialised:
@@ -264,9 +349,10 @@ class PoolWorker:
     """A thread that owns many vehicles: one bounded queue of (vehicle, item), consumed in
     arrival order (a vehicle's events keep their order: a vehicle always lives on one worker)."""
 
-    def __init__(self, index: int, config: ServiceConfig):
+    def __init__(self, index: int, config: ServiceConfig, fleet: tuple[str, str] | None = None):
         self.index = index
         self.config = config
+        self.fleet = fleet  # (group, this service's id) when sharing a fleet: handover states out
         self.vehicles: list[VehicleWorker] = []
         self.q: queue.Queue = queue.Queue(maxsize=config.intake.queue_size)
         self._stop = threading.Event()
@@ -295,7 +381,10 @@ class PoolWorker:
                 if item is not None:
                     vw.queued -= 1
                     wall, kind, sensor_id, payload = item
-                    vw.loop.process(kind, sensor_id, payload, wall)
+                    if kind is None and sensor_id == RETIRE:
+                        self._retire(vw)
+                    elif not vw.retired:
+                        vw.loop.process(kind, sensor_id, payload, wall)
                 now = time.monotonic()
                 if now >= next_scan:  # health: a scan of the vehicles every 50 ms, not per event
                     next_scan = now + 0.05
@@ -303,12 +392,31 @@ class PoolWorker:
                         if now >= v.next_health:
                             v.next_health = now + self.config.output.health_period_s
                             v.publish_health()
+                        if self.fleet is not None and now >= v.next_state:
+                            v.next_state = now + self.config.fleet.handover_period_s
+                            v.publish_states(*self.fleet)
             except Exception:
                 log.exception("worker %d: error", self.index)
                 if vw is not None:
                     vw.counters["internal_error"] += 1
             if item is None and self._stop.is_set():
                 break
+
+    def _retire(self, vw: VehicleWorker) -> None:
+        """The vehicle moved to another service: its last state out (the new owner starts from
+        it), then it is dropped here."""
+        if vw.retired:
+            return
+        vw.retired = True
+        try:
+            if self.fleet is not None:
+                vw.publish_states(*self.fleet)
+        except Exception:
+            log.exception("vehicle %s: last handover state failed", vw.vehicle)
+        if vw in self.vehicles:
+            self.vehicles.remove(vw)
+        if vw.on_retired is not None:
+            vw.on_retired(vw)
 
     def request_stop(self) -> None:
         """Ask the thread to finish: it drains its queue, then ends."""
@@ -343,6 +451,9 @@ class Service:
         #: shard (``--shards``, :mod:`service.shards`); None: every served vehicle
         self.shard = shard if shard is not None and shard[1] > 1 else None
         self._shard_cache: dict[str, bool] = {}
+        self.fleet_view = None
+        self._rebalance_due = threading.Event()
+        self.retired_vehicles = 0
         self.rrd_path = rrd or config.rrd or Path("recordings") / f"fednav-{datetime.now():%Y%m%d-%H%M%S}.rrd"
         self.viewer = viewer or config.viewer
         self.listen, self.connect, self.zenoh_config_file = listen, connect, zenoh_config_file
@@ -385,8 +496,24 @@ class Service:
             )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)
+        zid = str(self.session.zid())
+        self.fleet_view = None
+        fleet_id = None
+        if cfg.fleet.sharding == "rendezvous":
+            self.fleet_group = cfg.fleet_group()
+            self.fleet_view = fleet.FleetView(zid)
+            self.fleet_states = fleet.StateCache(cfg.intake.max_vehicles * 10)
+            fleet_id = (self.fleet_group, zid)
         # a bounded pool of worker threads, each owning many vehicles (no thread per vehicle)
-        self.pool = [PoolWorker(i, cfg) for i in range(cfg.intake.workers)]
+        self.pool = [PoolWorker(i, cfg, fleet_id) for i in range(cfg.intake.workers)]
+        self._watches = []
+        if self.fleet_view is not None:
+            base = f"{cfg.prefix}/_fleet/{self.fleet_group}"
+            self._watches = [
+                zenoh_io.Watch(self.session, f"{base}/state/**", self._on_state),
+                zenoh_io.Watch(self.session, f"{base}/member/*", self._on_member, liveliness=True),
+            ]
+            self.liveliness.declare(keys.fleet_member(self.fleet_group, zid, cfg.prefix))
         self.liveliness = zenoh_io.Liveliness(self.session)
         self.ros_in = None
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
@@ -473,6 +600,11 @@ class Service:
                     pw.vehicles.append(w)
                     if self.ros_in is not None and vehicle == self.config.ros2.vehicle:
                         w.notes = lambda: dict(self.ros_in.counters)
+                    if self.fleet_view is not None:
+                        w.on_retired = self._retired
+                        states = self.fleet_states.get(vehicle)
+                        if states:  # another service served it: start from its last state
+                            w.loop.starter = lambda t, w=w, states=states: w.take_over(states, t)
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w
@@ -488,7 +620,17 @@ class Service:
 
     def _health_loop(self) -> None:
         period = self.config.output.health_period_s
-        while not self._health_stop.wait(period):
+        next_health = time.monotonic() + period
+        while not self._health_stop.wait(0.05):
+            if self._rebalance_due.is_set():
+                self._rebalance_due.clear()
+                try:
+                    self._rebalance()
+                except Exception:
+                    log.exception("fleet rebalance failed")
+            if time.monotonic() < next_health:
+                continue
+            next_health = time.monotonic() + period
             try:
                 self.pubs.publish(self._health_key, self.service_health())
             except Exception:  # a publication failure must not end the loop
@@ -521,7 +663,10 @@ class Service:
         vehicle = parts[1] if len(parts) > 1 else ""
         if not keys.valid_name(vehicle):
             return self._refuse("bad_vehicle_name", vehicle)
-        if self.shard is not None and not self._mine(vehicle):
+        if self.fleet_view is not None:
+            if not self.fleet_view.mine(vehicle):
+                return  # another service of the fleet serves it (validated name first)
+        elif self.shard is not None and not self._mine(vehicle):
             return  # another shard of this service serves it (validated name first)
         serve_all = "*" in self.config.vehicles
         if not serve_all and vehicle not in self.config.vehicles:
@@ -534,6 +679,32 @@ class Service:
             w.reject("unknown_key", key)
             return
         w.submit(wall, pk.kind, pk.sensor_id, payload)
+
+    # --- fleet sharing ([fleet] sharding = "rendezvous") -----------------------------------------
+    def _on_member(self, key: str, payload: bytes | None) -> None:
+        """A fleet member's token appeared or vanished (Zenoh callback: record, never block)."""
+        if self.fleet_view.update(key.rsplit("/", 1)[-1], payload is not None):
+            self._rebalance_due.set()
+
+    def _on_state(self, key: str, payload: bytes | None) -> None:
+        parts = key.split("/")
+        if payload is not None and len(parts) == 6 and len(payload) <= MAX_PAYLOAD_BYTES:
+            self.fleet_states.put(parts[4], parts[5], payload)
+
+    def _rebalance(self) -> None:
+        """After a membership change: every served vehicle that hashes to another service now is
+        retired (its last state published for the new owner, then dropped here)."""
+        for vehicle, w in list(self.workers.items()):
+            if not self.fleet_view.mine(vehicle) and not w.retired:
+                w.pool_worker.submit(w, (time.monotonic(), None, RETIRE, b""))
+
+    def _retired(self, w: VehicleWorker) -> None:
+        with self._lock:
+            if self.workers.get(w.vehicle) is w:
+                del self.workers[w.vehicle]
+        self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
+        self.retired_vehicles += 1
+        log.info("vehicle %s moved to service %s", w.vehicle, self.fleet_view.owner(w.vehicle))
 
     def _served_list(self) -> list[str]:
         """The configured vehicle names this process serves (its shard's share)."""
@@ -590,6 +761,8 @@ class Service:
         self._health_stop.set()
         self._health_thread.join(timeout=5.0)
         self.intake.stop()
+        for watch in self._watches:
+            watch.stop()
         if self.ros_intake is not None:
             self.ros_intake.stop()
         for pw in self.pool:

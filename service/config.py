@@ -9,7 +9,7 @@ from __future__ import annotations
 import tomllib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -94,9 +94,28 @@ GnssCorrelatedErrorOption = Annotated[
 ]
 
 
+SensorKindName = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")]
+#: options of the sensors' measurement models in a pipeline, by kind (the registry entry's
+#: ``options`` model validates them when the configuration is loaded)
+SensorOptions = Annotated[
+    dict[SensorKindName, dict[str, Any]],
+    Field(
+        default_factory=dict,
+        description="Options of the measurement models by sensor kind, e.g. {baro = {offset_std_m = 20}} "
+        "(each kind's options: its entry in the sensor registry, service/sensors)",
+    ),
+]
+
+
 class LooselyCoupledConfig(Model):
     kind: Literal["loosely_coupled"] = "loosely_coupled"
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    sensors: list[SensorKindName] | None = Field(
+        None,
+        description="Sensor kinds this pipeline fuses (any kind of the sensor registry with a measurement "
+        "model, e.g. ['gnss_fix', 'baro']); default: gnss_fix, and star when use_star",
+    )
+    sensor_options: SensorOptions
     gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
     gnss_correlated_error: GnssCorrelatedErrorOption = None
     use_star: bool = Field(True, description="Use star-tracker attitude when present")
@@ -165,6 +184,7 @@ class FederatedConfig(Model):
         description="Share floor of a state seen only by a flagged row (docs/seed000.md: not below ~0.01)",
     )
     master_share: float = Field(0.0, ge=0, lt=1, description="Share kept by the master (0: none)")
+    sensor_options: SensorOptions
     gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
     gnss_correlated_error: GnssCorrelatedErrorOption = None
 
@@ -176,6 +196,12 @@ class CentralizedConfig(Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     fault_handling: FaultHandlingName = "none"
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5)
+    sensors: list[SensorKindName] | None = Field(
+        None,
+        description="Sensor kinds fused (default: every registered kind whose model needs no states of "
+        "its own: gnss_fix, star, usbl)",
+    )
+    sensor_options: SensorOptions
     gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
     gnss_correlated_error: GnssCorrelatedErrorOption = None
 
@@ -547,6 +573,34 @@ class OutputConfig(Model):
     health_period_s: float = Field(1.0, gt=0)
 
 
+class FleetConfig(Model):
+    """Several services sharing one fleet (docs/SCALING.md)."""
+
+    sharding: Literal["static", "rendezvous"] = Field(
+        "static",
+        description="static: this service serves its 'vehicles' list (or every vehicle with '*'); "
+        "rendezvous: with vehicles = ['*'], the live services of the same group split the fleet by "
+        "rendezvous hashing of the vehicle name over their liveliness tokens (no coordinator); a vehicle "
+        "whose service vanishes moves to another, which starts it from the last handover state",
+    )
+    group: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_\-.]{1,64}$",
+        description="Services of one group share vehicles (default: derived from the prefix and the "
+        "pipelines' configuration, so services configured differently never split a fleet between them)",
+    )
+    handover_period_s: float = Field(
+        1.0, gt=0, le=60, description="Each served vehicle's state is published this often for a handover"
+    )
+    handover_max_age_s: float = Field(
+        5.0,
+        gt=0,
+        le=600,
+        description="A handover state older than this (sensor time) at the new service's first IMU sample "
+        "is not used: the vehicle starts from its own alignment",
+    )
+
+
 class ServiceConfig(Model):
     prefix: str = "fednav"
     vehicles: list[str] = Field(default_factory=lambda: ["v1"], description="Vehicles served ('*' = all)")
@@ -594,6 +648,24 @@ class ServiceConfig(Model):
     )
     viewer: str | None = Field(None, description="Also stream live to a Rerun viewer at this URL")
     ros2: Ros2Config | None = Field(None, description="ROS 2 bridge over Zenoh (docs/ros2.md); None: off")
+    fleet: FleetConfig = FleetConfig()
+
+    @model_validator(mode="after")
+    def _fleet_vehicles(self):
+        if self.fleet.sharding == "rendezvous" and "*" not in self.vehicles:
+            raise ValueError(
+                "fleet.sharding = 'rendezvous' shares vehicles = ['*'] (a list is static sharding)"
+            )
+        return self
+
+    def fleet_group(self) -> str:
+        """The fleet group (``fleet.group``, else a digest of the prefix and the pipelines)."""
+        if self.fleet.group:
+            return self.fleet.group
+        import hashlib
+
+        text = self.prefix + "|" + "|".join(p.model_dump_json() for p in self.pipelines)
+        return "g" + hashlib.blake2b(text.encode(), digest_size=6).hexdigest()
 
     @model_validator(mode="after")
     def _ros2_vehicle(self):

@@ -131,6 +131,7 @@ class VehicleEngine:
         self.config = config
         self.sink = sink
         self.rejected: Counter = counters if counters is not None else Counter()
+        self.notes: Counter = Counter()  # counted events that are not refusals (Health notes)
         self.pipelines: list[Pipeline] = [build_pipeline(p, config) for p in config.pipelines]
         self.initialised = False
         self.pre = Preintegrator()  # the vehicle's one minor loop, shared by every pipeline
@@ -346,8 +347,11 @@ class VehicleEngine:
             return True
         span = t - self.last_imu_t
         scale = span / dt  # a short gap (< max_imu_gap_s) stretches the sample over it
-        dth = [v * scale for v in dtheta]
-        dv = [v * scale for v in dvel]
+        if scale == 1.0:  # the usual case: the values as they are (v * 1.0 == v)
+            dth, dv = dtheta, dvel
+        else:
+            dth = [v * scale for v in dtheta]
+            dv = [v * scale for v in dvel]
         cur = self.last_imu_t
         while self.pending and self.pending[0][0] <= t + 1e-9:
             t_m, kind, sid, amsg = self.pending.pop(0)
@@ -428,7 +432,10 @@ class VehicleEngine:
                     self._confirm_start(fix)
                 self._restart_failed(fix)
         for p in self.pipelines:
-            p.sync()
+            p.sync()  # every pipeline at the aiding epoch (the same propagation steps as before)
+            if kind not in p.consumed_kinds():
+                self._unused(p, kind)
+                continue
             try:
                 outputs = p.apply(kind, sensor_id, msg, dt_late)
             except np.linalg.LinAlgError:
@@ -438,6 +445,23 @@ class VehicleEngine:
             err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:
                 self.sink.on_output(self.vehicle, out, err9)
+
+    def _unused(self, p: Pipeline, kind: str) -> None:
+        """A sensor kind reached a pipeline that is not configured to use it: counted (Health
+        notes ``unused:<pipeline>:<kind>``) and logged once."""
+        self.notes[f"unused:{p.name}:{kind}"] += 1
+        if ("unused", p.name, kind) in self._warned:
+            return
+        self._warned.add(("unused", p.name, kind))
+        log.warning(
+            "vehicle %s: pipeline %s does not use sensor kind %r (it uses %s): its messages are counted "
+            "in Health notes, not fused by it; to fuse them, add %r to the pipeline's sensors",
+            self.vehicle,
+            p.name,
+            kind,
+            sorted(p.consumed_kinds()),
+            kind,
+        )
 
     def _restart_failed(self, fix: GnssFix) -> None:
         """Failed pipelines restart from a running sibling's estimate, else (in motion) from the fix."""
@@ -461,9 +485,12 @@ class VehicleEngine:
     def _usable(est: Estimate) -> bool:
         """An estimate a Solution can carry: finite, inside the wire model's limits."""
         nav = est.nav
-        values = np.r_[nav.lat_rad, nav.lon_rad, nav.h_m, nav.vel_enu_mps, nav.q_nb, est.P9.ravel()]
+        scalars = (nav.lat_rad, nav.lon_rad, nav.h_m)
         return bool(
-            np.all(np.isfinite(values))
+            all(math.isfinite(v) for v in scalars)
+            and np.isfinite(nav.vel_enu_mps).all()
+            and np.isfinite(nav.q_nb).all()
+            and np.isfinite(est.P9).all()
             and abs(nav.lat_rad) <= math.pi / 2
             and MIN_HEIGHT_M <= nav.h_m <= MAX_HEIGHT_M
             and float(np.linalg.norm(nav.vel_enu_mps)) <= MAX_SPEED_MPS

@@ -4,7 +4,9 @@ Every instance computes the same owner for a vehicle from the same member list, 
 coordinator: the owner is the member with the highest weight ``hash(vehicle, member)``. When a
 member leaves, only its vehicles move (each to the member with its next highest weight); when
 one joins, it takes only the vehicles for which it now has the highest weight. Used by the
-service's local shards (``--shards K``: members ``shard0..shardK-1``).
+service's local shards (``--shards K``: members ``shard0..shardK-1``) and by services sharing a
+fleet (``[fleet] sharding = 'rendezvous'``: members = the Zenoh ids of the live services of the
+group, from their liveliness tokens; :class:`FleetView`).
 """
 
 from __future__ import annotations
@@ -40,4 +42,114 @@ def shard_of(vehicle: str, shards: int) -> int:
     return int(owner(vehicle, [shard_name(i) for i in range(shards)])[len("shard") :])
 
 
-__all__ = ["owner", "shard_name", "shard_of", "weight"]
+class FleetView:
+    """The live members of a fleet group (from their liveliness tokens) and who owns a vehicle.
+
+    ``mine(vehicle)`` is cached per membership version; ``update(key, alive)`` is called from a
+    Zenoh callback (cheap, under a lock) and bumps the version when the member set changes."""
+
+    def __init__(self, me: str):
+        import threading
+
+        self.me = me
+        self._members: set[str] = {me}
+        self._lock = threading.Lock()
+        self._owner: dict[str, str] = {}
+        self.version = 0
+        self.changes = 0  # membership changes seen (Health of the service)
+
+    def update(self, member: str, alive: bool) -> bool:
+        """A member's token appeared (``alive``) or vanished; True when the set changed."""
+        with self._lock:
+            before = set(self._members)
+            if alive:
+                self._members.add(member)
+            elif member != self.me:
+                self._members.discard(member)
+            if self._members == before:
+                return False
+            self._owner = {}
+            self.version += 1
+            self.changes += 1
+            return True
+
+    def members(self) -> list[str]:
+        with self._lock:
+            return sorted(self._members)
+
+    def owner(self, vehicle: str) -> str:
+        with self._lock:
+            o = self._owner.get(vehicle)
+            if o is None:
+                if len(self._owner) > 200_000:
+                    self._owner.clear()
+                o = self._owner[vehicle] = owner(vehicle, self._members)
+            return o
+
+    def mine(self, vehicle: str) -> bool:
+        return self.owner(vehicle) == self.me
+
+
+class StateCache:
+    """The latest handover-state payload per (vehicle, pipeline), kept as bytes (parsed only
+    when a vehicle is taken over)."""
+
+    def __init__(self, max_vehicles: int = 100_000):
+        import threading
+
+        self._latest: dict[str, dict[str, bytes]] = {}
+        self._lock = threading.Lock()
+        self.max_vehicles = max_vehicles
+
+    def put(self, vehicle: str, pipeline: str, payload: bytes) -> None:
+        with self._lock:
+            d = self._latest.get(vehicle)
+            if d is None:
+                if len(self._latest) >= self.max_vehicles:
+                    return
+                d = self._latest[vehicle] = {}
+            d[pipeline] = payload
+
+    def get(self, vehicle: str) -> dict[str, bytes]:
+        with self._lock:
+            return dict(self._latest.get(vehicle, {}))
+
+
+def handover_nav(st, t_start: float):
+    """(NavState, InitStd) at ``t_start`` from a HandoverState at ``st.t``: position carried
+    forward with the state's velocity over the gap, sigmas grown by the velocity sigma over it
+    (and by a 0.5 m/s^2 acceleration uncertainty, the manoeuvre a vehicle can fly unseen), the
+    bias estimates kept (their sigmas are the service's own IMU prior)."""
+    import math
+
+    import numpy as np
+
+    from fednav.service import earth
+    from fednav.service.ins.alignment import InitStd
+    from fednav.service.ins.mechanisation import NavState
+
+    gap = max(0.0, t_start - st.t)
+    lat, lon = math.radians(st.lat_deg), math.radians(st.lon_deg)
+    r_m, r_n = earth.radii(lat)
+    v = np.asarray(st.vel_enu_mps, dtype=float)
+    lat += v[1] * gap / (r_m + st.height_m)
+    lon += v[0] * gap / ((r_n + st.height_m) * math.cos(lat))
+    P = np.asarray(st.P9, dtype=float).reshape(9, 9)
+    sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
+    acc = 0.5  # m/s^2
+    vel_sd = np.hypot(sd[3:6], acc * gap)
+    pos_sd = np.sqrt(sd[0:3] ** 2 + (sd[3:6] * gap) ** 2 + (0.5 * acc * gap * gap) ** 2)
+    nav = NavState(
+        t=float(t_start),
+        lat_rad=lat,
+        lon_rad=lon,
+        h_m=st.height_m + v[2] * gap,
+        vel_enu_mps=v.copy(),
+        q_nb=np.asarray(st.q_nb, dtype=float),
+        gyro_bias_rps=np.asarray(st.gyro_bias_rps, dtype=float),
+        accel_bias_mps2=np.asarray(st.accel_bias_mps2, dtype=float),
+    )
+    return nav, InitStd(pos_sd, vel_sd, sd[6:9].copy())
+
+
+__all__ = ["FleetView", "StateCache", "handover_nav", "owner", "shard_name", "shard_of", "weight"]

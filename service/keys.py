@@ -6,6 +6,8 @@
 {prefix}/{vehicle}/sensor/star/{id}           StarAttitude
 {prefix}/{vehicle}/sensor/dvl/{id}            DvlVelocity
 {prefix}/{vehicle}/sensor/usbl/{id}           UsblFix
+{prefix}/{vehicle}/sensor/baro/{id}           BaroAltitude
+    (sensor keys come from the sensor registry, ``service.sensors``: one entry per kind)
 {prefix}/{vehicle}/sensor/init                InitialNav
 {prefix}/{vehicle}/truth                      Truth
 {prefix}/{vehicle}/truth/alignment/{node}     AlignmentTruth (seed 002 simulators)
@@ -20,10 +22,13 @@
 {prefix}/{vehicle}/service/alive              liveliness token of each served vehicle
 {prefix}/_services/{zenoh id}                 liveliness token of each running service
 {prefix}/_services/{zenoh id}/health          ServiceHealth (refused before routing, unserved names)
+{prefix}/_fleet/{group}/member/{zenoh id}      liveliness token of a service sharing a fleet
+{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}  HandoverState (a vehicle's last state, ~1 Hz)
 """
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -46,15 +51,15 @@ def _chunk(name: str, what: str) -> str:
 
 
 def sensor(vehicle: str, kind: str, sensor_id: str, prefix: str = DEFAULT_PREFIX) -> str:
-    """Key of a sensor stream. ``kind`` is one of imu, gnss_fix, gnss_raw, star, dvl, usbl."""
+    """Key of a sensor stream of a kind of the sensor registry (``service.sensors``)."""
+    from fednav.service import sensors
+
     v, s = _chunk(vehicle, "vehicle"), _chunk(sensor_id, "sensor id")
-    if kind == "gnss_fix":
-        return f"{prefix}/{v}/sensor/gnss/{s}/fix"
-    if kind == "gnss_raw":
-        return f"{prefix}/{v}/sensor/gnss/{s}/raw"
-    if kind in ("imu", "star", "dvl", "usbl"):
-        return f"{prefix}/{v}/sensor/{kind}/{s}"
-    raise ValueError(f"unknown sensor kind {kind!r}")
+    try:
+        entry = sensors.get(kind)
+    except KeyError as exc:
+        raise ValueError(exc.args[0]) from None
+    return f"{prefix}/{v}/sensor/{entry.key_suffix(s)}"
 
 
 def init(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
@@ -97,6 +102,17 @@ def service_health(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{service_token(instance, prefix)}/health"
 
 
+def fleet_member(group: str, instance: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Liveliness token of a service sharing a fleet (``[fleet] sharding = 'rendezvous'``)."""
+    return f"{prefix}/_fleet/{_chunk(group, 'fleet group')}/member/{_chunk(instance, 'service instance')}"
+
+
+def fleet_state(group: str, vehicle: str, pipeline: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key of a served vehicle's HandoverState (a pipeline's last state, for another service)."""
+    g, v, p = _chunk(group, "fleet group"), _chunk(vehicle, "vehicle"), _chunk(pipeline, "pipeline")
+    return f"{prefix}/_fleet/{g}/state/{v}/{p}"
+
+
 def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[str]:
     """Key expression the service subscribes to for a vehicle selector (``*`` = all vehicles).
 
@@ -110,15 +126,15 @@ def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[s
 def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
     """True for keys a fednav service publishes (nav/..., service/...), not inputs."""
     parts = key.split("/")
-    if len(parts) >= 2 and parts[0] == prefix and parts[1] == "_services":
-        return True  # service tokens and ServiceHealth
+    if len(parts) >= 2 and parts[0] == prefix and parts[1] in ("_services", "_fleet"):
+        return True  # service tokens, ServiceHealth, fleet members and handover states
     return len(parts) >= 3 and parts[0] == prefix and parts[2] in ("nav", "service")
 
 
 @dataclass(frozen=True)
 class ParsedKey:
     vehicle: str
-    kind: str  # imu, gnss_fix, gnss_raw, star, dvl, usbl, init, truth, alignment_truth
+    kind: str  # a sensor registry kind (imu, gnss_fix, ...), or init, truth, alignment_truth
     sensor_id: str  # "" for init/truth
 
 
@@ -137,8 +153,12 @@ def parse_input(key: str, prefix: str = DEFAULT_PREFIX) -> ParsedKey | None:
     rest = rest[1:]
     if rest == ["init"]:
         return ParsedKey(vehicle, "init", "")
-    if len(rest) == 2 and rest[0] in ("imu", "star", "dvl", "usbl"):
-        return ParsedKey(vehicle, rest[0], rest[1])
-    if len(rest) == 3 and rest[0] == "gnss" and rest[2] in ("fix", "raw"):
-        return ParsedKey(vehicle, "gnss_" + rest[2], rest[1])
-    return None
+    found = _sensor_key(tuple(rest))
+    return None if found is None else ParsedKey(vehicle, found[0], found[1])
+
+
+@functools.lru_cache(maxsize=4096)
+def _sensor_key(chunks: tuple[str, ...]) -> tuple[str, str] | None:
+    from fednav.service import sensors
+
+    return sensors.parse_key(list(chunks))

@@ -670,6 +670,43 @@ class Health(WireModel):
     )
 
 
+class HandoverState(WireModel):
+    """A served vehicle's pipeline state for another service of its fleet (``[fleet] sharding =
+    'rendezvous'``, key ``{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}``, about 1 Hz): what
+    the service that takes the vehicle over starts from instead of a cold start. Carries the
+    navigation state, its 9x9 covariance and the IMU bias estimates with their sigmas."""
+
+    t: Time
+    vehicle: str = Field(min_length=1, max_length=64, description="Vehicle name")
+    pipeline: str = Field(min_length=1, max_length=64, description="Pipeline whose state this is")
+    service: str = Field(min_length=1, max_length=64, description="Zenoh id of the publishing service")
+    lat_deg: Lat
+    lon_deg: Lon
+    height_m: Height
+    vel_enu_mps: Vec3 = Field(description="Velocity east/north/up, m/s")
+    q_nb: tuple[float, float, float, float] = Field(
+        description="Attitude quaternion body -> ENU (w, x, y, z)"
+    )
+    P9: list[float] = Field(
+        min_length=81, max_length=81, description="Covariance of (dp_enu, dv_enu, phi_enu), row-major"
+    )
+    gyro_bias_rps: Vec3 = Field(description="Gyro bias estimate, body, rad/s")
+    accel_bias_mps2: Vec3 = Field(description="Accelerometer bias estimate, body, m/s^2")
+    bias_std: tuple[float, float, float, float, float, float] = Field(
+        description="1-sigma of the gyro (rad/s) and accelerometer (m/s^2) bias estimates"
+    )
+    status: str = Field(max_length=32, description="The pipeline's status when published")
+
+    @model_validator(mode="after")
+    def _plausible(self):
+        _check_speed(self.vel_enu_mps, "vel_enu_mps")
+        if abs(_norm(self.q_nb) - 1.0) > 1e-6:
+            raise ValueError("q_nb is not a unit quaternion")
+        if any(self.P9[9 * i + i] < 0.0 for i in range(9)) or min(self.bias_std) < 0.0:
+            raise ValueError("negative variance or sigma")
+        return self
+
+
 class ServiceHealth(WireModel):
     """Service-level health, once a second (key ``{prefix}/_services/{zenoh id}/health``): what
     the service refused before any vehicle, e.g. data under a vehicle name it does not serve."""
@@ -691,13 +728,9 @@ class ServiceHealth(WireModel):
     )
 
 
-SENSOR_MESSAGES: dict[str, type[WireModel]] = {
-    "imu": ImuSample,
-    "gnss_fix": GnssFix,
-    "gnss_raw": GnssRaw,
-    "star": StarAttitude,
-    "dvl": DvlVelocity,
-    "usbl": UsblFix,
+#: input messages that are not sensors: the initial state, truth (simulators), alignment truth;
+#: the sensors' messages are in the sensor registry (``service.sensors``)
+CONTROL_MESSAGES: dict[str, type[WireModel]] = {
     "init": InitialNav,
     "truth": Truth,
     "alignment_truth": AlignmentTruth,
@@ -720,6 +753,7 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Alignment,
     AlignmentTruth,
     ServiceHealth,
+    HandoverState,
 ]
 
 
@@ -729,10 +763,18 @@ def schema_id(name: str) -> str:
     return f"urn:fednav:schema:{name}:{SCHEMA_VERSION}"
 
 
+def all_messages() -> list[type[WireModel]]:
+    """Every wire message: the ones above and those of the sensor registry's kinds."""
+    from fednav.service import sensors
+
+    extra = [s.message for s in sensors.registry().values() if s.message not in ALL_MESSAGES]
+    return ALL_MESSAGES + extra
+
+
 def json_schemas() -> dict[str, dict]:
     """JSON Schema (draft 2020-12, pydantic's validation mode) of every wire message."""
     out = {}
-    for m in ALL_MESSAGES:
+    for m in all_messages():
         s = {"$schema": "https://json-schema.org/draft/2020-12/schema", **m.model_json_schema()}
         s["$id"] = schema_id(m.__name__)
         out[m.__name__] = s

@@ -37,9 +37,11 @@ class Ros2Input(_Model):
     """One ROS 2 topic read by the bridge."""
 
     topic: str = Field(description="ROS 2 topic name, e.g. /imu/data (namespace-relative names get a '/')")
-    type: Literal[
-        "sensor_msgs/msg/Imu", "sensor_msgs/msg/NavSatFix", "geometry_msgs/msg/TwistWithCovarianceStamped"
-    ] = Field(description="ROS 2 message type of the topic")
+    type: str = Field(
+        description="ROS 2 message type of the topic: sensor_msgs/msg/Imu, sensor_msgs/msg/NavSatFix, "
+        "geometry_msgs/msg/TwistWithCovarianceStamped, or a type a sensor registry entry decodes (e.g. "
+        "sensor_msgs/msg/FluidPressure for the barometer)"
+    )
     sensor_id: str = Field(
         description="fednav sensor id the messages are delivered as (a NavSatFix and the Twist paired with "
         "it share one id)"
@@ -54,6 +56,18 @@ class Ros2Input(_Model):
     @classmethod
     def _check_topic(cls, v: str) -> str:
         return _topic(v)
+
+    @field_validator("type")
+    @classmethod
+    def _check_type(cls, v: str) -> str:
+        if v in INPUT_TYPES:
+            return v
+        from fednav.service import sensors
+
+        if sensors.ros2_decoder(v) is None:
+            known = sorted(INPUT_TYPES) + sorted(t for s in sensors.registry().values() for t in s.ros2)
+            raise ValueError(f"{v!r} is not a ROS 2 type the bridge decodes; known: {known}")
+        return v
 
     @field_validator("sensor_id")
     @classmethod

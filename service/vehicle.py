@@ -22,10 +22,10 @@ from collections import Counter, deque
 import numpy as np
 from pydantic import ValidationError
 
-from fednav.service import imu_batch
+from fednav.service import imu_batch, sensors
 from fednav.service.config import ServiceConfig
 from fednav.service.engine import VehicleEngine
-from fednav.service.messages import SENSOR_MESSAGES, Health, PipelineHealth, WireModel
+from fednav.service.messages import Health, PipelineHealth, WireModel
 
 log = logging.getLogger("fednav.service")
 
@@ -80,6 +80,9 @@ class VehicleLoop:
         self.arrivals: dict[str, float] = {}  # stream -> monotonic arrival time of its last message
         self.started = time.monotonic()
         self._rlog = RateLimitedLog()
+        #: called once with the start time of the vehicle's first IMU sample, before it is used
+        #: (a fleet handover starts the engine there); None: nothing to do
+        self.starter = None
 
     def reject(self, reason: str, text: str = "", n: int = 1) -> None:
         self.counters[reason] += n
@@ -96,21 +99,36 @@ class VehicleLoop:
             self.received += 1
             self._handle(kind, sensor_id, payload, wall)
             return
-        if kind == "imu" and imu_batch.is_batch(payload):
+        entry = sensors.REGISTRY.get(kind) or sensors.registry().get(kind)
+        if entry is not None and entry.batch is not None and imu_batch.is_batch(payload):
             self._batch(sensor_id, payload, wall)
             return
         self.received += 1
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.reject("oversize", f"{kind} payload of {len(payload)} bytes")
             return
+        model = sensors.input_message(kind)
+        if model is None:
+            self.reject("unknown_key", f"no message model for kind {kind!r}")
+            return
         try:
-            msg = SENSOR_MESSAGES[kind].model_validate_json(payload)
+            msg = model.model_validate_json(payload)
         except ValidationError as err:
             self.reject(classify(err), f"{kind}/{sensor_id}: {err.errors()[0]['msg']}")
             return
         self._handle(kind, sensor_id, msg, wall)
 
+    def _start_at(self, t_start: float) -> None:
+        starter, self.starter = self.starter, None
+        try:
+            starter(t_start)
+        except Exception:
+            log.exception("vehicle %s: start hook failed", self.vehicle)
+            self.counters["internal_error"] += 1
+
     def _handle(self, kind: str, sensor_id: str, msg: WireModel, wall: float) -> None:
+        if self.starter is not None and kind == "imu" and not self.engine.initialised:
+            self._start_at(msg.t - msg.dt_s)
         try:
             ok = self.engine.handle(kind, sensor_id, msg)
         except Exception:  # never let a pipeline bug end the vehicle
@@ -143,6 +161,8 @@ class VehicleLoop:
             rows = rows[ok]
         if len(rows) == 0:
             return
+        if self.starter is not None and not self.engine.initialised:
+            self._start_at(float(rows[0, 0] - rows[0, 1]))
         try:
             n = self.engine.handle_imu_batch(sensor_id, rows)
         except Exception:
@@ -186,7 +206,7 @@ class VehicleLoop:
             sensors={k: t for k, (t, _) in engine.streams.items()},
             stale=stale,
             time_base_mismatch=dict(engine.time_base_mismatch),
-            notes={k: int(v) for k, v in (notes or {}).items() if v},
+            notes={k: int(v) for k, v in (dict(engine.notes) | dict(notes or {})).items() if v},
         )
 
 

@@ -97,7 +97,13 @@ def start_service(
 
 
 def start_sim(
-    port: int, scenario: Path, *, speed: float = 0.0, seed: int | None = None, vehicle: str = "v1"
+    port: int,
+    scenario: Path,
+    *,
+    speed: float = 0.0,
+    seed: int | None = None,
+    vehicle: str = "v1",
+    imu_batch: int | None = None,
 ) -> Proc:
     args = [
         sys.executable,
@@ -114,6 +120,8 @@ def start_sim(
     ]
     if seed is not None:
         args += ["--seed", str(seed)]
+    if imu_batch is not None:
+        args += ["--imu-batch", str(imu_batch)]
     return Proc(args, "fednav-sim")
 
 

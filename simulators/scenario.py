@@ -266,6 +266,36 @@ class Scenario(BaseModel):
     service: dict[str, Any] = Field(
         default_factory=dict, description="Passed untouched to the service config"
     )
+    sensors: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="Further sensors of the sensor registry by kind, each with its simulation options "
+        "(e.g. [sensors.baro] rate_hz = 10): a kind whose registry entry has a simulator hook",
+    )
+
+    @model_validator(mode="after")
+    def _registry_sensors(self):
+        from fednav.service import sensors as registry
+
+        for kind, spec in self.sensors.items():
+            entry = registry.registry().get(kind)
+            if entry is None or entry.simulate is None:
+                hooks = sorted(k for k, e in registry.registry().items() if e.simulate is not None)
+                raise ValueError(
+                    f"sensors.{kind}: no simulator for sensor kind {kind!r} (simulated: {hooks})"
+                )
+            try:
+                entry.simulate_spec.model_validate(spec)
+            except ValidationError as e:
+                first = e.errors()[0]
+                loc = ".".join(str(p) for p in ("sensors", kind, *first["loc"]))
+                raise ValueError(f"{loc}: {first['msg']}") from None
+        return self
+
+    def registry_sensor_specs(self) -> dict[str, Any]:
+        """The validated specs of the ``[sensors.<kind>]`` tables."""
+        from fednav.service import sensors as registry
+
+        return {k: registry.get(k).simulate_spec.model_validate(v) for k, v in self.sensors.items()}
 
     @model_validator(mode="before")
     @classmethod

@@ -22,12 +22,14 @@ Every draw happens when the :class:`Simulation` is created; iteration only build
 
 from __future__ import annotations
 
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fednav.service import earth, keys
+from fednav.service import sensors as sensor_registry
 from fednav.service.messages import (
     MAX_RATE_RPS,
     MAX_SPECIFIC_FORCE_MPS2,
@@ -168,6 +170,14 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             vel_std_enu_mps=floor(ie.vel_enu_mps),
             rpy_std_deg=floor([a / 3600.0 for a in ie.rpy_arcsec]),
         )
+        # sensors of the registry ([sensors.<kind>]): each its own generator, seeded from the run's
+        # seed and its kind (the streams above keep their values whether or not these are present)
+        self._extra: list[tuple[str, list]] = []
+        for kind, spec in sc.registry_sensor_specs().items():
+            entry = sensor_registry.get(kind)
+            rng_k = np.random.default_rng([seed, zlib.crc32(kind.encode())])
+            key = keys.sensor(vehicle, kind, getattr(spec, "id", kind), prefix)
+            self._extra.append((key, entry.simulate(spec, traj, rng_k)))
         self._truth_step = epoch_step(sc.imu.rate_hz, sc.truth_rate_hz, "truth_rate_hz")
         self._keys = {
             "imu": keys.sensor(vehicle, "imu", sc.imu.id, prefix),
@@ -218,6 +228,7 @@ class Simulation(Iterator[tuple[str, WireModel]]):
         dth, dv = self._dth.tolist(), self._dv.tolist()
         gnss, star, raw, usbl, dvl = self._gnss, self._star, self._raw, self._usbl, self._dvl
         ig = istar = iraw = iusbl = idvl = 0
+        extra, i_extra = self._extra, [0] * len(self._extra)
         for k in range(1, traj.t_s.size):
             # Truth and aiding of instant t_k come before the IMU sample ending at t_k: the engine
             # queues aiding until the INS reaches t_k, so the solution at t_k is post-update.
@@ -238,6 +249,10 @@ class Simulation(Iterator[tuple[str, WireModel]]):
             if idvl < len(dvl) and dvl[idvl][0] == k:
                 yield self._keys["dvl"], dvl[idvl][1]
                 idvl += 1
+            for j, (key, msgs) in enumerate(extra):
+                if i_extra[j] < len(msgs) and msgs[i_extra[j]][0] == k:
+                    yield key, msgs[i_extra[j]][1]
+                    i_extra[j] += 1
             # constructed without re-validation: the values come from the validated scenario and
             # finite arrays (checked once in __init__); receivers validate what they get anyway
             yield (

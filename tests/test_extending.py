@@ -2,8 +2,9 @@
 
 Each test adds something new through the public hook only (a registry line, done here with
 ``monkeypatch`` so the registries are restored), then runs it in the real code path:
-- a sensor: a measurement model file + one ``measurements.REGISTRY`` line, configured in a
-  federated pipeline through the service configuration;
+- a sensor: a measurement model + one entry in the sensor registry (``service.sensors``),
+  configured in a federated pipeline through the service configuration (the barometer,
+  tests/test_baro.py, is a whole sensor added that way: one file + one registry line);
 - private states: a model that declares its own states, estimated closed loop by a filter bank;
 - a pipeline family: a ``Pipeline`` subclass registered by kind;
 - a sharing strategy and a fault test: a class + one registry line each.
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from fednav.service import config, earth, pipelines
+from fednav.service import config, earth, pipelines, sensors
 from fednav.service.estimation import kalman, measurements
 from fednav.service.estimation.federated import fault_tests, sharing
 from fednav.service.estimation.federated.core import FederatedCore, LinearBank
@@ -28,6 +29,7 @@ from fednav.service.estimation.measurements import Measurement, ModelContext, Pr
 from fednav.service.ins import error_model as em
 from fednav.service.messages import DvlVelocity, Faults, GnssFix
 from fednav.service.pipelines.base import Estimate, Pipeline, initial_covariance
+from fednav.service.sensors import SensorKind
 
 from .test_federated import IMU, drive, mini_ins, run_linear, static_stream
 from .test_federated import H as STATIC_H
@@ -89,7 +91,10 @@ def test_add_a_sensor_model_one_registry_line(monkeypatch):
         config.ConfigError, match=r"pipelines\.0\.subsystems\.1\.sensors\.0: sensor kind 'dvl'"
     ):
         config.from_dict(_federated_config(["dvl"]))
-    monkeypatch.setitem(measurements.REGISTRY, "dvl", DvlBodyVelocity)  # the one registry line
+    # the one registry entry (here replacing the DVL's own entry, whose model has private states)
+    monkeypatch.setitem(
+        sensors.registry(), "dvl", SensorKind("dvl", DvlVelocity, ("dvl", "{id}"), DvlBodyVelocity)
+    )
     cfg = config.from_dict(_federated_config(["dvl"]))
     fed = pipelines.build_pipeline(cfg.pipelines[0], cfg)
     ref = pipelines.build_pipeline(

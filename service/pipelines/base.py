@@ -54,6 +54,49 @@ def initial_covariance(std: InitStd, imu: ImuModel, private=()) -> np.ndarray:
     return np.diag(np.square(d))
 
 
+def model_options(cfg) -> dict[str, dict]:
+    """Keyword options of the measurement models of a pipeline configuration, by sensor kind: the
+    GNSS fix's dedicated fields (lever arm, correlated error) and each ``sensor_options`` table,
+    validated by its registry entry's options model (:func:`sensor_option_errors` at load)."""
+    from fednav.service import sensors
+    from fednav.service.estimation.measurements.gnss_fix import gnss_fix_options
+
+    out: dict[str, dict] = {}
+    if hasattr(cfg, "gnss_lever_arm_b_m"):
+        out["gnss_fix"] = gnss_fix_options(cfg)
+    for kind, opts in getattr(cfg, "sensor_options", {}).items():
+        entry = sensors.get(kind)
+        validated = entry.options.model_validate(opts).model_dump() if entry.options else dict(opts)
+        out[kind] = out.get(kind, {}) | validated
+    return out
+
+
+def sensor_option_errors(cfg, used: set[str]) -> list[tuple[str, str]]:
+    """(field, message) for ``sensor_options`` of kinds the pipeline does not use, of kinds whose
+    model takes no options there, or that their options model refuses."""
+    from pydantic import ValidationError
+
+    from fednav.service import sensors
+
+    out = []
+    for kind, opts in getattr(cfg, "sensor_options", {}).items():
+        loc = f"sensor_options.{kind}"
+        if kind not in used:
+            out.append((loc, f"sensor kind {kind!r} is not among this pipeline's sensors {sorted(used)}"))
+            continue
+        entry = sensors.registry().get(kind)
+        if entry is None or entry.options is None:
+            out.append((loc, f"the {kind!r} model takes no options here"))
+            continue
+        try:
+            entry.options.model_validate(opts)
+        except ValidationError as exc:
+            e = exc.errors()[0]
+            where = ".".join(str(x) for x in e["loc"])
+            out.append((f"{loc}.{where}" if where else loc, e["msg"]))
+    return out
+
+
 @dataclass
 class Estimate:
     """What evaluation needs: the navigation state and the 9x9 covariance of (dp, dv, phi)."""
@@ -157,6 +200,11 @@ class Pipeline(ABC):
     def sensor_kinds(cls) -> frozenset[str]:
         """Sensor kinds this pipeline kind can consume (its configuration is checked against it)."""
         return frozenset()
+
+    def consumed_kinds(self) -> frozenset[str]:
+        """Sensor kinds this configured pipeline uses (the engine counts and warns once about a
+        kind that reaches a pipeline not using it); default: every kind its family can consume."""
+        return self.sensor_kinds()
 
     @classmethod
     def config_errors(cls, cfg) -> list[tuple[str, str]]:

@@ -38,11 +38,17 @@ from fednav.service.estimation.federated.fault_tests import FaultTest, make_faul
 from fednav.service.estimation.federated.sharing import get_strategy
 from fednav.service.estimation.ins_filter import InsFilterBank
 from fednav.service.estimation.measurements import MeasurementModel
-from fednav.service.estimation.measurements.gnss_fix import gnss_fix_options
 from fednav.service.ins import error_model as em
 from fednav.service.ins.mechanisation import Ins, NavState
 from fednav.service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
-from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from fednav.service.pipelines.base import (
+    Estimate,
+    InitStd,
+    Pipeline,
+    initial_covariance,
+    model_options,
+    sensor_option_errors,
+)
 
 
 @dataclass
@@ -117,6 +123,9 @@ class _CorePipeline(Pipeline):
         self._fused_view: tuple[np.ndarray, np.ndarray] | None = None
 
     # --- Pipeline interface ---------------------------------------------------------------------
+    def consumed_kinds(self) -> frozenset[str]:
+        return frozenset(self.channels)
+
     def private_states(self) -> tuple:
         """Private-state blocks every member carries after the 15 common states (never fused):
         those of the configured models (e.g. the correlated GNSS error of ``gnss_fix``), each
@@ -311,7 +320,7 @@ class Federated(_CorePipeline):
                     out.append((loc, f"sensor kind {kind!r} is already in subsystem {owner[kind]!r}"))
                 else:
                     owner[kind] = sub.name
-        return out
+        return out + sensor_option_errors(cfg, set(owner))
 
     def __init__(self, cfg: FederatedConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(
@@ -326,9 +335,17 @@ class Federated(_CorePipeline):
             master_share=cfg.master_share,
             floor_share=cfg.floor_share,
             report_faults=True,
-            model_options={"gnss_fix": gnss_fix_options(cfg)},
+            model_options=model_options(cfg),
         )
         self.cfg = cfg
+
+
+def central_kinds(cfg: CentralizedConfig) -> list[str]:
+    """The kinds of the centralised comparator: ``sensors``, else every registered kind whose
+    default model needs no states of its own."""
+    if cfg.sensors is not None:
+        return list(dict.fromkeys(cfg.sensors))
+    return sorted(k for k in measurements.plain_kinds() if not measurements.make(k).private_states)
 
 
 class Centralized(_CorePipeline):
@@ -342,17 +359,27 @@ class Centralized(_CorePipeline):
             cfg.name,
             imu,
             major_interval_s,
-            subsystems=[("central", sorted(self.sensor_kinds()))],
+            subsystems=[("central", central_kinds(cfg))],
             sharing="fixed",
             fault_handling=cfg.fault_handling,
             false_alarm_prob=cfg.false_alarm_prob,
             report_faults=cfg.fault_handling != "none",
-            model_options={"gnss_fix": gnss_fix_options(cfg)},
+            model_options=model_options(cfg),
         )
         self.cfg = cfg
         # report per sensor kind (one test each), all owned by the single filter
         for kind, ch in self.channels.items():
             ch.name = kind
+
+    @classmethod
+    def config_errors(cls, cfg: CentralizedConfig) -> list[tuple[str, str]]:
+        kinds = central_kinds(cfg)
+        out = [
+            (f"sensors.{i}", f"sensor kind {k!r} is not implemented in a centralised pipeline")
+            for i, k in enumerate(kinds)
+            if k not in cls.sensor_kinds()
+        ]
+        return out + sensor_option_errors(cfg, set(kinds))
 
     def sharing_report(self) -> dict[str, list[float]]:
         return {}

@@ -11,25 +11,53 @@ from fednav.service.config import ImuModel, LooselyCoupledConfig
 from fednav.service.estimation import kalman, measurements
 from fednav.service.estimation.ins_filter import InsFilterBank
 from fednav.service.estimation.measurements import MeasurementModel
-from fednav.service.estimation.measurements.gnss_fix import gnss_fix_options
 from fednav.service.ins import error_model as em
 from fednav.service.ins.mechanisation import NavState
 from fednav.service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
-from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
+from fednav.service.pipelines.base import (
+    Estimate,
+    InitStd,
+    Pipeline,
+    initial_covariance,
+    model_options,
+    sensor_option_errors,
+)
+
+
+def configured_kinds(cfg: LooselyCoupledConfig) -> list[str]:
+    """The sensor kinds a loosely coupled configuration fuses (``sensors``; default gnss_fix, and
+    star when ``use_star``)."""
+    if cfg.sensors is not None:
+        return list(dict.fromkeys(cfg.sensors))
+    return ["gnss_fix"] + (["star"] if cfg.use_star else [])
 
 
 class LooselyCoupled(Pipeline):
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
-        return frozenset({"gnss_fix", "star"})
+        """Every kind of the sensor registry with a measurement model (private states included:
+        the bank is built with them)."""
+        return frozenset(measurements.REGISTRY)
+
+    @classmethod
+    def config_errors(cls, cfg: LooselyCoupledConfig) -> list[tuple[str, str]]:
+        kinds = configured_kinds(cfg)
+        out = [
+            (
+                f"sensors.{i}",
+                f"sensor kind {k!r} has no measurement model (known: {sorted(cls.sensor_kinds())})",
+            )
+            for i, k in enumerate(kinds)
+            if k not in cls.sensor_kinds()
+        ]
+        return out + sensor_option_errors(cfg, set(kinds))
 
     def __init__(self, cfg: LooselyCoupledConfig, imu: ImuModel, major_interval_s: float):
         super().__init__(cfg.name, imu, major_interval_s)
         self.cfg = cfg
-        kinds = ["gnss_fix"] + (["star"] if cfg.use_star else [])
-        options = {"gnss_fix": gnss_fix_options(cfg)}
+        options = model_options(cfg)
         self.models: dict[str, MeasurementModel] = {
-            k: measurements.make(k, **options.get(k, {})) for k in kinds
+            k: measurements.make(k, **options.get(k, {})) for k in configured_kinds(cfg)
         }
         self.private = tuple(b for m in self.models.values() for b in m.private_states)
         self.last_nis: float | None = None
@@ -38,6 +66,9 @@ class LooselyCoupled(Pipeline):
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
         self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
         self._gate_reported: set[str] = set()  # kinds whose last published Faults refused rows
+
+    def consumed_kinds(self) -> frozenset[str]:
+        return frozenset(self.models)
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
         self._refused_since.clear()

@@ -679,6 +679,17 @@ class RerunSink:
                     self._add(paths.health(vehicle, name), "scalar", tn, float(v))
             self._maybe_flush()
 
+    def log_event(self, vehicle: str, t: float, text: str, level: str = "INFO") -> None:
+        """A service event of a vehicle (e.g. "handed over from <service>"), as a text log row
+        under the vehicle's health entity ``events``."""
+        if self._closed:
+            return
+        with self._lock:
+            if self._closed:
+                return
+            self._add(paths.health(vehicle, "events"), "text", self._time(vehicle, t), (text, level))
+            self._maybe_flush()
+
     def log_imm(self, vehicle: str, msg: ImmModels) -> None:
         """IMM model probabilities (``imm/prob/{model}``), the number of down-weighted rows per
         model (``imm/downweighted/{model}``: R_ii factor above 1) and gate rejections

@@ -695,8 +695,10 @@ class RosInput:
                 items = self._imu_in(inp, msg, stamp_ns)
             elif inp.type == "sensor_msgs/msg/NavSatFix":
                 items = self._fix_in(inp, msg, stamp_ns)
-            else:
+            elif inp.type == "geometry_msgs/msg/TwistWithCovarianceStamped":
                 items = self._twist_in(inp, msg, stamp_ns)
+            else:  # a type of the sensor registry (e.g. FluidPressure: the barometer)
+                items = self._registry_in(inp, msg, stamp_ns)
         except RosDecodeError:
             raise
         except (TypeError, ValueError, AttributeError, IndexError) as exc:
@@ -705,6 +707,21 @@ class RosInput:
             self._advance(stamp_ns)
         out, self._ready = self._ready + items, []
         return out
+
+    def _registry_in(self, inp, msg, stamp_ns: int) -> list[tuple[str, str, WireModel]]:
+        """A message of a type a sensor registry entry decodes, straight into its wire model."""
+        from pydantic import ValidationError
+
+        from fednav.service import sensors
+
+        kind, decode = sensors.ros2_decoder(inp.type)
+        try:
+            m = decode(msg, self._t(stamp_ns), inp.sensor_id)
+        except ValidationError as err:
+            raise RosDecodeError(classify(err), f"{kind}/{inp.sensor_id}: {err.errors()[0]['msg']}") from None
+        except ValueError as exc:
+            raise RosDecodeError("absurd_value", f"{kind}/{inp.sensor_id}: {exc}") from None
+        return [] if m is None else [(kind, inp.sensor_id, m)]
 
     def flush(self) -> list[tuple[str, str, WireModel]]:
         """Every fix still waiting for its Twist, position-only (end of a stream)."""

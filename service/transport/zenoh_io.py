@@ -355,6 +355,15 @@ class Liveliness:
             if key not in self._tokens:
                 self._tokens[key] = self.session.liveliness().declare_token(key)
 
+    def undeclare(self, key: str) -> None:
+        with self._lock:
+            t = self._tokens.pop(key, None)
+        if t is not None:
+            try:
+                t.undeclare()
+            except zenoh.ZError:
+                pass
+
     def undeclare_all(self) -> None:
         with self._lock:
             for t in self._tokens.values():
@@ -363,6 +372,30 @@ class Liveliness:
                 except zenoh.ZError:
                     pass
             self._tokens.clear()
+
+
+class Watch:
+    """A subscriber whose callback only hands (key, payload or None) to ``on_sample`` (None: a
+    liveliness token vanished). ``liveliness=True`` watches tokens (with the ones already alive)."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str, on_sample, liveliness: bool = False):
+        def cb(sample: zenoh.Sample) -> None:
+            try:
+                gone = sample.kind == zenoh.SampleKind.DELETE
+                on_sample(str(sample.key_expr), None if gone else sample.payload.to_bytes())
+            except Exception:  # a callback must never raise into Zenoh
+                log.exception("watch %s: callback failed", key_expr)
+
+        if liveliness:
+            self._sub = session.liveliness().declare_subscriber(key_expr, cb, history=True)
+        else:
+            self._sub = session.declare_subscriber(key_expr, cb)
+
+    def stop(self) -> None:
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass
 
 
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/(.+)$")

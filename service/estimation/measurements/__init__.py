@@ -1,13 +1,13 @@
 """Measurement models, one file each, and their registry (the measurement hook: ``base.py``).
 
-Adding a sensor: write ``<sensor>.py`` with a class implementing
-:class:`~service.estimation.measurements.base.MeasurementModel` and add one line to ``REGISTRY``.
-Pipelines build models with :func:`make` and never call a sensor-specific function.
+A sensor's model is declared in its entry of the sensor registry (``service.sensors``; a new
+sensor is one file there plus one registry line, docs/ARCHITECTURE.md). Pipelines build models
+with :func:`make` and never call a sensor-specific function.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from fednav.service.estimation.measurements.base import (
     Measurement,
@@ -17,25 +17,35 @@ from fednav.service.estimation.measurements.base import (
     private_layout,
     private_transition,
 )
-from fednav.service.estimation.measurements.dvl import DvlModel
-from fednav.service.estimation.measurements.gnss_fix import GnssFixModel
-from fednav.service.estimation.measurements.gnss_raw import GnssRawModel
-from fednav.service.estimation.measurements.star import StarAttitudeModel
-from fednav.service.estimation.measurements.usbl import UsblModel
+
+
+class _Models(Mapping):
+    """Sensor kind -> model factory: a read-only view of the sensor registry (``service.sensors``),
+    the one place a kind is declared."""
+
+    def _map(self) -> dict[str, Callable[..., MeasurementModel]]:
+        from fednav.service import sensors
+
+        return {k: s.model for k, s in sensors.registry().items() if s.model is not None}
+
+    def __getitem__(self, kind: str):
+        return self._map()[kind]
+
+    def __iter__(self):
+        return iter(self._map())
+
+    def __len__(self) -> int:
+        return len(self._map())
+
 
 #: sensor kind -> model factory (keyword options from the pipeline's configuration)
-REGISTRY: dict[str, Callable[..., MeasurementModel]] = {
-    "gnss_fix": GnssFixModel,
-    "star": StarAttitudeModel,
-    "gnss_raw": GnssRawModel,
-    "usbl": UsblModel,
-    "dvl": DvlModel,
-}
+REGISTRY: Mapping[str, Callable[..., MeasurementModel]] = _Models()
 
 
 def plain_kinds() -> frozenset[str]:
-    """Registered sensor kinds whose models need no options and declare no private states
-    (usable by any 15-state filter, e.g. every local of a federated pipeline)."""
+    """Registered sensor kinds whose model classes declare no private states (usable by any
+    15-state filter, e.g. every local of a federated pipeline; an instance configured with
+    options may add its own blocks, which the federated core feeds back)."""
     return frozenset(k for k, f in REGISTRY.items() if getattr(f, "private_states", None) == ())
 
 

@@ -106,8 +106,10 @@ class GnssFixModel:
     # --- the antenna ------------------------------------------------------------------------------
     def antenna_offsets(self, nav: NavState, wib_b_rps) -> tuple[np.ndarray, np.ndarray]:
         """(C_nb l, C_nb (w x l)): the antenna's position and velocity offsets from the IMU, ENU."""
-        c_nb = nav.mat_nb
         l_b = self.lever_arm_b_m
+        if not l_b.any():  # the antenna at the IMU: no offsets (the same zeros, without the algebra)
+            return np.zeros(3), np.zeros(3)
+        c_nb = nav.mat_nb
         return c_nb @ l_b, c_nb @ np.cross(np.asarray(wib_b_rps, dtype=float), l_b)
 
     def __call__(self, nav: NavState, msg: GnssFix, ctx: ModelContext) -> Measurement | None:
