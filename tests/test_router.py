@@ -1,0 +1,360 @@
+"""fednav-router (issue 23): a Zenoh router in front of the services, with real processes.
+
+- the router's config: fednav's safe defaults in router mode, no outputs guard of its own unless the
+  file sets access control, a file asking for another mode refused;
+- plain TCP on loopback (``service/configs/fleet/*.json5``): fednav-router, fednav-service in client
+  mode behind it (it listens on nothing), fednav-sim and a plain Zenoh client all connected to the
+  router only: the client receives every Solution, the service processed every published sample,
+  the router opened no UDP socket and listens on its loopback endpoint only, SIGINT/SIGTERM stop
+  it with exit code 0. The plain router relays a spoofed solution to the readers (the control of
+  the secure test: it is the access control that stops it there);
+- mutual TLS + access control at the router (``service/configs/fleet/secure/``): the same processes
+  with certificates made by the shipped ``make-certs.sh``; a reader receives the solutions, a
+  client without a certificate gets no session, a reader, a simulator and a certificate without a
+  policy cannot publish under ``nav/**`` (nothing reaches another reader or the service), a reader
+  cannot query status, an operator (CN fednav-ops) gets ``fednav-fleet status`` through it.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from fednav.service.router import router_config
+from fednav.simulators.processes import Proc, free_port, query_status
+
+ROOT = Path(__file__).resolve().parents[1]
+FLEET = ROOT / "service" / "configs" / "fleet"
+SECURE = FLEET / "secure"
+MAKE_CERTS = ROOT / "service" / "configs" / "secure" / "make-certs.sh"
+SPOOF_LAT_DEG = 1.2345  # a solution with this latitude can only come from a spoofer
+
+
+def _get(c: zenoh.Config, key: str):
+    return json.loads(c.get_json(key))
+
+
+def _write(tmp_path: Path, text: str) -> str:
+    p = tmp_path / "zenoh.json5"
+    p.write_text(text)
+    return str(p)
+
+
+# --- the router's configuration (no process) -------------------------------------------------------
+def test_router_config_defaults_and_overlay(tmp_path):
+    c = router_config()
+    assert _get(c, "mode") == "router"
+    assert _get(c, "listen/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert _get(c, "connect/endpoints") == []
+    assert _get(c, "scouting/multicast/enabled") is False
+    assert _get(c, "scouting/gossip/enabled") is False
+    assert _get(c, "access_control")["enabled"] is False  # no outputs guard: that is the service's
+    c = router_config(listen=["tcp/127.0.0.1:17000"], connect=["tcp/127.0.0.1:17001"])
+    assert _get(c, "listen/endpoints") == ["tcp/127.0.0.1:17000"]
+    assert _get(c, "connect/endpoints") == ["tcp/127.0.0.1:17001"]
+    # the shipped files: the plain one sets no access control, the secure one does
+    c = router_config(config_file=str(FLEET / "router.json5"))
+    assert _get(c, "access_control")["enabled"] is False
+    assert _get(c, "scouting/multicast/enabled") is False
+    c = router_config(config_file=str(SECURE / "router.json5"))
+    acl = _get(c, "access_control")
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    assert _get(c, "listen/endpoints") == ["tls/127.0.0.1:7447"]
+    # a file with only a TLS key keeps the safe values; a file asking for a peer is refused
+    c = router_config(config_file=_write(tmp_path, "{ transport: { link: { tls: { enable_mtls: true } } } }"))
+    assert _get(c, "mode") == "router" and _get(c, "scouting/multicast/enabled") is False
+    with pytest.raises(ValueError, match="mode 'peer'"):
+        router_config(config_file=_write(tmp_path, '{ mode: "peer" }'))
+
+
+def test_router_command_line_errors(tmp_path):
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-m", "fednav.service.router", *args], capture_output=True, text=True, timeout=60
+        )
+
+    r = run("--listen", "tcp:127.0.0.1:7447")
+    assert r.returncode == 2 and "invalid Zenoh endpoint" in r.stderr, r.stderr
+    r = run("--zenoh-config", str(tmp_path / "missing.json5"))
+    assert r.returncode == 2 and "no such file" in r.stderr, r.stderr
+    r = run("--zenoh-config", _write(tmp_path, '{ mode: "client" }'))
+    assert r.returncode == 2 and "fednav-router runs a router" in r.stderr, r.stderr
+    port = free_port()
+    first = Proc(
+        [sys.executable, "-m", "fednav.service.router", "--listen", f"tcp/127.0.0.1:{port}"], "router"
+    )
+    try:
+        assert first.wait_for("fednav-router ready", timeout=30), first.output()
+        r = run("--listen", f"tcp/127.0.0.1:{port}")  # the port is taken
+        assert r.returncode == 2 and "cannot open the Zenoh router" in r.stderr, r.stderr
+    finally:
+        first.signal(signal.SIGINT)
+        assert first.wait(timeout=30) == 0, first.output()
+    assert "fednav-router stopped" in first.output()
+
+
+# --- real processes ----------------------------------------------------------------------------------
+class Sink:
+    """Samples of one subscription: (key, payload)."""
+
+    def __init__(self, session: zenoh.Session, expr: str):
+        self.items: list[tuple[str, bytes]] = []
+        self._lock = threading.Lock()
+        self.sub = session.declare_subscriber(expr, self._cb)
+
+    def _cb(self, s: zenoh.Sample) -> None:
+        with self._lock:
+            self.items.append((str(s.key_expr), s.payload.to_bytes()))
+
+    def json(self, suffix: str = "") -> list[dict]:
+        with self._lock:
+            return [json.loads(p) for k, p in self.items if k.endswith(suffix)]
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self.items)
+
+
+def _start_router(args: list[str], cwd: Path | None = None) -> tuple[Proc, str]:
+    router = Proc([sys.executable, "-m", "fednav.service.router", *args], "fednav-router", cwd=cwd)
+    if not router.wait_for("fednav-router ready", timeout=30):
+        router.kill()
+        raise AssertionError(router.output())
+    zid = router.output().split("zid ")[1].split()[0]
+    return router, zid
+
+
+def _start_service(zenoh_config: Path, endpoint: str, cwd: Path | None = None) -> Proc:
+    svc = Proc(
+        [sys.executable, "-m", "fednav.service", "--zenoh-config", str(zenoh_config)]
+        + ["--connect", endpoint, "--no-record"],
+        "fednav-service",
+        cwd=cwd,
+    )
+    if not svc.wait_for("fednav-service ready", timeout=60):
+        svc.kill()
+        raise AssertionError(svc.output())
+    return svc
+
+
+def _sim(zenoh_config: Path, endpoint: str, cwd: Path | None = None) -> Proc:
+    return Proc(
+        [sys.executable, "-m", "fednav.simulators", "run", "demo_aircraft", "--speed", "0", "--seed", "5"]
+        + ["--zenoh-config", str(zenoh_config), "--connect", endpoint],
+        "fednav-sim",
+        cwd=cwd,
+    )
+
+
+def _published(sim: Proc) -> int:
+    return int(sim.output().split("published ")[1].split()[0])
+
+
+def _wait_solutions(sink: Sink, n: int, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while len(sink.json("/solution")) < n and time.monotonic() < deadline:
+        time.sleep(0.1)
+
+
+@pytest.mark.integration
+def test_service_simulator_and_client_through_the_router():
+    import psutil  # installed with rerun-sdk
+
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    router, router_zid = _start_router(["--zenoh-config", str(FLEET / "router.json5"), "--listen", ep])
+    sessions: list[zenoh.Session] = []
+    svc = None
+    try:
+        svc = _start_service(FLEET / "service.json5", ep)
+
+        def open_(role: str) -> zenoh.Session:
+            c = zenoh.Config.from_file(str(FLEET / f"{role}.json5"))
+            c.insert_json5("connect/endpoints", json.dumps([ep]))
+            s = zenoh.open(c)
+            sessions.append(s)
+            return s
+
+        reader = open_("reader")
+        nav = Sink(reader, "fednav/*/nav/**")
+        time.sleep(0.3)
+        sim = _sim(FLEET / "simulator.json5", ep)
+        assert sim.wait(timeout=120) == 0, sim.output()
+        _wait_solutions(nav, 3000)
+        status = None
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:  # the service's status, asked through the router
+            status = query_status(port)
+            if (
+                status
+                and status["health"]["received"] == _published(sim)
+                and status["health"]["queue_depth"] == 0
+            ):
+                break
+            time.sleep(0.3)
+        # sockets: the router listens on its loopback endpoint only and opens no UDP socket; the
+        # service, a client, listens on nothing
+        router_conns = psutil.Process(router.p.pid).net_connections(kind="inet")
+        svc_conns = psutil.Process(svc.p.pid).net_connections(kind="inet")
+        # the plain router relays what any client publishes, a spoofed solution too (control of the
+        # secure test below, where the router's access control refuses it)
+        spoofer, victim = open_("reader"), open_("reader")
+        victim_nav = Sink(victim, "fednav/*/nav/**")
+        time.sleep(0.3)
+        genuine = nav.json("/solution")[-1]
+        for _ in range(5):
+            spoofer.put("fednav/v1/nav/lc/solution", json.dumps(dict(genuine, lat_deg=SPOOF_LAT_DEG)))
+        time.sleep(0.5)
+    finally:
+        if svc is not None:
+            svc.signal(signal.SIGTERM)
+            svc_rc = svc.wait(timeout=60)
+        for s in sessions:
+            s.close()
+        router.signal(signal.SIGTERM)
+        router_rc = router.wait(timeout=30)
+    solutions = nav.json("/solution")
+    print(
+        f"router {router_zid}: reader {len(solutions)} solutions; simulator published {_published(sim)}, "
+        f"service received {status['health']['received'] if status else None}"
+    )
+    assert router_rc == 0 and "fednav-router stopped" in router.output(), router.output()
+    assert svc_rc == 0, svc.output()
+    # the demo is 300 s at 10 Hz: every solution reached the client through the router
+    assert len(solutions) >= 3000 and {s["pipeline"] for s in solutions} == {"lc"}
+    assert solutions[-1]["status"] in ("aided", "coasting")
+    assert status is not None and status["health"]["received"] == _published(sim), status
+    assert status["health"]["accepted"] == status["health"]["received"]
+    assert [c for c in router_conns if c.type == 2] == []  # SOCK_DGRAM: no scouting socket
+    assert [c.laddr for c in router_conns if c.status == psutil.CONN_LISTEN] == [("127.0.0.1", port)]
+    assert [c for c in svc_conns if c.status == psutil.CONN_LISTEN] == []
+    assert all(c.raddr and c.raddr[1] == port for c in svc_conns), svc_conns  # its one link: the router
+    assert any(s["lat_deg"] == SPOOF_LAT_DEG for s in victim_nav.json("/solution"))
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command line tool")
+def test_mutual_tls_and_access_control_through_the_router(tmp_path, monkeypatch):
+    def certs(*args: str) -> None:
+        subprocess.run(["sh", str(MAKE_CERTS), *args], check=True, capture_output=True, timeout=60)
+
+    certs(str(tmp_path / "certs"))  # ca, service, simulator, reader
+    certs(str(tmp_path / "certs"), "router=fednav-router", "ops=fednav-ops", "intruder=fednav-intruder")
+    monkeypatch.chdir(tmp_path)  # the shipped configs name certs/... relative to the working directory
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    router, router_zid = _start_router(
+        ["--zenoh-config", str(SECURE / "router.json5"), "--listen", ep], tmp_path
+    )
+    assert "(access control on)" in router.output()
+    sessions: list[zenoh.Session] = []
+    svc = None
+
+    def config(role: str | None, tls: dict | None = None) -> zenoh.Config:
+        if role is None:  # no certificate: only the CA, to check the router's
+            c = zenoh.Config()
+            c.insert_json5("mode", '"client"')
+            c.insert_json5("scouting/multicast/enabled", "false")
+            c.insert_json5("transport/link/tls/root_ca_certificate", '"certs/ca.pem"')
+        else:
+            c = zenoh.Config.from_file(str(SECURE / f"{role}.json5"))
+        for k, v in (tls or {}).items():
+            c.insert_json5(f"transport/link/tls/{k}", json.dumps(v))
+        c.insert_json5("connect/endpoints", json.dumps([ep]))
+        return c
+
+    def open_(role: str | None, tls: dict | None = None) -> zenoh.Session:
+        s = zenoh.open(config(role, tls))
+        sessions.append(s)
+        return s
+
+    try:
+        svc = _start_service(SECURE / "service.json5", ep, cwd=tmp_path)
+        reader = open_("reader")
+        nav = Sink(reader, "fednav/*/nav/**")
+        health = Sink(reader, "fednav/*/service/health")
+        reader_probe = open_("reader")
+        reader_sensors = Sink(reader_probe, "fednav/*/sensor/**")
+        intruder_tls = {
+            "connect_certificate": "certs/intruder.pem",
+            "connect_private_key": "certs/intruder-key.pem",
+        }
+        intruder = open_("reader", intruder_tls)
+        intruder_nav = Sink(intruder, "fednav/*/nav/**")
+        ops = open_("ops")
+        service_health_keys = Sink(ops, "fednav/_services/*/health")
+        # no certificate, plain TCP: no session at all
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            open_(None)
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            sessions.append(zenoh.open(_plain_tcp(port)))
+        time.sleep(0.3)
+
+        sim = _sim(SECURE / "simulator.json5", ep, cwd=tmp_path)
+        assert sim.wait(timeout=120) == 0, sim.output()
+        _wait_solutions(nav, 3000)
+        genuine = nav.json("/solution")[-1]
+        spoof = json.dumps(dict(genuine, lat_deg=SPOOF_LAT_DEG))
+        # a reader, a simulator and a certificate without a policy try to publish solutions
+        sim_session = open_("simulator")
+        for spoofer in (open_("reader"), sim_session, open_("reader", intruder_tls)):
+            for _ in range(5):
+                spoofer.put("fednav/v1/nav/lc/solution", spoof)
+                time.sleep(0.01)
+        # the reader tries to ask the service's status; the operator does, with fednav-fleet
+        reader_status = [r for r in reader_probe.get("fednav/v1/service/status", timeout=2.0) if r.ok]
+        fleet = subprocess.run(
+            [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+            + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=tmp_path,
+        )
+        time.sleep(1.5)  # a health period: the last counts
+    finally:
+        if svc is not None:
+            svc.signal(signal.SIGTERM)
+            svc_rc = svc.wait(timeout=60)
+        for s in sessions:
+            s.close()
+        router.signal(signal.SIGINT)
+        router_rc = router.wait(timeout=30)
+    solutions = nav.json("/solution")
+    h = health.json()
+    print(
+        f"reader: {len(solutions)} solutions, {len(h)} health; simulator published {_published(sim)}, "
+        f"service received {h[-1]['received'] if h else None}; intruder {len(intruder_nav)}, "
+        f"reader on sensor/** {len(reader_sensors)}, reader's status replies {len(reader_status)}"
+    )
+    assert router_rc == 0 and svc_rc == 0, router.output() + svc.output()
+    assert len(solutions) >= 3000
+    assert all(s["lat_deg"] != SPOOF_LAT_DEG for s in solutions)  # no spoofed solution reached a reader
+    assert h and h[-1]["received"] == _published(sim)  # nor the service: it got the simulator's only
+    assert len(intruder_nav) == 0 and len(reader_sensors) == 0
+    assert reader_status == []
+    assert fleet.returncode == 0, fleet.stdout + fleet.stderr
+    snap = json.loads(fleet.stdout)
+    assert snap["routers"] == [router_zid]
+    zids = {k.split("/")[2] for k, _ in service_health_keys.items}
+    assert [v["vehicle"] for v in snap["vehicles"]] == ["v1"]
+    assert len(zids) == 1 and snap["vehicles"][0]["service"] in zids  # the service's own zid
+    assert snap["vehicles"][0]["pipelines"]["lc"]["status"] in ("aided", "coasting")
+    assert snap["vehicles"][0]["alive"] and [s["alive"] for s in snap["services"]] == [True]
+
+
+def _plain_tcp(port: int) -> zenoh.Config:
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    return c
