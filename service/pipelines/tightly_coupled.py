@@ -112,7 +112,8 @@ class TightlyCoupled(Pipeline):
         self.restarted()
 
     def estimate(self) -> Estimate:
-        return Estimate(self.bank.nav(), self.bank.P[0, em.NAV, em.NAV])
+        # a copy: the MHSS bank reuses its covariance arrays from update to update
+        return Estimate(self.bank.nav(), self.bank.P[0, em.NAV, em.NAV].copy())
 
     def apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late_s: float = 0.0) -> list[WireModel]:
         if kind != "gnss_raw" or not isinstance(msg, GnssRaw):

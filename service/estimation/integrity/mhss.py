@@ -26,6 +26,13 @@ full H and the true (unsubstituted) R are used in the recursion. The shortcut
 dP = P_nn - P_00 holds only when every member is optimal for the truth model (then P_0n = P_00 by
 orthogonality); tests show the recursion matches Monte Carlo where the shortcut does not.
 
+How it is computed (issue 21, bank speed; the equations above unchanged): the gains in the s
+states the rows observe (position, velocity, clock: s = 8 for m = 2N rows) by the push-through
+identity S^-1 G_a = R^-1 G_a (I + C J)^-1 (:func:`_masked_gain`), so K = U V' with U = P E'
+(n x s) and V = S^-1 G_a (m x s); then every block in one product,
+(I - K_a H) P_ab (I - K_b H)' + K_a R K_b' = [(I - K_a H) P_ab | U_a (V_a' R V_b)] [I - K_b H | U_b]'.
+Members whose C is not positive definite take the general path (``kalman.gain``: Cholesky of S).
+
 Closed loop: only the main filter's correction dx_0 is fed back; every member shifts by it,
 x_i <- x_i - dx_0 (covariances unchanged), so after feedback x_0 = 0 and dx_0n = -x_n.
 
@@ -444,6 +451,11 @@ class MhssBank:
         (layout in the module docstring); use :meth:`initial` or :meth:`rebuild` to make one.
     depth : 0 main only, 1 + sub-filters, 2 + sub-sub filters.
     h_idx, v_idx : horizontal (2) and vertical state indices of the tests.
+
+    Speed (issue 21, ``benchmarks/mhss_bank.py``): :meth:`predict` and :meth:`update` write into
+    two arrays they alternate between (and reuse their scratch arrays), so ``blocks``, ``P`` and
+    :meth:`cross` are views that stay valid until the second update after: copy what must outlive
+    that.
     """
 
     def __init__(
