@@ -1,0 +1,623 @@
+"""``fednav-fleet``: the whole fleet on one bus, from liveliness and the services' queryables.
+
+``fednav-fleet status --connect ENDPOINT [--prefix fednav] [--json]`` lists every vehicle with the
+service serving it, the status of each of its pipelines and the age of its last solution;
+``fednav-fleet record --connect ENDPOINT -o fleet.rrd [--duration S] [--rate 1]`` writes one Rerun
+recording of the whole fleet at a low rate (tracks on a map and in ENU, a status lane per vehicle,
+the load of each service). No daemon: both are plain Zenoh clients (a router's or a service's
+endpoint) that ask what every fednav service already offers (docs/fleet.md):
+
+* liveliness tokens ``{prefix}/_services/{zid}`` (one per running service) and
+  ``{prefix}/{vehicle}/service/alive`` (one per served vehicle);
+* queryables ``{prefix}/{vehicle}/service/status`` (health per pipeline), ``.../service/config``
+  and ``{prefix}/{vehicle}/nav/{pipeline}/solution`` (the latest Solution). Every reply names the
+  Zenoh session that sent it (``Reply.replier_id``): that is the service of the vehicle. Queries
+  ask every queryable (``QueryTarget.ALL``) and keep every reply (``ConsolidationMode.NONE``), so
+  a vehicle two services answer for is seen twice and flagged;
+* ServiceHealth on ``{prefix}/_services/{zid}/health`` (record only: a subscription).
+
+A service whose configuration differs from the others' (other pipelines or pipeline settings) is
+named, as is a service under another prefix (found by its ``*/_services/*`` token), instead of
+being mixed in silently. Age of a solution: this machine's clock (as GPS time) minus the
+solution's ``t`` when the vehicle runs on live time; simulated or replayed data carry another time,
+so the age is then left out and the lag behind the vehicle's latest input (``health.t - t``) says
+how current the solution is. Exit codes: 0 nothing to flag, 1 something flagged (a vehicle served
+twice or by no answering service, a differing configuration, another prefix, no service at all),
+2 bad arguments or no Zenoh session.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import threading
+import time
+import uuid
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from fednav.service import keys
+from fednav.service.transport.rerun_paths import GPS_EPOCH_UNIX_S, gps_minus_utc_s
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+#: a solution whose time is further than this from this machine's clock is not on live time
+LIVE_WINDOW_S = 86_400.0
+#: worst first: the status a vehicle's lane shows when its pipelines disagree
+STATUS_RANK = ("failed", "degraded", "coasting", "unaided", "initialising", "aided")
+#: lane states beside the pipelines' own: no service answered; two services answered
+NO_ANSWER, SERVED_TWICE = "no answer", "served twice"
+
+
+# --- Zenoh ------------------------------------------------------------------------------------------
+def session_config(connect: list[str] | None = None, zenoh_config: str | None = None):
+    """A client of the router (or of a service), listening on nothing, no discovery: fednav's safe
+    defaults (``zenoh_io.make_config``) with ``zenoh_config`` overlaid; ``connect`` replaces the
+    file's endpoints."""
+    from fednav.service.config import ZenohConfig
+    from fednav.service.transport.zenoh_io import make_config
+
+    return make_config(
+        ZenohConfig(mode="client", listen=[], connect=[DEFAULT_CONNECT]),
+        connect=connect or None,
+        config_file=zenoh_config,
+    )
+
+
+def _get(session, selector: str, timeout_s: float) -> list[tuple[str, str | None, bytes]]:
+    """Every reply of every queryable matching ``selector``: (key, replier zid, payload)."""
+    import zenoh
+
+    out = []
+    for reply in session.get(
+        selector,
+        timeout=timeout_s,
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+    ):
+        if reply.ok is None:
+            continue
+        rid = reply.replier_id
+        out.append(
+            (str(reply.ok.key_expr), str(rid.zid) if rid is not None else None, reply.ok.payload.to_bytes())
+        )
+    return out
+
+
+def _tokens(session, selector: str, timeout_s: float) -> list[str]:
+    return sorted({str(r.ok.key_expr) for r in session.liveliness().get(selector, timeout=timeout_s) if r.ok})
+
+
+def gps_now_s(unix_s: float | None = None) -> float:
+    """This machine's clock as GPS seconds (since 1980-01-06, leap seconds added)."""
+    t = (time.time() if unix_s is None else unix_s) - GPS_EPOCH_UNIX_S
+    return t + gps_minus_utc_s(t + 18.0)
+
+
+# --- one look at the fleet -------------------------------------------------------------------------
+def _json(payload: bytes) -> dict | None:
+    try:
+        d = json.loads(payload)
+    except ValueError:
+        return None
+    return d if isinstance(d, dict) else None
+
+
+def _pipelines_text(cfg: dict) -> str:
+    return ", ".join(f"{p.get('name')} ({p.get('kind')})" for p in cfg.get("pipelines", [])) or "none"
+
+
+def config_difference(cfg: dict, ref: dict) -> str:
+    """How a service's configuration differs from the reference one (prefix, pipelines), in words."""
+    if cfg.get("prefix") != ref.get("prefix"):
+        return f"prefix {cfg.get('prefix')!r} vs {ref.get('prefix')!r}"
+    mine = {p.get("name"): p for p in cfg.get("pipelines", [])}
+    theirs = {p.get("name"): p for p in ref.get("pipelines", [])}
+    if [(n, p.get("kind")) for n, p in mine.items()] != [(n, p.get("kind")) for n, p in theirs.items()]:
+        return f"pipelines {_pipelines_text(cfg)} vs {_pipelines_text(ref)}"
+    changed = sorted(n for n in mine if mine[n] != theirs[n])
+    return f"settings of pipeline(s) {', '.join(changed)} differ" if changed else ""
+
+
+def _signature(cfg: dict) -> str:
+    return json.dumps({"prefix": cfg.get("prefix"), "pipelines": cfg.get("pipelines")}, sort_keys=True)
+
+
+def _pipeline_row(health: dict | None, sol: dict | None, name: str, now_gps: float) -> dict:
+    ph = ((health or {}).get("pipelines") or {}).get(name) or {}
+    t = sol.get("t") if sol else None
+    row: dict[str, Any] = {"status": ph.get("status") or (sol or {}).get("status"), "t": t}
+    age = now_gps - t if t is not None else None
+    live = age is not None and abs(age) <= LIVE_WINDOW_S
+    row["age_s"] = round(age, 3) if live else None
+    ht = (health or {}).get("t")
+    row["lag_s"] = round(ht - t, 3) if t is not None and ht is not None else None
+    row["live_time"] = live
+    row["position"] = [sol["lat_deg"], sol["lon_deg"], sol["height_m"]] if sol else None
+    return row
+
+
+class Fleet:
+    """Looks at the fleet under one prefix through one Zenoh session (status and record).
+
+    The configuration of each service is asked once (one vehicle's ``service/config``, the reply
+    from that service) and kept; :meth:`snapshot` asks the rest every time."""
+
+    def __init__(self, session, prefix: str = keys.DEFAULT_PREFIX, timeout_s: float = 3.0):
+        self.session = session
+        self.prefix = prefix
+        self.timeout_s = timeout_s
+        self.configs: dict[str, dict] = {}
+
+    def _config_of(self, zid: str, vehicle: str) -> dict | None:
+        cfg = self.configs.get(zid)
+        if cfg is None:
+            for _, rid, payload in _get(
+                self.session, f"{self.prefix}/{vehicle}/service/config", self.timeout_s
+            ):
+                got = _json(payload)
+                if got is not None and rid is not None:
+                    self.configs.setdefault(rid, got)
+            cfg = self.configs.get(zid)
+        return cfg
+
+    def snapshot(self, now_gps: float | None = None) -> dict:
+        """The fleet now: services, vehicles (service, pipelines with status and age) and problems."""
+        p = self.prefix
+        now_gps = gps_now_s() if now_gps is None else now_gps
+        # narrow selectors: an access control (secure/router.json5) allows a liveliness query only
+        # inside the key expressions it lists
+        service_tokens = {k.split("/")[-1] for k in _tokens(self.session, f"{p}/_services/*", self.timeout_s)}
+        alive = {k.split("/")[1] for k in _tokens(self.session, f"{p}/*/service/alive", self.timeout_s)}
+        others = []
+        for k in _tokens(self.session, "**/_services/*", self.timeout_s):
+            other = k.rsplit("/_services/", 1)[0]
+            if other != p:
+                others.append({"zid": k.rsplit("/", 1)[-1], "prefix": other})
+
+        solutions: dict[tuple[str, str], dict[str, dict]] = {}  # (vehicle, zid) -> pipeline -> Solution
+        for key, zid, payload in _get(self.session, f"{p}/*/nav/*/solution", self.timeout_s):
+            d = _json(payload)
+            if d is not None:
+                parts = key.split("/")
+                solutions.setdefault((parts[1], zid or "?"), {})[parts[3]] = d
+
+        status: dict[str, dict[str, dict]] = {}  # vehicle -> zid -> status JSON
+        for key, zid, payload in _get(self.session, f"{p}/*/service/status", self.timeout_s):
+            d = _json(payload)
+            if d is not None:
+                status.setdefault(key.split("/")[1], {})[zid or "?"] = d
+        services: dict[str, dict] = {
+            z: {"zid": z, "alive": True, "vehicles": [], "pipelines": [], "received": 0}
+            for z in sorted(service_tokens)
+        }
+        vehicles: dict[str, dict] = {}
+        problems: list[str] = []
+        for v in sorted(set(status) | alive | {v for v, _ in solutions}):
+            by_service = {}
+            for zid in sorted(set(status.get(v, {})) | {z for (vv, z) in solutions if vv == v}):
+                st = status.get(v, {}).get(zid) or {}
+                health = st.get("health")
+                sols = solutions.get((v, zid), {})
+                names = list(st.get("pipelines") or []) or sorted(sols)
+                by_service[zid] = {
+                    "pipelines": {n: _pipeline_row(health, sols.get(n), n, now_gps) for n in names},
+                    "received": (health or {}).get("received"),
+                    "queue_depth": (health or {}).get("queue_depth"),
+                    "stale": (health or {}).get("stale", []),
+                }
+                svc = services.setdefault(
+                    zid, {"zid": zid, "alive": False, "vehicles": [], "pipelines": [], "received": 0}
+                )
+                svc["vehicles"].append(v)
+                svc["pipelines"] = svc["pipelines"] or names
+                svc["received"] += (health or {}).get("received") or 0
+            zids = list(by_service)
+            vehicles[v] = {
+                "vehicle": v,
+                "alive": v in alive,
+                "service": zids[0] if len(zids) == 1 else None,
+                "services": zids,
+                "served_twice": len(zids) > 1,
+                "pipelines": by_service[zids[0]]["pipelines"] if zids else {},
+                "by_service": by_service,
+            }
+            if len(zids) > 1:
+                problems.append(f"vehicle {v} is served by {len(zids)} services: {', '.join(zids)}")
+            elif not zids:
+                problems.append(f"vehicle {v} has a liveliness token but no service answers for it")
+
+        # configurations: the one most services share is the reference; the others are named
+        for zid, svc in services.items():
+            cfg = self._config_of(zid, svc["vehicles"][0]) if svc["vehicles"] else None
+            svc["config"] = (
+                {
+                    "prefix": cfg.get("prefix"),
+                    "pipelines": {q.get("name"): q.get("kind") for q in cfg.get("pipelines", [])},
+                }
+                if cfg
+                else None
+            )
+            svc["config_differs"] = None
+        with_cfg = [z for z in services if z in self.configs]
+        sigs = Counter(_signature(self.configs[z]) for z in with_cfg)
+        if len(sigs) > 1:  # the reference: the configuration most services share (then the first)
+            ref = max(with_cfg, key=lambda z: (sigs[_signature(self.configs[z])], -with_cfg.index(z)))
+            for zid in with_cfg:
+                if _signature(self.configs[zid]) != _signature(self.configs[ref]):
+                    why = config_difference(self.configs[zid], self.configs[ref]) or "configuration differs"
+                    services[zid]["config_differs"] = why
+                    problems.append(f"service {zid}: configuration differs from service {ref}'s: {why}")
+        for o in others:
+            problems.append(f"service {o['zid']} runs under another prefix {o['prefix']!r} (not listed here)")
+        if not services:
+            problems.append(f"no fednav service found under prefix {p!r}")
+        return {
+            "prefix": p,
+            "routers": [str(z) for z in self.session.info.routers_zid()],
+            "services": list(services.values()),
+            "vehicles": list(vehicles.values()),
+            "other_prefixes": others,
+            "problems": problems,
+        }
+
+
+# --- status ----------------------------------------------------------------------------------------
+def _fmt(x: float | None, unit: str = " s") -> str:
+    return "-" if x is None else f"{x:.1f}{unit}"
+
+
+def format_status(snap: dict) -> str:
+    """The snapshot as tables: services, then one line per vehicle and pipeline, then problems."""
+    lines = [
+        f"fednav fleet, prefix {snap['prefix']!r}: {len(snap['services'])} service(s), "
+        f"{len(snap['vehicles'])} vehicle(s)"
+        + (f", router {', '.join(z[:8] for z in snap['routers'])}" if snap["routers"] else "")
+    ]
+    rows = [("SERVICE", "VEHICLES", "PIPELINES", "MESSAGES", "CONFIG")]
+    for s in snap["services"]:
+        cfg = "differs: " + s["config_differs"] if s["config_differs"] else ("same" if s["config"] else "-")
+        rows.append(
+            (s["zid"], str(len(s["vehicles"])), ",".join(s["pipelines"]) or "-", str(s["received"]), cfg)
+        )
+    lines += _table(rows)
+    rows = [("VEHICLE", "SERVICE", "PIPELINE", "STATUS", "LAST T (GPS s)", "AGE", "LAG")]
+    for v in snap["vehicles"]:
+        if not v["services"]:
+            rows.append((v["vehicle"], "-", "-", NO_ANSWER, "-", "-", "-"))
+        for zid, info in v["by_service"].items():
+            name = zid[:8] + (" (twice!)" if v["served_twice"] else "")
+            for pname, r in info["pipelines"].items():
+                t = "-" if r["t"] is None else f"{r['t']:.1f}"
+                rows.append(
+                    (v["vehicle"], name, pname, r["status"] or "-", t, _fmt(r["age_s"]), _fmt(r["lag_s"]))
+                )
+    lines += [""] + _table(rows)
+    if any(
+        r["t"] is not None and not r["live_time"] for v in snap["vehicles"] for r in v["pipelines"].values()
+    ):
+        lines.append(
+            "AGE is left out where the solution's time is not this machine's (simulated or replayed data); "
+            "LAG: behind the vehicle's latest input"
+        )
+    if snap["problems"]:
+        lines += ["", "problems:"] + [f"  - {p}" for p in snap["problems"]]
+    return "\n".join(lines)
+
+
+def _table(rows: list[tuple[str, ...]]) -> list[str]:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+
+
+# --- record ----------------------------------------------------------------------------------------
+WALL_TIMELINE = "wall_time"
+_PALETTE = (
+    0x1F77B4FF, 0xFF7F0EFF, 0x2CA02CFF, 0xD62728FF, 0x9467BDFF,
+    0x8C564BFF, 0xE377C2FF, 0x7F7F7FFF, 0xBCBD22FF, 0x17BECFFF,
+)  # fmt: skip
+#: points kept in a vehicle's map track (thinned by two when full)
+TRACK_POINTS = 1000
+
+
+def fleet_blueprint():
+    """Map and ENU view of every vehicle, a status lane per vehicle, the load of each service."""
+    import rerun.blueprint as rrb
+
+    whole = [
+        rrb.VisibleTimeRange(
+            WALL_TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+        )
+    ]
+    to_cursor = [
+        rrb.VisibleTimeRange(
+            WALL_TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+        )
+    ]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.MapView(name="Fleet map (online tiles)", origin="/fleet"),
+                rrb.Spatial2DView(
+                    name="Fleet, ENU from the first vehicle (m): x east, y = -north",
+                    origin="/enu",
+                    time_ranges=to_cursor,
+                ),
+                row_shares=[1, 1],
+            ),
+            rrb.Vertical(
+                rrb.StateTimelineView(name="Status per vehicle", origin="/status"),
+                rrb.TimeSeriesView(name="Vehicles per service", origin="/load/vehicles", time_ranges=whole),
+                rrb.TimeSeriesView(
+                    name="Messages per second per service", origin="/load/messages_per_s", time_ranges=whole
+                ),
+                row_shares=[2, 1, 1],
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+def _worst(states: list[str]) -> str:
+    ranked = [s for s in STATUS_RANK if s in states]
+    return ranked[0] if ranked else (states[0] if states else NO_ANSWER)
+
+
+class FleetRecorder:
+    """Logs fleet snapshots to one ``.rrd`` (Rerun, timeline ``wall_time``).
+
+    Entities: ``/fleet/{vehicle}/position`` (GeoPoints) and ``/fleet/{vehicle}/track``
+    (GeoLineStrings, thinned), ``/enu/{vehicle}`` (Points2D: east, -north from the first vehicle's
+    first position), ``/status/{vehicle}`` (StateChange: the worst status of its pipelines, or
+    "no answer" / "served twice"; per pipeline under ``/status/{vehicle}/{pipeline}`` when it has
+    several), ``/load/vehicles/{zid}`` and ``/load/messages_per_s/{zid}`` (Scalars)."""
+
+    def __init__(self, path: str | Path, track_every: int = 5):
+        import rerun as rr
+
+        from fednav.service.transport.rerun_sink import STATE_COLORS
+
+        self.rr = rr
+        self.rec = rr.RecordingStream("fednav-fleet", recording_id=str(uuid.uuid4()))
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        self.rec.save(str(path), default_blueprint=fleet_blueprint())
+        self.state_colors = dict(STATE_COLORS, **{NO_ANSWER: 0x7F7F7FFF, SERVED_TWICE: 0xD62728FF})
+        self.track_every = track_every
+        self.origin = None  # (lat_rad, lon_rad, h_m) of the first vehicle's first solution
+        self.colors: dict[str, int] = {}
+        self.tracks: dict[str, list[tuple[float, float]]] = {}
+        self.states: dict[str, str] = {}
+        self.counts: dict[str, tuple[float, int]] = {}  # zid -> (wall, messages) for the rate
+        self.ticks = 0
+        self.vehicles_seen: set[str] = set()
+        self.services_seen: set[str] = set()
+
+    def _color(self, v: str) -> int:
+        if v not in self.colors:
+            self.colors[v] = _PALETTE[len(self.colors) % len(_PALETTE)]
+            rr = self.rr
+            self.rec.log(
+                f"/fleet/{v}/position",
+                rr.GeoPoints.from_fields(colors=[self.colors[v]], radii=rr.Radius.ui_points(6.0)),
+                static=True,
+            )
+            self.rec.log(
+                f"/fleet/{v}/track",
+                rr.GeoLineStrings.from_fields(colors=[self.colors[v]], radii=rr.Radius.ui_points(1.5)),
+                static=True,
+            )
+            self.rec.log(
+                f"/enu/{v}",
+                rr.Points2D.from_fields(colors=[self.colors[v]], radii=rr.Radius.ui_points(3.0)),
+                static=True,
+            )
+        return self.colors[v]
+
+    def _state(self, path: str, state: str) -> None:
+        if self.states.get(path) == state:
+            return
+        if path not in self.states:
+            c = self.state_colors
+            self.rec.log(
+                path, self.rr.StateConfiguration(values=list(c), colors=list(c.values())), static=True
+            )
+        self.states[path] = state
+        self.rec.log(path, self.rr.StateChange(state=state))
+
+    def log(self, snap: dict, service_health: dict[str, dict], wall: float) -> None:
+        import numpy as np
+
+        from fednav.service import earth
+        from fednav.service.transport.rerun_paths import part
+
+        rr = self.rr
+        self.rec.set_time(WALL_TIMELINE, timestamp=wall)
+        self.ticks += 1
+        for veh in snap["vehicles"]:
+            v = part(veh["vehicle"])
+            self.vehicles_seen.add(veh["vehicle"])
+            self._color(v)
+            rows = veh["pipelines"]
+            if veh["served_twice"]:
+                self._state(f"/status/{v}", SERVED_TWICE)
+            elif not veh["services"]:
+                self._state(f"/status/{v}", NO_ANSWER)
+            else:
+                self._state(f"/status/{v}", _worst([r["status"] for r in rows.values() if r["status"]]))
+            if len(rows) > 1:
+                for name, r in rows.items():
+                    self._state(f"/status/{v}/{part(name)}", r["status"] or NO_ANSWER)
+            # the track: the first pipeline with a solution (in the service's order)
+            pos = next((r["position"] for r in rows.values() if r.get("position")), None)
+            if pos is None:
+                continue
+            lat, lon, h = pos
+            self.rec.log(f"/fleet/{v}/position", rr.GeoPoints(lat_lon=[[lat, lon]]))
+            llh = np.array([math.radians(lat), math.radians(lon), h])
+            if self.origin is None:
+                self.origin = llh
+            e, n, _ = earth.ecef_to_enu(earth.llh_to_ecef(llh), self.origin)
+            self.rec.log(f"/enu/{v}", rr.Points2D(positions=[[e, -n]]))
+            track = self.tracks.setdefault(v, [])
+            if not track or track[-1] != (lat, lon):
+                track.append((lat, lon))
+            if len(track) > TRACK_POINTS:
+                track[:] = track[::2]
+            if len(track) > 1 and self.ticks % self.track_every == 0:
+                self.rec.log(f"/fleet/{v}/track", rr.GeoLineStrings(lat_lon=[track]))
+        # load per service: vehicles (ServiceHealth, else the answers) and messages per second
+        received = {s["zid"]: s["received"] for s in snap["services"]}
+        answering = {s["zid"]: len(s["vehicles"]) for s in snap["services"]}
+        for zid in sorted(set(received) | set(service_health)):
+            self.services_seen.add(zid)
+            sh = service_health.get(zid)
+            n_veh = len(sh.get("active_vehicles", [])) if sh else answering.get(zid, 0)
+            self.rec.log(f"/load/vehicles/{zid}", rr.Scalars(float(n_veh)))
+            total = sh.get("received") if sh and isinstance(sh.get("received"), int) else received.get(zid)
+            if total is None:
+                continue
+            prev = self.counts.get(zid)
+            self.counts[zid] = (wall, total)
+            if prev is not None and wall > prev[0]:
+                self.rec.log(
+                    f"/load/messages_per_s/{zid}", rr.Scalars(max(0.0, (total - prev[1]) / (wall - prev[0])))
+                )
+
+    def close(self) -> None:
+        for v, track in self.tracks.items():  # the whole track at the end
+            if len(track) > 1:
+                self.rec.log(f"/fleet/{v}/track", self.rr.GeoLineStrings(lat_lon=[track]))
+        self.rec.flush(timeout_sec=10.0)
+        self.rec.disconnect()
+
+
+def record(fleet: Fleet, out: Path, duration_s: float | None, rate_hz: float, stop: threading.Event) -> dict:
+    """Snapshots at ``rate_hz`` into ``out`` until ``duration_s`` (None: until ``stop``)."""
+    health: dict[str, dict] = {}
+    lock = threading.Lock()
+
+    def on_health(sample) -> None:
+        d = _json(sample.payload.to_bytes())
+        if d is not None:
+            with lock:
+                health[str(sample.key_expr).split("/")[-2]] = d
+
+    sub = fleet.session.declare_subscriber(f"{fleet.prefix}/_services/*/health", on_health)
+    recorder = FleetRecorder(out)
+    period = 1.0 / rate_hz
+    t0 = time.monotonic()
+    problems: set[str] = set()
+    try:
+        k = 0
+        while not stop.is_set():
+            snap = fleet.snapshot()
+            problems.update(snap["problems"])
+            with lock:
+                sh = dict(health)
+            recorder.log(snap, sh, time.time())
+            k += 1
+            if duration_s is not None and time.monotonic() - t0 >= duration_s:
+                break
+            stop.wait(max(0.0, t0 + k * period - time.monotonic()))
+    finally:
+        sub.undeclare()
+        recorder.close()
+    return {
+        "rrd": str(out),
+        "snapshots": recorder.ticks,
+        "vehicles": sorted(recorder.vehicles_seen),
+        "services": sorted(recorder.services_seen),
+        "problems": sorted(problems),
+    }
+
+
+# --- command line ----------------------------------------------------------------------------------
+EXAMPLES = """examples:
+  fednav-fleet status --connect tcp/127.0.0.1:7447
+  fednav-fleet status --connect tcp/127.0.0.1:7447 --json
+  fednav-fleet record --connect tcp/127.0.0.1:7447 -o recordings/fleet.rrd --duration 600 --rate 1
+  fednav-fleet status --zenoh-config service/configs/fleet/secure/ops.json5
+exit codes: 0 nothing flagged, 1 something flagged (listed), 2 bad arguments or no Zenoh session.
+docs/fleet.md: topology, configs per role, example output."""
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(
+        prog="fednav-fleet",
+        description="every vehicle of the fleet with its service, status and last solution "
+        "(from liveliness and the services' queryables)",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--connect",
+        action="append",
+        help=f"Zenoh endpoint: the router or a service (default {DEFAULT_CONNECT})",
+    )
+    common.add_argument("--zenoh-config", help="a Zenoh json5 config file (TLS: secure/ops.json5)")
+    common.add_argument("--prefix", default=keys.DEFAULT_PREFIX, help="key prefix (default fednav)")
+    common.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for replies (default 3)")
+    s = sub.add_parser("status", parents=[common], help="list the fleet now")
+    s.add_argument("--json", action="store_true", help="print the snapshot as JSON")
+    r = sub.add_parser("record", parents=[common], help="record the fleet to one .rrd at a low rate")
+    r.add_argument("-o", "--out", type=Path, required=True, help="the .rrd to write")
+    r.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
+    r.add_argument("--rate", type=float, default=1.0, help="snapshots per second (default 1)")
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    from fednav.service.transport.zenoh_io import endpoint_error
+
+    problem = next((e for e in map(endpoint_error, args.connect or []) if e), None)
+    if args.zenoh_config and not Path(args.zenoh_config).is_file():
+        problem = f"--zenoh-config {args.zenoh_config}: no such file"
+    if args.cmd == "record" and not (0 < args.rate <= 50):
+        problem = f"--rate {args.rate}: use a rate in (0, 50] snapshots per second"
+    if args.cmd == "record" and args.duration is not None and args.duration <= 0:
+        problem = f"--duration {args.duration}: use a positive number of seconds"
+    if args.timeout <= 0:
+        problem = f"--timeout {args.timeout}: use a positive number of seconds"
+    if problem:
+        print(f"fednav-fleet: {problem}", file=sys.stderr)
+        return 2
+    import zenoh
+
+    from fednav.service.__main__ import zenoh_error_text
+
+    try:
+        session = zenoh.open(session_config(args.connect, args.zenoh_config))
+    except zenoh.ZError as exc:
+        print(f"fednav-fleet: cannot open the Zenoh session ({zenoh_error_text(exc)})", file=sys.stderr)
+        return 2
+    try:
+        fleet = Fleet(session, args.prefix, timeout_s=args.timeout)
+        if args.cmd == "status":
+            snap = fleet.snapshot()
+            print(json.dumps(snap, indent=2) if args.json else format_status(snap), flush=True)
+            return 1 if snap["problems"] else 0
+        stop = threading.Event()
+        signal.signal(signal.SIGINT, lambda *_: stop.set())
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        res = record(fleet, args.out, args.duration, args.rate, stop)
+        print(
+            f"fednav-fleet record: {res['snapshots']} snapshots, {len(res['vehicles'])} vehicle(s), "
+            f"{len(res['services'])} service(s) -> {res['rrd']}",
+            flush=True,
+        )
+        for p in res["problems"]:
+            print(f"  problem seen: {p}", flush=True)
+        return 1 if res["problems"] else 0
+    finally:
+        session.close()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

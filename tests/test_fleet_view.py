@@ -1,0 +1,256 @@
+"""``fednav-fleet status`` and ``fednav-fleet record`` (issue 23) on real processes: fednav-router,
+fednav-service(s) in client mode behind it, the fleet simulator (one process, five vehicles), and
+the two commands as processes of their own, all over loopback with multicast scouting off.
+
+- one service serving ``*`` and five vehicles: ``status --json`` lists the five vehicles, each
+  answered by that service (its Zenoh id, as its ServiceHealth key names it) with the pipeline
+  'aided' while the simulator publishes, and nothing flagged; ``record`` writes one .rrd that
+  Rerun's reader reads back with every vehicle's track (map and ENU), status lane and the
+  service's load;
+- two services answering for the same vehicle with different pipeline settings, and a third
+  under another prefix: ``status`` flags the vehicle served twice, names the differing
+  configuration and the other prefix, and exits 1.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+import pytest
+import zenoh
+
+from fednav.dashboards.fleet import config_difference
+from fednav.simulators.processes import Proc, free_port
+
+pytestmark = pytest.mark.integration
+ROOT = Path(__file__).resolve().parents[1]
+FLEET = ROOT / "service" / "configs" / "fleet"
+VEHICLES = [f"veh{i:03d}" for i in range(5)]
+
+
+def _router(port: int) -> Proc:
+    router = Proc(
+        [sys.executable, "-m", "fednav.service.router", "--listen", f"tcp/127.0.0.1:{port}"], "fednav-router"
+    )
+    assert router.wait_for("fednav-router ready", timeout=30), router.output()
+    return router
+
+
+def _service(port: int, *args: str) -> Proc:
+    svc = Proc(
+        [sys.executable, "-m", "fednav.service", "--zenoh-config", str(FLEET / "service.json5")]
+        + ["--connect", f"tcp/127.0.0.1:{port}", "--no-record", *args],
+        "fednav-service",
+    )
+    assert svc.wait_for("fednav-service ready", timeout=60), svc.output()
+    return svc
+
+
+def _fleet(*args: str, port: int) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "fednav.dashboards.fleet", *args, "--connect", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _client(port: int) -> zenoh.Session:
+    c = zenoh.Config.from_file(str(FLEET / "reader.json5"))
+    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    return zenoh.open(c)
+
+
+def _stop(*procs: Proc) -> list[int]:
+    for p in procs:
+        p.signal(signal.SIGTERM)
+    return [p.wait(timeout=60) for p in procs]
+
+
+def _read(rrd: Path) -> tuple[dict[str, int], dict[str, list], dict[str, list[float]], int]:
+    """Rows per entity (temporal), StateChange states per entity, Scalars per entity, blueprints."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(rrd)
+    store = reader.recordings()[0]
+    rows: dict[str, int] = {}
+    states: dict[str, list] = {}
+    scalars: dict[str, list[float]] = {}
+    for ch in reader.stream(store=store):
+        if ch.is_static:
+            continue
+        batch: pa.RecordBatch = ch.to_record_batch()
+        rows[ch.entity_path] = rows.get(ch.entity_path, 0) + ch.num_rows
+        if "StateChange:state" in batch.schema.names:
+            states.setdefault(ch.entity_path, []).extend(
+                pc.list_element(batch.column("StateChange:state"), 0).to_pylist()
+            )
+        if "Scalars:scalars" in batch.schema.names:
+            scalars.setdefault(ch.entity_path, []).extend(
+                pc.list_element(batch.column("Scalars:scalars"), 0).to_numpy(zero_copy_only=False).tolist()
+            )
+    return rows, states, scalars, len(reader.blueprints())
+
+
+def test_fleet_status_and_record_of_five_vehicles(tmp_path):
+    port = free_port()
+    router = _router(port)
+    procs = [router]
+    watcher = _client(port)
+    zids: set[str] = set()
+    watcher.declare_subscriber("fednav/_services/*/health", lambda s: zids.add(str(s.key_expr).split("/")[2]))
+    rrd = tmp_path / "out" / "fleet.rrd"
+    try:
+        procs.insert(0, _service(port, "--vehicle", "*"))
+        sim = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "5", "--duration", "40"]
+            + ["--speed", "4", "--connect", f"tcp/127.0.0.1:{port}"],
+            "fednav-sim fleet",
+        )
+        procs.insert(0, sim)
+        assert sim.wait_for("publishing", timeout=60), sim.output()
+        record = _fleet("record", "-o", str(rrd), "--duration", "6", "--rate", "2", port=port)
+        # status while the simulator publishes (10 s of it): every vehicle aided
+        snap, deadline = None, time.monotonic() + 9
+        while time.monotonic() < deadline:
+            status = _fleet("status", "--json", port=port)
+            out, err = status.communicate(timeout=60)
+            snap = json.loads(out)
+            statuses = [v["pipelines"].get("lc", {}).get("status") for v in snap["vehicles"]]
+            if len(snap["vehicles"]) == 5 and statuses == ["aided"] * 5:
+                break
+            time.sleep(0.5)
+        rec_out, rec_err = record.communicate(timeout=60)
+        assert sim.wait(timeout=60) == 0, sim.output()
+    finally:
+        rcs = _stop(*procs)
+        watcher.close()
+    assert rcs == [0] * len(procs), [p.output() for p in procs]
+    print(json.dumps({k: snap[k] for k in ("routers", "services", "problems")}, indent=1))
+    assert status.returncode == 0, out + err
+    assert len(zids) == 1, zids
+    (zid,) = zids
+    assert [v["vehicle"] for v in snap["vehicles"]] == VEHICLES
+    for v in snap["vehicles"]:
+        assert v["service"] == zid and v["services"] == [zid] and not v["served_twice"] and v["alive"], v
+        lc = v["pipelines"]["lc"]
+        assert lc["status"] == "aided", v
+        assert lc["lag_s"] is not None and 0.0 <= lc["lag_s"] < 2.0, lc
+        assert lc["age_s"] is None and lc["live_time"] is False  # simulated time, not this clock's
+        assert lc["position"] is not None and abs(lc["position"][0] - 40.1) < 0.5
+    assert [s["zid"] for s in snap["services"]] == [zid]
+    assert snap["services"][0]["vehicles"] == VEHICLES and snap["services"][0]["alive"]
+    assert snap["services"][0]["config"] == {"prefix": "fednav", "pipelines": {"lc": "loosely_coupled"}}
+    assert snap["problems"] == [] and snap["other_prefixes"] == []
+    assert len(snap["routers"]) == 1 and snap["routers"][0] != zid
+
+    # the recording, read back with Rerun's reader: every vehicle, its track, its lane, the load
+    assert record.returncode == 0, rec_out + rec_err
+    assert "5 vehicle(s), 1 service(s)" in rec_out, rec_out
+    rows, states, scalars, blueprints = _read(rrd)
+    assert blueprints == 1
+    for v in VEHICLES:
+        assert rows.get(f"/fleet/{v}/position", 0) >= 8, (v, rows)  # 2 Hz for 6 s
+        assert rows.get(f"/enu/{v}", 0) >= 8
+        assert rows.get(f"/fleet/{v}/track", 0) >= 1
+        assert "aided" in states[f"/status/{v}"], states
+    assert set(states) == {f"/status/{v}" for v in VEHICLES}
+    assert max(scalars[f"/load/vehicles/{zid}"]) == 5.0
+    rates = np.array(scalars[f"/load/messages_per_s/{zid}"])
+    # five vehicles at 4x real time: 200 Hz IMU in batches of 10, 10 Hz fixes -> ~600 messages/s
+    assert rates.max() > 300, rates
+
+
+def test_status_flags_a_vehicle_served_twice_a_differing_config_and_another_prefix(tmp_path):
+    lc = '[[pipelines]]\nkind = "loosely_coupled"\nname = "lc"\n'
+    (tmp_path / "a.toml").write_text('vehicles = ["v1", "v2"]\n' + lc)
+    (tmp_path / "b.toml").write_text('vehicles = ["v1"]\n' + lc + "innovation_gate_sigma = 4.0\n")
+    (tmp_path / "c.toml").write_text('prefix = "other"\nvehicles = ["v9"]\n' + lc)
+    port = free_port()
+    router = _router(port)
+    procs = [router]
+    try:
+        for name in ("a", "b", "c"):
+            procs.insert(0, _service(port, "--config", str(tmp_path / f"{name}.toml")))
+        status = _fleet("status", "--json", port=port)
+        out, err = status.communicate(timeout=60)
+        table = _fleet("status", port=port)
+        text, _ = table.communicate(timeout=60)
+    finally:
+        rcs = _stop(*procs)
+    assert rcs == [0] * len(procs)
+    print(text)
+    assert status.returncode == 1 and table.returncode == 1, out + err
+    snap = json.loads(out)
+    by_name = {v["vehicle"]: v for v in snap["vehicles"]}
+    assert sorted(by_name) == ["v1", "v2"]  # v9 is under the other prefix
+    assert by_name["v1"]["served_twice"] and len(by_name["v1"]["services"]) == 2
+    assert by_name["v1"]["service"] is None
+    assert not by_name["v2"]["served_twice"] and by_name["v2"]["service"] is not None
+    a = by_name["v2"]["service"]
+    (b,) = set(by_name["v1"]["services"]) - {a}
+    services = {s["zid"]: s for s in snap["services"]}
+    assert set(services) == {a, b}
+    assert services[a]["vehicles"] == ["v1", "v2"] and services[b]["vehicles"] == ["v1"]
+    # two services, two configurations: the first one listed is the reference, the other is named
+    differs = [s for s in snap["services"] if s["config_differs"]]
+    assert len(differs) == 1 and differs[0]["config_differs"] == "settings of pipeline(s) lc differ"
+    assert len(snap["other_prefixes"]) == 1 and snap["other_prefixes"][0]["prefix"] == "other"
+    problems = "\n".join(snap["problems"])
+    assert f"vehicle v1 is served by 2 services: {', '.join(sorted((a, b)))}" in problems
+    assert "configuration differs" in problems
+    assert "another prefix 'other'" in problems
+    assert "(twice!)" in text and "problems:" in text
+
+
+def test_config_difference_in_words():
+    lc = {"name": "lc", "kind": "loosely_coupled", "innovation_gate_sigma": 5.0}
+    tc = {"name": "tc", "kind": "tightly_coupled"}
+    ref = {"prefix": "fednav", "pipelines": [lc]}
+    assert config_difference(ref, ref) == ""
+    assert config_difference({"prefix": "x", "pipelines": [lc]}, ref) == "prefix 'x' vs 'fednav'"
+    assert (
+        config_difference({"prefix": "fednav", "pipelines": [lc, tc]}, ref)
+        == "pipelines lc (loosely_coupled), tc (tightly_coupled) vs lc (loosely_coupled)"
+    )
+    changed = dict(lc, innovation_gate_sigma=4.0)
+    assert config_difference({"prefix": "fednav", "pipelines": [changed]}, ref) == (
+        "settings of pipeline(s) lc differ"
+    )
+
+
+def test_command_line_errors():
+    for args, text in (
+        (["status", "--connect", "tcp:127.0.0.1:1"], "invalid Zenoh endpoint"),
+        (["record", "-o", "x.rrd", "--rate", "0"], "--rate 0.0"),
+        (["status", "--zenoh-config", "/nonexistent.json5"], "no such file"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "-m", "fednav.dashboards.fleet", *args],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert r.returncode == 2 and text in r.stderr, (args, r.stderr)
+
+
+def test_no_service_is_flagged():
+    port = free_port()
+    router = _router(port)
+    try:
+        r = _fleet("status", "--json", "--timeout", "1", port=port)
+        out, _ = r.communicate(timeout=60)
+    finally:
+        _stop(router)
+    snap = json.loads(out)
+    assert r.returncode == 1
+    assert snap["vehicles"] == [] and snap["services"] == []
+    assert snap["problems"] == ["no fednav service found under prefix 'fednav'"]
