@@ -241,14 +241,25 @@ def test_service_simulator_and_client_through_the_router():
     assert any(s["lat_deg"] == SPOOF_LAT_DEG for s in victim_nav.json("/solution"))
 
 
-@pytest.mark.integration
-@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command line tool")
-def test_mutual_tls_and_access_control_through_the_router(tmp_path, monkeypatch):
-    def certs(*args: str) -> None:
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory) -> Path:
+    """A folder holding certs/ (CA, service, simulator, reader, router, ops, and a certificate of
+    the CA without any policy, CN fednav-intruder), made by the shipped make-certs.sh."""
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command line tool")
+    folder = tmp_path_factory.mktemp("fleet-secure")
+
+    def make(*args: str) -> None:
         subprocess.run(["sh", str(MAKE_CERTS), *args], check=True, capture_output=True, timeout=60)
 
-    certs(str(tmp_path / "certs"))  # ca, service, simulator, reader
-    certs(str(tmp_path / "certs"), "router=fednav-router", "ops=fednav-ops", "intruder=fednav-intruder")
+    make(str(folder / "certs"))  # ca, service, simulator, reader
+    make(str(folder / "certs"), "router=fednav-router", "ops=fednav-ops", "intruder=fednav-intruder")
+    return folder
+
+
+@pytest.mark.integration
+def test_mutual_tls_and_access_control_through_the_router(certs, monkeypatch):
+    tmp_path = certs
     monkeypatch.chdir(tmp_path)  # the shipped configs name certs/... relative to the working directory
     port = free_port()
     ep = f"tls/127.0.0.1:{port}"
@@ -358,3 +369,67 @@ def _plain_tcp(port: int) -> zenoh.Config:
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     return c
+
+
+@pytest.mark.integration
+def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
+    """Two services with [fleet] sharding = "rendezvous" behind the secure router split six vehicles
+    between them (the router lets services see each other's fleet tokens and handover states):
+    fednav-fleet status with the operator's certificate finds each vehicle served exactly once.
+    Without the router's 'service-fleet' rule each service sees only itself and serves all six
+    (measured: every vehicle flagged served twice)."""
+    monkeypatch.chdir(certs)
+    cfg = certs / "sharded.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[fleet]\nsharding = "rendezvous"\n'
+    )
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    router, _ = _start_router(["--zenoh-config", str(SECURE / "router.json5"), "--listen", ep], certs)
+    procs = [router]
+    try:
+        for _ in range(2):
+            svc = Proc(
+                [sys.executable, "-m", "fednav.service", "--config", str(cfg), "--no-record"]
+                + ["--zenoh-config", str(SECURE / "service.json5"), "--connect", ep],
+                "fednav-service",
+                cwd=certs,
+            )
+            procs.insert(0, svc)
+            assert svc.wait_for("fednav-service ready", timeout=60), svc.output()
+        sim = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "6", "--duration", "40"]
+            + ["--speed", "4", "--zenoh-config", str(SECURE / "simulator.json5"), "--connect", ep],
+            "fednav-sim fleet",
+            cwd=certs,
+        )
+        procs.insert(0, sim)
+        assert sim.wait_for("publishing", timeout=60), sim.output()
+        snap, deadline = None, time.monotonic() + 9  # while the simulator publishes (10 s)
+        while time.monotonic() < deadline:
+            r = subprocess.run(
+                [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+                + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                cwd=certs,
+            )
+            snap = json.loads(r.stdout)
+            if len(snap["vehicles"]) == 6 and all(v["service"] for v in snap["vehicles"]):
+                break
+            time.sleep(0.5)
+        assert sim.wait(timeout=60) == 0, sim.output()
+    finally:
+        for p in procs:
+            p.signal(signal.SIGTERM)
+        rcs = [p.wait(timeout=60) for p in procs]
+    assert rcs == [0] * len(procs), [p.output()[-2000:] for p in procs]
+    print(r.stdout[:400])
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert [v["vehicle"] for v in snap["vehicles"]] == [f"veh{i:03d}" for i in range(6)]
+    assert not any(v["served_twice"] for v in snap["vehicles"]), snap["problems"]
+    served = {s["zid"]: s["vehicles"] for s in snap["services"]}
+    assert len(served) == 2 and all(served.values()), served  # both services serve a share
+    assert sorted(v for vs in served.values() for v in vs) == [f"veh{i:03d}" for i in range(6)]
