@@ -513,7 +513,7 @@ class Service:
                 zenoh_io.Watch(self.session, f"{base}/state/**", self._on_state),
                 zenoh_io.Watch(self.session, f"{base}/member/*", self._on_member, liveliness=True),
             ]
-            self.liveliness.declare(keys.fleet_member(self.fleet_group, zid, cfg.prefix))
+            self._fleet_token = keys.fleet_member(self.fleet_group, zid, cfg.prefix)
         self.liveliness = zenoh_io.Liveliness(self.session)
         self.ros_in = None
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
@@ -540,6 +540,10 @@ class Service:
         qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
+        if self.fleet_view is not None:
+            # hear the members and their handover states for a while, then join: the members see
+            # this token and hand this service its share (each publishing its last states)
+            threading.Timer(1.5 * cfg.fleet.handover_period_s, self._join_fleet).start()
         for v in [] if sel else self._served_list():
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
         self._health_key = keys.service_health(str(self.session.zid()), cfg.prefix)
@@ -548,7 +552,8 @@ class Service:
         )
         self._health_thread.start()
         log.info(
-            "fednav-service up: vehicles=%s pipelines=%s rrd=%s",
+            "fednav-service up: zid=%s vehicles=%s pipelines=%s rrd=%s",
+            str(self.session.zid()),
             cfg.vehicles,
             [p.name for p in cfg.pipelines],
             self.rrd_path if self.record else None,
@@ -690,6 +695,13 @@ class Service:
         parts = key.split("/")
         if payload is not None and len(parts) == 6 and len(payload) <= MAX_PAYLOAD_BYTES:
             self.fleet_states.put(parts[4], parts[5], payload)
+
+    def _join_fleet(self) -> None:
+        if self.session is None:
+            return
+        self.liveliness.declare(self._fleet_token)
+        self.fleet_view.active = True
+        log.info("joined fleet group %s: members %s", self.fleet_group, self.fleet_view.members())
 
     def _rebalance(self) -> None:
         """After a membership change: every served vehicle that hashes to another service now is

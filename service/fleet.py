@@ -57,6 +57,9 @@ class FleetView:
         self._owner: dict[str, str] = {}
         self.version = 0
         self.changes = 0  # membership changes seen (Health of the service)
+        #: False until this service has joined (its token declared): it owns nothing before, so a
+        #: joining service first hears the members and their handover states, then takes its share
+        self.active = False
 
     def update(self, member: str, alive: bool) -> bool:
         """A member's token appeared (``alive``) or vanished; True when the set changed."""
@@ -87,7 +90,7 @@ class FleetView:
             return o
 
     def mine(self, vehicle: str) -> bool:
-        return self.owner(vehicle) == self.me
+        return self.active and self.owner(vehicle) == self.me
 
 
 class StateCache:

@@ -1,0 +1,218 @@
+"""Services sharing a fleet behind a Zenoh router ([fleet] sharding = "rendezvous"): every vehicle
+served once, failover after kill -9 with the state handed over, a joining service takes its share
+back (real processes: fednav-router, fednav-service x3, fednav-sim fleet, a plain Zenoh client)."""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from fednav.service import fleet
+from fednav.simulators.fleet import vehicle_names
+from fednav.simulators.processes import Proc, free_port
+
+from .plain_zenoh import client as zenoh_client
+
+pytestmark = pytest.mark.integration
+
+N = 6
+
+
+def _router(port: int) -> Proc:
+    r = Proc([sys.executable, "-m", "fednav.service.router", "--listen", f"tcp/127.0.0.1:{port}"], "router")
+    assert r.wait_for("fednav-router ready", timeout=30), r.output()
+    return r
+
+
+def _service(port: int, cfg) -> Proc:
+    """A service in client mode behind the router (no listener of its own)."""
+    args = [sys.executable, "-m", "fednav.service", "--config", str(cfg), "--no-record"]
+    p = Proc(args + ["--connect", f"tcp/127.0.0.1:{port}"], "fednav-service")
+    assert p.wait_for("fednav-service ready", timeout=60), p.output()
+    return p
+
+
+class Bus:
+    """A plain client: Solutions and Truth per vehicle, ServiceHealth per service."""
+
+    def __init__(self, port: int):
+        self.s = zenoh_client(port)
+        self.lock = threading.Lock()
+        self.sols: dict[str, list[tuple[float, float, dict]]] = {}  # vehicle -> (wall, t, solution)
+        self.truth: dict[tuple[str, int], dict] = {}
+        self.services: dict[str, tuple[float, list[str]]] = {}  # zid -> (wall, active vehicles)
+        self.s.declare_subscriber("fednav/*/nav/lc/solution", self._sol)
+        self.s.declare_subscriber("fednav/*/truth", self._truth)
+        self.s.declare_subscriber("fednav/_services/*/health", self._health)
+
+    def _sol(self, sample):
+        v = str(sample.key_expr).split("/")[1]
+        m = json.loads(sample.payload.to_bytes())
+        with self.lock:
+            self.sols.setdefault(v, []).append((time.monotonic(), m["t"], m))
+
+    def _truth(self, sample):
+        v = str(sample.key_expr).split("/")[1]
+        m = json.loads(sample.payload.to_bytes())
+        with self.lock:
+            self.truth[(v, round(m["t"] * 1e6))] = m
+
+    def _health(self, sample):
+        zid = str(sample.key_expr).split("/")[2]
+        m = json.loads(sample.payload.to_bytes())
+        with self.lock:
+            self.services[zid] = (time.monotonic(), m["active_vehicles"])
+
+    def assignment(self, since: float) -> dict[str, list[str]]:
+        with self.lock:
+            return {z: list(v) for z, (w, v) in self.services.items() if w >= since}
+
+    def h_errors(self, vehicle: str, t_from: float, t_to: float) -> np.ndarray:
+        """Horizontal errors (m) of the vehicle's Solutions with sensor time in [t_from, t_to)."""
+        out = []
+        with self.lock:
+            for _, t, m in self.sols.get(vehicle, []):
+                tr = self.truth.get((vehicle, round(t * 1e6)))
+                if tr is None or not t_from <= t < t_to:
+                    continue
+                dn = math.radians(m["lat_deg"] - tr["lat_deg"]) * 6.371e6
+                de = (
+                    math.radians(m["lon_deg"] - tr["lon_deg"])
+                    * 6.371e6
+                    * math.cos(math.radians(tr["lat_deg"]))
+                )
+                out.append(math.hypot(de, dn))
+        return np.array(out)
+
+    def last_t(self, vehicle: str) -> float:
+        with self.lock:
+            return max((t for _, t, _ in self.sols.get(vehicle, [])), default=-math.inf)
+
+    def duplicates(self, vehicle: str, after_wall: float) -> int:
+        with self.lock:
+            ts = [t for w, t, _ in self.sols.get(vehicle, []) if w >= after_wall]
+        return len(ts) - len(set(ts))
+
+
+def _zid(proc: Proc) -> str:
+    """The Zenoh id a service logs when it starts."""
+    return proc.output().split("fednav-service up: zid=", 1)[1].split()[0]
+
+
+def _wait(cond, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.2)
+    return cond()
+
+
+def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 0.5\n'
+    )
+    port = free_port()
+    router = _router(port)
+    procs = [router]
+    bus = Bus(port)
+    names = vehicle_names(N)
+    try:
+        a, b = _service(port, cfg), _service(port, cfg)
+        procs += [a, b]
+        gen = Proc(
+            [
+                sys.executable,
+                "-m",
+                "fednav.simulators",
+                "fleet",
+                "--vehicles",
+                str(N),
+                "--duration",
+                "120",
+                "--speed",
+                "2",
+                "--truth",
+                "--fix-rate",
+                "1",
+                "--connect",
+                f"tcp/127.0.0.1:{port}",
+            ],
+            "fleet",
+        )
+        procs.append(gen)
+        assert gen.wait_for("publishing", timeout=60), gen.output()
+        # settled: two services, each vehicle on exactly one of them
+        t_settle = time.monotonic() + 4.0
+        assert _wait(lambda: len(bus.assignment(t_settle)) == 2 and time.monotonic() > t_settle + 1.5, 20)
+        asg = bus.assignment(t_settle)
+        served = sorted(v for vs in asg.values() for v in vs)
+        assert served == names, asg
+        members = sorted(asg)
+        for z, vs in asg.items():  # the assignment is the rendezvous one over the live services
+            assert sorted(vs) == sorted(v for v in names if fleet.owner(v, members) == z), asg
+        wall_settled = time.monotonic()
+        time.sleep(3.0)
+        for v in names:
+            assert bus.duplicates(v, wall_settled) == 0, v
+        clean = np.concatenate([bus.h_errors(v, 0, math.inf) for v in names])
+        assert clean.size > 50
+        bound = max(3.0 * float(np.percentile(clean, 95)), 5.0)
+        # kill -9 the service holding the most vehicles: its vehicles come back from the other
+        victim_zid = max(asg, key=lambda z: len(asg[z]))
+        moved = asg[victim_zid]
+        victim = a if victim_zid in a.output() else b
+        assert victim_zid in victim.output()
+        victim.kill()
+        t_kill = time.monotonic()
+        last = {v: bus.last_t(v) for v in moved}
+        assert _wait(lambda: all(bus.last_t(v) > last[v] + 0.5 for v in moved), 10), (
+            "no solutions after failover"
+        )
+        gap = time.monotonic() - t_kill
+        assert gap < 5.0, gap
+        # handed over, not cold: errors stay under the nominal bound from the first solution on
+        assert _wait(lambda: all(bus.last_t(v) > last[v] + 4.0 for v in moved), 10)
+        survivor = b if victim is a else a
+        for v in moved:
+            assert f"vehicle {v} handed over from service {victim_zid}" in survivor.output(), v
+            e = bus.h_errors(v, last[v], math.inf)
+            assert e.size >= 2, (v, e)
+            assert e.max() < bound, (v, e.max(), bound)
+        # a new service joins and takes its share back, again handed over
+        c = _service(port, cfg)
+        procs.append(c)
+        t_join = time.monotonic()
+        assert _wait(lambda: len(bus.assignment(t_join + 2.0)) == 2 and time.monotonic() > t_join + 4.0, 20)
+        asg2 = bus.assignment(t_join + 2.0)
+        assert sorted(v for vs in asg2.values() for v in vs) == names, asg2
+        assert all(asg2.values()), asg2  # both services have vehicles
+        time.sleep(2.0)
+        for v in names:
+            assert bus.duplicates(v, t_join + 4.0) == 0, v
+            e = bus.h_errors(v, bus.last_t(v) - 5.0, math.inf)
+            assert e.size >= 2, (v, e)
+            assert e.max() < bound, (v, e.max(), bound)
+        taken = [v for v in names if v in asg2.get(_zid(c), [])]
+        assert taken, asg2
+        for v in taken:  # the joining service started them from the survivor's states
+            assert f"vehicle {v} handed over from service {_zid(survivor)}" in c.output(), v
+    finally:
+        for p in reversed(procs):
+            if p.p.poll() is None:
+                p.signal(signal.SIGTERM)
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=30)
+            except Exception:
+                p.kill()
+        bus.s.close()
