@@ -222,15 +222,14 @@ class BankUpdate:
 class _Gain:
     """The gains of one bank update in factored form (:func:`_masked_gain`).
 
-    x (B, n) updated states; U = P E' (B, n, s); Vt = (S^-1 G_a)' (B, s, m), so K = U Vt;
-    Psi = Vt G (B, s, s), so K H = U Psi E; C = E P E' (B, s, s); sel (s,) the observed states;
+    x (B, n) updated states; L = P E' (I + J C)^-1 (B, n, s), so that K = L G_a' R^-1 and
+    K H = L J E; J = G_a' R^-1 G_a (B, s, s); C = E P E' (B, s, s); sel (s,) the observed states;
     G = H[:, sel]; keep (B, m) rows used; r_var (m,); innovation (B, m); dof (B,).
     """
 
     x: np.ndarray
-    U: np.ndarray
-    Vt: np.ndarray
-    Psi: np.ndarray
+    L: np.ndarray
+    J: np.ndarray
     C: np.ndarray
     sel: np.ndarray
     G: np.ndarray
@@ -240,12 +239,12 @@ class _Gain:
     dof: np.ndarray
 
     def K(self) -> np.ndarray:
-        return self.U @ self.Vt
+        return self.L @ (self.G.T[None] * (self.keep / self.r_var)[:, None, :])
 
     def IKH(self) -> np.ndarray:
         B, n = self.x.shape
         out = np.broadcast_to(np.eye(n), (B, n, n)).copy()
-        out[:, :, self.sel] -= self.U @ self.Psi
+        out[:, :, self.sel] -= self.L @ self.J
         return out
 
     def whitened(self) -> tuple[np.ndarray, np.ndarray]:
@@ -259,19 +258,6 @@ class _Gain:
         return w, np.einsum("bi,bi->b", w, w)
 
 
-@dataclass(frozen=True)
-class _Factors:
-    """The factors of one bank update that :meth:`MhssBank._joseph_all` multiplies: ikh = I - K H
-    (B, n, n); K = U V' with U (B, n, s), V (B, m, s); VR = V' R (B, s, m); RF = [I - K H | U]'
-    (B, n + s, n)."""
-
-    ikh: np.ndarray
-    U: np.ndarray
-    VR: np.ndarray
-    V: np.ndarray
-    RF: np.ndarray
-
-
 def _masked_gain(
     x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, keep: np.ndarray
 ) -> _Gain | None:
@@ -282,16 +268,17 @@ def _masked_gain(
     m rows: with E selecting those states (H = G E, G (m, s)), C = E P E', G_a = G with masked
     rows zero and J = G_a' R^-1 G_a, the push-through identity (exact, no approximation) gives
 
-        S^-1 G_a = R^-1 G_a (I + C J)^-1,    K = (P E') (S^-1 G_a)',    K H = K G_a E,
+        H_a' S^-1 = E' (I + J C)^-1 G_a' R^-1,   so   K = L G_a' R^-1,   L = P E' (I + J C)^-1,
 
-    one s x s inverse per member (s = 8 for pseudoranges and range rates: position, velocity,
-    clock) instead of an m x m Cholesky factor and two triangular solves (m = 24 for 12
-    satellites). Returns None when a member's C is not positive definite or a noise variance is
-    not positive (then S may not be: the caller takes the general path, which raises
-    NotPositiveDefinite exactly when S is not positive definite).
+    K H = L J E and K r = L G_a' R^-1 r: one s x s inverse per member (s = 8 for pseudoranges and
+    range rates: position, velocity, clock) instead of an m x m Cholesky factor and two triangular
+    solves (m = 24 for 12 satellites). J is summed from the rows' g_i g_i' / r_i. Returns None when
+    a member's C is not positive definite or a noise variance is not positive (then S may not be:
+    the caller takes the general path, which raises NotPositiveDefinite exactly when S is not
+    positive definite).
     """
     B, n = x.shape
-    sel = np.flatnonzero(np.any(H != 0.0, axis=0))
+    sel = np.flatnonzero(np.any(H, axis=0))
     s = len(sel)
     if s == 0 or not np.all(r_var > 0.0):
         return None
@@ -304,12 +291,13 @@ def _masked_gain(
         np.linalg.cholesky(C)
     except np.linalg.LinAlgError:
         return None
-    GW = (kf / r_var)[:, :, None] * G  # R^-1 G_a (B, m, s)
-    M = C @ (G.T @ GW)  # C J
+    Gw = G / r_var[:, None]  # R^-1 G
+    J = (kf @ (Gw[:, :, None] * G[:, None, :]).reshape(len(G), s * s)).reshape(B, s, s)
+    M = J @ C
     M.reshape(B, -1)[:, :: s + 1] += 1.0
-    Vt = np.swapaxes(GW @ np.linalg.inv(M), 1, 2)  # (S^-1 G_a)' (B, s, m)
-    x_new = x + (U @ (Vt @ r[:, :, None]))[:, :, 0]
-    return _Gain(x_new, U, Vt, Vt @ G, C, sel, G, keep, r_var, r, keep.sum(axis=1))
+    L = U @ np.linalg.inv(M)
+    x_new = x + (L @ ((r @ Gw)[:, :, None]))[:, :, 0]
+    return _Gain(x_new, L, J, C, sel, G, keep, r_var, r, keep.sum(axis=1))
 
 
 @dataclass(frozen=True)
@@ -620,71 +608,74 @@ class MhssBank:
             ref = kalman.gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
             factors = self._dense_factors(ref.IKH, ref.K, r_var)
             self.x = ref.x
-            self.blocks = self._joseph_all(factors)
+            self.blocks = self._joseph_all(*factors)
             res = ref.result
             return BankUpdate(res.innovation, res.dof, ref.K, ref.IKH, res.whitened, res.nis)
         factors = self._gain_factors(g)
         self.x = g.x
-        self.blocks = self._joseph_all(factors)
+        self.blocks = self._joseph_all(*factors)
         return BankUpdate(g.innovation, g.dof, gain=g)
 
-    def _dense_factors(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> _Factors:
-        """Factors of :meth:`_joseph_all` from explicit gains K (B, n, m) and I - K H: U = K, V = I."""
-        m = K.shape[-1]
-        B = self.B
-        V = np.broadcast_to(np.eye(m), (B, m, m))
-        return self._factors(np.ascontiguousarray(IKH), np.ascontiguousarray(K), V * r_var[None, :, None], V)
-
-    def _gain_factors(self, g: _Gain) -> _Factors:
-        """Factors of :meth:`_joseph_all` from the factored gains K = U Vt, K H = U Psi E."""
-        B, n, s = self.B, self.n, len(g.sel)
-        PsiE = self._work.get("psi_e", (B, s, n))
-        PsiE.fill(0.0)
-        PsiE[:, :, g.sel] = g.Psi
+    def _dense_factors(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Factors of :meth:`_joseph_all` from explicit gains K (B, n, m) and I - K H: Lf = K,
+        W = R K'."""
+        B, n, m = K.shape
         ikh = self._work.get("ikh", (B, n, n))
-        np.matmul(g.U, PsiE, out=ikh)  # K H
-        np.subtract(self._work.identity(B, n), ikh, out=ikh)
-        V = np.ascontiguousarray(np.swapaxes(g.Vt, 1, 2))
-        return self._factors(ikh, g.U, V * g.r_var[None, :, None], V)
+        ikh[...] = IKH
+        RF, LF = self._factor_arrays(m)
+        RF[:, :n, :] = np.swapaxes(IKH, 1, 2)
+        np.multiply(np.swapaxes(K, 1, 2), r_var[None, :, None], out=RF[:, n:, :])
+        LF[:, :, n:] = K
+        return ikh, RF, LF
 
-    def _factors(self, ikh: np.ndarray, U: np.ndarray, RV: np.ndarray, V: np.ndarray) -> _Factors:
-        """RF = [I - K H | U]' (B, n + s, n) of every member, with K R K_b' = U (RV' V_b) U_b'."""
-        B, n, s = self.B, self.n, U.shape[-1]
-        RF = self._work.get("rf", (B, n + s, n))
+    def _gain_factors(self, g: _Gain) -> tuple[np.ndarray, ...]:
+        """Factors of :meth:`_joseph_all` from the factored gains: K = L G_a' R^-1 gives
+        K_a R K_b' = L_a (G_a' R^-1 G_b) L_b' = L_a J_b L_b' (the rows b uses are rows a uses:
+        every block pairs a filter with itself or one of its children), K H = L J E."""
+        B, n, s = self.B, self.n, len(g.sel)
+        RF, LF = self._factor_arrays(s)
+        LF[:, :, n:] = g.L
+        LJ = self._work.get("lj", (B, n, n))
+        LJ.fill(0.0)
+        LJ[:, :, g.sel] = g.L @ g.J  # K H
+        ikh = self._work.get("ikh", (B, n, n))
+        np.subtract(self._work.identity(B, n), LJ, out=ikh)
         RF[:, :n, :] = np.swapaxes(ikh, 1, 2)
-        RF[:, n:, :] = np.swapaxes(U, 1, 2)
-        return _Factors(ikh, U, np.ascontiguousarray(np.swapaxes(RV, 1, 2)), V, RF)
+        np.matmul(g.J, np.swapaxes(g.L, 1, 2), out=RF[:, n:, :])  # J_b L_b'
+        return ikh, RF, LF
 
-    def _joseph_all(self, f: _Factors) -> np.ndarray:
-        """:func:`cross_update` of every block, P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b', with
-        the gains in factored form K = U V' (U (B, n, s), V = S^-1 G_a (B, m, s); explicit gains:
-        U = K, V = I), so K_a R K_b' = U_a (V_a' R V_b) U_b', and one product per block:
+    def _factor_arrays(self, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """RF = [I - K H | W']' (B, n + s, n) and LF = [(I - K H) P | Lf] (B, n, n + s) of every
+        member, with K_a R K_b' = Lf_a W_b."""
+        B, n, W = self.B, self.n, self._work
+        return W.get("rf", (B, n + s, n)), W.get("lf", (B, n, n + s))
 
-            [(I - K_a H) P_ab | U_a (V_a' R V_b)] [I - K_b H | U_b]'
+    def _joseph_all(self, ikh: np.ndarray, RF: np.ndarray, LF: np.ndarray) -> np.ndarray:
+        """:func:`cross_update` of every block, P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b',
+        with K_a R K_b' = Lf_a W_b (:meth:`_gain_factors`, :meth:`_dense_factors`), one product per
+        block:
+
+            [(I - K_a H) P_ab | Lf_a] [I - K_b H | W_b']'
 
         by segment: members (a = b), main-sub (a = 0, broadcast), sub-subsub (a = sub n,
         broadcast over its N-1 sub-subs; the factors of b gathered)."""
         B, N, n, W = self.B, self.N, self.n, self._work
-        ikh, U, VR, V, RF = f.ikh, f.U, f.VR, f.V, f.RF
         w = RF.shape[1]
         out = self._next_blocks()
-        LF = W.get("lf", (B, n, w))
         np.matmul(ikh, self.blocks[:B], out=LF[:, :, :n])
-        np.matmul(U, VR @ V, out=LF[:, :, n:])
         np.matmul(LF, RF, out=out[:B])
         self._symmetrise_members(out)
         if self.depth >= 1 and N:
             subs = slice(1, 1 + N)
             L0 = W.get("lf0", (N, n, w))
             np.matmul(ikh[0], self.blocks[B : B + N], out=L0[:, :, :n])
-            np.matmul(U[0], VR[0] @ V[subs], out=L0[:, :, n:])
+            L0[:, :, n:] = LF[0, :, n:]
             np.matmul(L0, RF[subs], out=out[B : B + N])
             if self.depth >= 2 and N > 1:
                 mem = self.subsub_members  # (N, N-1)
                 L2 = W.get("lf2", (N, N - 1, n, w))
                 np.matmul(ikh[subs, None], self.blocks[B + N :].reshape(N, N - 1, n, n), out=L2[..., :n])
-                Vm = np.take(V, mem, axis=0, out=W.get("vm", mem.shape + V.shape[1:]), mode="clip")
-                np.matmul(U[subs, None], VR[subs, None] @ Vm, out=L2[..., n:])
+                L2[..., n:] = LF[subs, None, :, n:]
                 RFm = np.take(RF, mem, axis=0, out=W.get("rfm", mem.shape + RF.shape[1:]), mode="clip")
                 np.matmul(L2, RFm, out=out[B + N :].reshape(N, N - 1, n, n))
         return out
