@@ -4,11 +4,9 @@ back (real processes: fednav-router, fednav-service x3, fednav-sim fleet, a plai
 
 from __future__ import annotations
 
-import json
 import math
 import signal
 import sys
-import threading
 import time
 
 import numpy as np
@@ -16,9 +14,8 @@ import pytest
 
 from fednav.service import fleet
 from fednav.simulators.fleet import vehicle_names
+from fednav.simulators.fleet_watch import FleetWatch
 from fednav.simulators.processes import Proc, free_port
-
-from .plain_zenoh import client as zenoh_client
 
 pytestmark = pytest.mark.integration
 
@@ -37,68 +34,6 @@ def _service(port: int, cfg) -> Proc:
     p = Proc(args + ["--connect", f"tcp/127.0.0.1:{port}"], "fednav-service")
     assert p.wait_for("fednav-service ready", timeout=60), p.output()
     return p
-
-
-class Bus:
-    """A plain client: Solutions and Truth per vehicle, ServiceHealth per service."""
-
-    def __init__(self, port: int):
-        self.s = zenoh_client(port)
-        self.lock = threading.Lock()
-        self.sols: dict[str, list[tuple[float, float, dict]]] = {}  # vehicle -> (wall, t, solution)
-        self.truth: dict[tuple[str, int], dict] = {}
-        self.services: dict[str, tuple[float, list[str]]] = {}  # zid -> (wall, active vehicles)
-        self.s.declare_subscriber("fednav/*/nav/lc/solution", self._sol)
-        self.s.declare_subscriber("fednav/*/truth", self._truth)
-        self.s.declare_subscriber("fednav/_services/*/health", self._health)
-
-    def _sol(self, sample):
-        v = str(sample.key_expr).split("/")[1]
-        m = json.loads(sample.payload.to_bytes())
-        with self.lock:
-            self.sols.setdefault(v, []).append((time.monotonic(), m["t"], m))
-
-    def _truth(self, sample):
-        v = str(sample.key_expr).split("/")[1]
-        m = json.loads(sample.payload.to_bytes())
-        with self.lock:
-            self.truth[(v, round(m["t"] * 1e6))] = m
-
-    def _health(self, sample):
-        zid = str(sample.key_expr).split("/")[2]
-        m = json.loads(sample.payload.to_bytes())
-        with self.lock:
-            self.services[zid] = (time.monotonic(), m["active_vehicles"])
-
-    def assignment(self, since: float) -> dict[str, list[str]]:
-        with self.lock:
-            return {z: list(v) for z, (w, v) in self.services.items() if w >= since}
-
-    def h_errors(self, vehicle: str, t_from: float, t_to: float) -> np.ndarray:
-        """Horizontal errors (m) of the vehicle's Solutions with sensor time in [t_from, t_to)."""
-        out = []
-        with self.lock:
-            for _, t, m in self.sols.get(vehicle, []):
-                tr = self.truth.get((vehicle, round(t * 1e6)))
-                if tr is None or not t_from <= t < t_to:
-                    continue
-                dn = math.radians(m["lat_deg"] - tr["lat_deg"]) * 6.371e6
-                de = (
-                    math.radians(m["lon_deg"] - tr["lon_deg"])
-                    * 6.371e6
-                    * math.cos(math.radians(tr["lat_deg"]))
-                )
-                out.append(math.hypot(de, dn))
-        return np.array(out)
-
-    def last_t(self, vehicle: str) -> float:
-        with self.lock:
-            return max((t for _, t, _ in self.sols.get(vehicle, [])), default=-math.inf)
-
-    def duplicates(self, vehicle: str, after_wall: float) -> int:
-        with self.lock:
-            ts = [t for w, t, _ in self.sols.get(vehicle, []) if w >= after_wall]
-        return len(ts) - len(set(ts))
 
 
 def _zid(proc: Proc) -> str:
@@ -124,7 +59,7 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
     port = free_port()
     router = _router(port)
     procs = [router]
-    bus = Bus(port)
+    bus = FleetWatch(port)
     names = vehicle_names(N)
     try:
         a, b = _service(port, cfg), _service(port, cfg)
@@ -215,4 +150,4 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
                 p.wait(timeout=30)
             except Exception:
                 p.kill()
-        bus.s.close()
+        bus.close()
