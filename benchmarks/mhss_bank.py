@@ -172,17 +172,16 @@ def bank_flops(N: int = N_SAT, n: int = 17, s: int = 8, rows_per_sat: int = 2) -
     predict = K * 2 * _mm(n, n, n)
     gain = B * (
         _mm(1, n, m)  # innovations z - H x
-        + _mm(s, m, s)  # J = G_a' R^-1 G_a
-        + _mm(s, s, s)  # C J
+        + _mm(1, m, s * s)  # J = G_a' R^-1 G_a from the rows' g g' / r
+        + _mm(s, s, s)  # J C
         + s**3 // 3  # Cholesky of C (the positive-definiteness check)
-        + 2 * s**3  # (I + C J)^-1
-        + _mm(m, s, s)  # V = R^-1 G_a (I + C J)^-1
-        + _mm(s, m, 1)
-        + _mm(n, s, 1)  # x update
-        + _mm(s, m, s)  # Psi = V' G
-        + _mm(n, s, n)  # K H = U Psi E
+        + 2 * s**3  # (I + J C)^-1
+        + _mm(n, s, s)  # L = P E' (I + J C)^-1
+        + _mm(1, m, s)
+        + _mm(n, s, 1)  # x update L G_a' R^-1 r
+        + _mm(s, s, n)  # J L' (in I - K H and K_a R K_b')
     )
-    joseph = K * (_mm(n, n, n) + _mm(s, m, s) + _mm(n, s, s) + _mm(n, n + s, n))
+    joseph = K * (_mm(n, n, n) + _mm(n, n + s, n))  # [(I - K_a H) P | L_a] [I - K_b H | L_b J_b]'
     ref_gain = B * (
         _mm(n, n, m)  # P H'
         + _mm(m, n, m)  # H P H'

@@ -28,10 +28,11 @@ orthogonality); tests show the recursion matches Monte Carlo where the shortcut 
 
 How it is computed (issue 21, bank speed; the equations above unchanged): the gains in the s
 states the rows observe (position, velocity, clock: s = 8 for m = 2N rows) by the push-through
-identity S^-1 G_a = R^-1 G_a (I + C J)^-1 (:func:`_masked_gain`), so K = U V' with U = P E'
-(n x s) and V = S^-1 G_a (m x s); then every block in one product,
-(I - K_a H) P_ab (I - K_b H)' + K_a R K_b' = [(I - K_a H) P_ab | U_a (V_a' R V_b)] [I - K_b H | U_b]'.
-Members whose C is not positive definite take the general path (``kalman.gain``: Cholesky of S).
+identity H_a' S^-1 = E' (I + J C)^-1 G_a' R^-1 (:func:`_masked_gain`), so K = L G_a' R^-1 with
+L = P E' (I + J C)^-1 (n x s), K H = L J E and K_a R K_b' = L_a J_b L_b'; then the Joseph product
+of every block with (n, s) x (s, n) products only (:meth:`MhssBank._joseph_observed`):
+T = P_ab - (L_a J_a)(E P_ab), P_ab <- T + (L_a - T E') J_b L_b'. Members whose C is not
+positive definite take the general path (``kalman.gain``: Cholesky of S, explicit gains).
 
 Closed loop: only the main filter's correction dx_0 is fed back; every member shifts by it,
 x_i <- x_i - dx_0 (covariances unchanged), so after feedback x_0 = 0 and dx_0n = -x_n.
@@ -611,38 +612,67 @@ class MhssBank:
             self.blocks = self._joseph_all(*factors)
             res = ref.result
             return BankUpdate(res.innovation, res.dof, ref.K, ref.IKH, res.whitened, res.nis)
-        factors = self._gain_factors(g)
+        blocks = self._joseph_observed(g)
         self.x = g.x
-        self.blocks = self._joseph_all(*factors)
+        self.blocks = blocks
         return BankUpdate(g.innovation, g.dof, gain=g)
 
     def _dense_factors(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> tuple[np.ndarray, ...]:
         """Factors of :meth:`_joseph_all` from explicit gains K (B, n, m) and I - K H: Lf = K,
         W = R K'."""
-        B, n, m = K.shape
-        ikh = self._work.get("ikh", (B, n, n))
-        ikh[...] = IKH
+        n, m = self.n, K.shape[-1]
         RF, LF = self._factor_arrays(m)
         RF[:, :n, :] = np.swapaxes(IKH, 1, 2)
         np.multiply(np.swapaxes(K, 1, 2), r_var[None, :, None], out=RF[:, n:, :])
         LF[:, :, n:] = K
-        return ikh, RF, LF
+        return np.swapaxes(RF[:, :n, :], 1, 2), RF, LF
 
-    def _gain_factors(self, g: _Gain) -> tuple[np.ndarray, ...]:
-        """Factors of :meth:`_joseph_all` from the factored gains: K = L G_a' R^-1 gives
-        K_a R K_b' = L_a (G_a' R^-1 G_b) L_b' = L_a J_b L_b' (the rows b uses are rows a uses:
-        every block pairs a filter with itself or one of its children), K H = L J E."""
-        B, n, s = self.B, self.n, len(g.sel)
-        RF, LF = self._factor_arrays(s)
-        LF[:, :, n:] = g.L
-        LJ = self._work.get("lj", (B, n, n))
-        LJ.fill(0.0)
-        LJ[:, :, g.sel] = g.L @ g.J  # K H
-        ikh = self._work.get("ikh", (B, n, n))
-        np.subtract(self._work.identity(B, n), LJ, out=ikh)
-        RF[:, :n, :] = np.swapaxes(ikh, 1, 2)
-        np.matmul(g.J, np.swapaxes(g.L, 1, 2), out=RF[:, n:, :])  # J_b L_b'
-        return ikh, RF, LF
+    def _joseph_observed(self, g: _Gain) -> np.ndarray:
+        """:func:`cross_update` of every block from the factored gains (:func:`_masked_gain`).
+
+        With K = L G_a' R^-1: K H = L J E, and K_a R K_b' = L_a (G_a' R^-1 G_b) L_b' = L_a J_b L_b'
+        (the rows b uses are rows a uses: every block pairs a filter with itself or one of its
+        children), so with W_b = J_b L_b' (s, n) the product form reads
+
+            T = (I - K_a H) P_ab = P_ab - (L_a J_a) (E P_ab)
+            T (I - K_b H)' + K_a R K_b' = T + (L_a - T E') W_b
+
+        two (n, s) x (s, n) products per block instead of n x n ones, by segment: members
+        (a = b), main-sub (a = 0, broadcast), sub-subsub (a = sub n, broadcast over its N-1
+        sub-subs; W_b gathered)."""
+        B, N, n, Wk = self.B, self.N, self.n, self._work
+        sel, blocks = g.sel, self.blocks
+        nb, s = len(blocks), len(sel)
+        LJ = g.L @ g.J  # K H on the observed columns (B, n, s)
+        Wb = g.J @ np.swapaxes(g.L, 1, 2)  # (B, s, n)
+        Ps = np.take(blocks, sel, axis=1, out=Wk.get("p_s", (nb, s, n)), mode="clip")  # E P
+        T = Wk.get("t", blocks.shape)
+        X = Wk.get("x", (nb, n, s))
+        out = self._next_blocks()
+
+        def segment(k: slice, shape: tuple[int, ...], LJa, La, Wbb) -> None:
+            t, x, o = (
+                T[k].reshape(shape + (n, n)),
+                X[k].reshape(shape + (n, s)),
+                out[k].reshape(shape + (n, n)),
+            )
+            np.matmul(LJa, Ps[k].reshape(shape + (s, n)), out=t)
+            np.subtract(blocks[k].reshape(shape + (n, n)), t, out=t)
+            np.take(t, sel, axis=-1, out=x, mode="clip")
+            np.subtract(La, x, out=x)
+            np.matmul(x, Wbb, out=o)
+            o += t
+
+        segment(slice(0, B), (B,), LJ, g.L, Wb)
+        self._symmetrise_members(out)
+        if self.depth >= 1 and N:
+            subs = slice(1, 1 + N)
+            segment(slice(B, B + N), (N,), LJ[0], g.L[0], Wb[subs])
+            if self.depth >= 2 and N > 1:
+                mem = self.subsub_members  # (N, N-1)
+                Wm = np.take(Wb, mem, axis=0, out=Wk.get("w_m", mem.shape + Wb.shape[1:]), mode="clip")
+                segment(slice(B + N, nb), (N, N - 1), LJ[subs, None], g.L[subs, None], Wm)
+        return out
 
     def _factor_arrays(self, s: int) -> tuple[np.ndarray, np.ndarray]:
         """RF = [I - K H | W']' (B, n + s, n) and LF = [(I - K H) P | Lf] (B, n, n + s) of every
@@ -652,7 +682,7 @@ class MhssBank:
 
     def _joseph_all(self, ikh: np.ndarray, RF: np.ndarray, LF: np.ndarray) -> np.ndarray:
         """:func:`cross_update` of every block, P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b',
-        with K_a R K_b' = Lf_a W_b (:meth:`_gain_factors`, :meth:`_dense_factors`), one product per
+        with explicit gains (the general path; :meth:`_dense_factors`: K_a R K_b' = Lf_a W_b), one product per
         block:
 
             [(I - K_a H) P_ab | Lf_a] [I - K_b H | W_b']'
