@@ -162,7 +162,7 @@ def _mm(m: int, k: int, n: int) -> int:
 def bank_flops(N: int = N_SAT, n: int = 17, s: int = 8, rows_per_sat: int = 2) -> dict:
     """FLOPs of one GNSS epoch of the bank (one predict + one update, depth 2), from the shapes of
     the products in ``service/estimation/integrity/mhss.py`` (``MhssBank.predict``,
-    ``_masked_gain``, ``_gain_factors``, ``_joseph_all``): N satellites, n states, s states the
+    ``_masked_gain``, ``MhssBank._joseph_observed``): N satellites, n states, s states the
     rows observe (position, velocity, clock), m = rows_per_sat N rows. Also the same epoch as the
     bank computed it before issue 21 (``kalman.gain``: m x m Cholesky and triangular solves on
     the dense H; Joseph as (I - K_a H) P (I - K_b H)' + K_a R K_b'), for comparison."""
@@ -179,9 +179,9 @@ def bank_flops(N: int = N_SAT, n: int = 17, s: int = 8, rows_per_sat: int = 2) -
         + _mm(n, s, s)  # L = P E' (I + J C)^-1
         + _mm(1, m, s)
         + _mm(n, s, 1)  # x update L G_a' R^-1 r
-        + _mm(s, s, n)  # J L' (in I - K H and K_a R K_b')
     )
-    joseph = K * (_mm(n, n, n) + _mm(n, n + s, n))  # [(I - K_a H) P | L_a] [I - K_b H | L_b J_b]'
+    # per member L J and W = J L'; per block T = P - (L_a J_a)(E P), P <- T + (L_a - T E') W_b
+    joseph = B * (_mm(n, s, s) + _mm(s, s, n)) + K * 2 * _mm(n, s, n)
     ref_gain = B * (
         _mm(n, n, m)  # P H'
         + _mm(m, n, m)  # H P H'
