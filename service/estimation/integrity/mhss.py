@@ -75,6 +75,7 @@ the old main. Every needed new block then maps to an old block (or a member cova
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Sequence
@@ -90,8 +91,10 @@ V_IDX = 2  # up
 
 
 # --- multipliers ------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=256)
 def q_inv(p: float) -> float:
-    """Q^-1(p): the upper-tail standard normal quantile (Q(k) = P(z > k))."""
+    """Q^-1(p): the upper-tail standard normal quantile (Q(k) = P(z > k)); cached (the monitor asks
+    for the same few every epoch)."""
     return float(-special.ndtri(p))
 
 

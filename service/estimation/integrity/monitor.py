@@ -396,8 +396,7 @@ class MhssMonitor:
                 raise NotPositiveDefinite("main filter covariance after the MHSS update")
             if mh.depth >= 1 and self.residual.windows:
                 # the pseudorange row of each bank column (one per used satellite)
-                labels = [lab for lab, s in zip(meas.labels, sel, strict=True) if s]
-                is_pr = np.array([lab.endswith(".pr") for lab in labels])
+                is_pr = np.array([lab.endswith(".pr") for lab in meas.labels], dtype=bool)[sel]
                 pr_idx = np.flatnonzero(is_pr)
                 pr_row = np.full(mh.N, -1)
                 pr_row[rcol[pr_idx]] = pr_idx
