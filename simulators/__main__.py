@@ -25,6 +25,16 @@ EVAL_EXAMPLES = """examples:
 DEFAULT_IMU_BATCH = 10  # simulators.publisher.DEFAULT_IMU_BATCH (not imported: zenoh loads lazily)
 
 
+def _seed_list(text: str) -> list[int]:
+    try:
+        seeds = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of integers: {text!r}") from None
+    if len(seeds) < 2 or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise argparse.ArgumentTypeError("give at least two different seeds >= 0, e.g. 3,103,203")
+    return seeds
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     from fednav.service.__main__ import version
 
@@ -66,6 +76,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--runs", type=int, default=1, help="seeded Monte Carlo runs: seeds S, S+1, ... (default 1)"
     )
     e.add_argument("--seed", type=int, help="first seed S (default: the scenario's)")
+    e.add_argument(
+        "--seeds",
+        type=_seed_list,
+        help="several seed sets, e.g. 3,103,203: --runs runs from each first seed; prints every figure's "
+        "mean over the sets with its min-max spread (and each set's own result with --json)",
+    )
     e.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
     e.add_argument(
         "--window",
@@ -130,13 +146,29 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs < 1:
         print("--runs must be >= 1", file=sys.stderr)
         return 2
+    if args.seeds and args.seed is not None:
+        print("--seed and --seeds: give one of them", file=sys.stderr)
+        return 2
     if scenario.wing is not None:  # transfer alignment (seed 002): per-node alignment metrics
         from fednav.simulators import transfer_eval
 
+        if args.seeds:
+            sets = [transfer_eval.evaluate(scenario, runs=args.runs, seed=s) for s in args.seeds]
+            return _print_seed_sets(sets, args)
         seed = scenario.seed if args.seed is None else args.seed
         result = transfer_eval.evaluate(scenario, runs=args.runs, seed=seed)
         print(json.dumps(result, indent=2) if args.json else transfer_eval.format_table(result))
         return 0
+    if args.seeds:
+        try:
+            sets = [
+                evaluate(scenario, runs=args.runs, seed=s, window=tuple(args.window) if args.window else None)
+                for s in args.seeds
+            ]
+        except ConfigError as exc:
+            print(exc, file=sys.stderr)
+            return 2
+        return _print_seed_sets(sets, args)
     from fednav.simulators.progress import EvalProgress
 
     bar = EvalProgress(scenario, args.runs, enabled=not args.json and sys.stderr.isatty())
@@ -155,6 +187,17 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         bar.close()
     print(json.dumps(result, indent=2) if args.json else format_table(result))
+    return 0
+
+
+def _print_seed_sets(sets: list[dict], args) -> int:
+    from fednav.simulators.evaluate import across_seed_sets, format_seed_sets
+
+    summary = across_seed_sets(sets)
+    if args.json:
+        print(json.dumps({"seed_sets": summary, "sets": sets}, indent=2))
+    else:
+        print(format_seed_sets(summary))
     return 0
 
 

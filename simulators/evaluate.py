@@ -405,3 +405,54 @@ def format_integrity(result: dict) -> list[str]:
                 f"{'never' if lat is None else f'{lat:.2f} s'}"
             )
     return lines
+
+
+def across_seed_sets(sets: list[dict]) -> dict:
+    """Every numeric figure of several evaluations (one per seed set, the same scenario and runs):
+    its mean over the sets, min, max and the values, by the same path (``pipelines.tc.pos_rms_m``).
+    Timing is left out; figures missing from a set are left out of that figure's statistics."""
+    leaves: dict[str, list[float]] = {}
+
+    def walk(node, path: str) -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if path == "" and k in ("timing", "seed", "runs"):
+                    continue
+                walk(v, f"{path}.{k}" if path else k)
+        elif isinstance(node, list):
+            for i, v in enumerate(node):
+                walk(v, f"{path}[{i}]")
+        elif isinstance(node, (int, float)) and not isinstance(node, bool) and math.isfinite(node):
+            leaves.setdefault(path, []).append(float(node))
+
+    for r in sets:
+        walk(r, "")
+    return {
+        "seeds": [r.get("seed") for r in sets],
+        "runs_per_set": sets[0].get("runs"),
+        "figures": {
+            p: {"mean": float(np.mean(v)), "min": float(min(v)), "max": float(max(v)), "values": v}
+            for p, v in leaves.items()
+        },
+    }
+
+
+#: the figures the seed-set table shows per pipeline (every figure is in the JSON)
+SEED_SET_COLUMNS = ("pos_rms_m", "h_rms_m", "nees.mean")
+
+
+def format_seed_sets(summary: dict) -> str:
+    """The main figures per pipeline: mean over the seed sets [min - max]."""
+    figs = summary["figures"]
+    names = sorted({p.split(".")[1] for p in figs if p.startswith("pipelines.")})
+    lines = [
+        f"seed sets {summary['seeds']}, {summary['runs_per_set']} runs each: mean over the sets [min - max]",
+        f"{'pipeline':24s}" + "".join(f"{c:>30s}" for c in SEED_SET_COLUMNS),
+    ]
+    for n in names:
+        cells = []
+        for c in SEED_SET_COLUMNS:
+            f = figs.get(f"pipelines.{n}.{c}")
+            cells.append(f"{f['mean']:.4g} [{f['min']:.4g} - {f['max']:.4g}]" if f else "-")
+        lines.append(f"{n:24s}" + "".join(f"{c:>30s}" for c in cells))
+    return "\n".join(lines)
