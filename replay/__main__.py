@@ -6,7 +6,14 @@ time order, with the keys, JSON wire messages and publisher settings of ``fednav
 (simulators/publisher.py: reliable, blocking congestion control, waits for the service to
 match). ``--speed 0`` (default) publishes as fast as the service takes it; ``--speed 1`` at
 recorded pace. A progress bar is drawn on a terminal (not with ``--json`` or when stderr is not
-a terminal). Exit codes: 0 done, 1 usage/mapping error, 2 checks failed, 3 no service matched.
+a terminal). The service's endpoint: ``--connect``, else the mapping's ``endpoint``, else the
+publisher's default (tcp/127.0.0.1:7447).
+
+``--suggest-config [OUT.toml]`` (replay/suggest.py) estimates the IMU's noise and bias level and the
+fixes' error from the log and writes a service configuration (to stdout without OUT), with where
+each number came from; it publishes nothing.
+
+Exit codes: 0 done, 1 usage/mapping error, 2 checks failed, 3 no service matched.
 """
 
 from __future__ import annotations
@@ -78,7 +85,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--check", action="store_true", help="only check the logs and the mapping; publish nothing"
     )
     ap.add_argument("--speed", type=float, default=0.0, help="0: as fast as possible (default); 1: real time")
-    ap.add_argument("--connect", action="append", default=None, help="Zenoh endpoint of the service")
+    ap.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        help="Zenoh endpoint of the service (default: the mapping's 'endpoint', else tcp/127.0.0.1:7447)",
+    )
     ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
     ap.add_argument("--zenoh-config", default=None, help="Zenoh config file (TLS, access control)")
     ap.add_argument("--vehicle", default=None, help="override the mapping's vehicle name")
@@ -92,6 +104,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="IMU samples per binary ImuBatch (default 10); 1 = one JSON ImuSample each",
     )
     ap.add_argument("--json", action="store_true", help="print one JSON summary on stdout, no progress bar")
+    ap.add_argument(
+        "--suggest-config",
+        nargs="?",
+        const="-",
+        default=None,
+        metavar="OUT.toml",
+        help="estimate the IMU grade, fix sigmas and correlated error from the log and write a service "
+        "configuration (stdout without OUT.toml); publishes nothing",
+    )
     return ap.parse_args(argv)
 
 
@@ -110,10 +131,14 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     vehicle = args.vehicle or mapping.vehicle
     report: Report = run_checks(mapping, base)
+    mapping = report.mapping  # boot_offset_s = "auto" resolved
     summary: dict = {"vehicle": vehicle, "check": report.as_dict()}
+    out = sys.stderr if args.suggest_config == "-" and not args.json else sys.stdout
     if not args.json:
-        print(f"fednav-replay {args.mapping} -> {mapping.prefix}/{vehicle}/...")
-        print(report.text())
+        print(f"fednav-replay {args.mapping} -> {mapping.prefix}/{vehicle}/...", file=out)
+        print(report.text(), file=out)
+    if args.suggest_config is not None:
+        return _suggest(args, mapping, base, report, summary)
     if args.check or (report.errors and not args.force):
         if args.json:
             print(json.dumps(summary))
@@ -127,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         result = publish_stream(
             keyed(all_events(mapping, base), mapping.prefix, vehicle, progress),
             speed=args.speed,
-            connect=args.connect,
+            connect=args.connect or ([mapping.endpoint] if mapping.endpoint else None),
             listen=args.listen,
             zenoh_config=args.zenoh_config,
             match_timeout_s=args.match_timeout,
@@ -146,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except zenoh.ZError as exc:
         progress.close()
-        where = ", ".join(args.connect or ["tcp/127.0.0.1:7447"])
+        where = ", ".join(args.connect or [mapping.endpoint or "tcp/127.0.0.1:7447"])
         print(
             f"fednav-replay: cannot reach a Zenoh peer at {where} ({exc}): is fednav-service running?",
             file=sys.stderr,
@@ -159,6 +184,41 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary))
     else:
         print(f"published {result['messages']} messages in {result['wall_s']:.2f} s ({rate:.0f} msg/s)")
+    return 0
+
+
+def _suggest(args, mapping, base: Path, report: Report, summary: dict) -> int:
+    """``--suggest-config``: refused while a check fails (unless --force: the estimate would be
+    made from wrongly mapped data)."""
+    from .suggest import SuggestError, suggest_config
+
+    if report.errors and not args.force:
+        print(
+            "fednav-replay: --suggest-config needs a mapping that passes the checks: fix the errors above "
+            "(or --force)",
+            file=sys.stderr,
+        )
+        if args.json:
+            print(json.dumps(summary))
+        return 2
+    try:
+        sug = suggest_config(mapping, base, report)
+    except SuggestError as exc:
+        print(f"fednav-replay: --suggest-config: {exc}", file=sys.stderr)
+        return 1
+    summary["suggestion"] = sug.as_dict()
+    if args.suggest_config == "-":
+        if args.json:
+            print(json.dumps(summary))
+        else:
+            print(sug.toml)
+        return 0
+    Path(args.suggest_config).write_text(sug.toml)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(sug.summary_text())
+        print(f"wrote {args.suggest_config}: start the service with --config {args.suggest_config}")
     return 0
 
 

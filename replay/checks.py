@@ -1,33 +1,67 @@
 """Checks of a replay before anything is published, each stated in plain words.
 
-- gravity: in the IMU's first second (when at rest) the mapped specific force must point up
-  (+9.8 m/s^2 on fednav's z, body right-forward-up); else the axes or units are named as wrong
-  ("IMU z axis reads -9.8 m/s^2 at rest: axes look like FRD, mapping says FLU");
-- stamp alignment: streams whose first stamps are more than a minute apart have different
-  time bases ("time bases differ: ...");
-- monotonic stamps: stamps going backwards or repeating, per stream;
-- rates: an empty stream, an IMU below 50 Hz or with gaps the service treats as IMU loss, the
-  rate of each stream.
-Errors stop the replay (``--force`` publishes anyway); warnings are printed.
+Every stream is read once, as it will be published (the decoded events: one implementation for
+CSV, NMEA, UBX and ROS bags alike), and checked:
+
+- units and gravity: in the IMU's first second when it is at rest, else over the whole log
+  (a land vehicle's accelerations average out), the mapped specific force must be about
+  9.8 m/s^2 (an accelerometer in g declared m/s^2 reads about 1) and point up on fednav's z
+  (body right-forward-up); else the axes are named ("IMU z axis reads -9.8 m/s^2 at rest:
+  axes look like FRD, mapping says FLU");
+- motion against the GNSS (logs that start in motion as well as at rest): over windows of about
+  a second in motion, the acceleration and course rate derived from the fixes, rotated into the
+  vehicle's axes (heading = course), against the IMU's mean specific force and rate over the same
+  windows: the horizontal axes and their signs (forward/right swapped, mounted backwards, one
+  sign mirrored), the gyro's yaw axis, sign and unit (yaw rate against course rate), and the
+  time offset between the IMU's and the GNSS's stamps (the lag that best aligns the IMU's
+  rotation with the course's: a wrong boot offset, leap seconds, a receiver's output latency).
+  A wrong mapping is named with the one that fits ("the IMU's axes look like FLU, not FRD:
+  set axes = 'FLU'");
+- stamps: converted stamps that are no plausible GPS time (what the stamps look like: seconds
+  since boot, milliseconds, POSIX), streams whose first stamps are more than a minute apart,
+  stamps going backwards or repeating;
+- rates: an empty stream, an IMU below 50 Hz or with gaps the service treats as IMU loss;
+- sigmas: per GNSS stream, the sigma its fixes carry and where it came from (the receiver's
+  GST / covariance / accuracy fields, the mapping, or GnssFix's default for the fix type and HDOP).
+
+Errors stop the replay (``--force`` publishes anyway); warnings and notes are printed.
+``resolve_boot_offsets`` turns ``boot_offset_s = "auto"`` into a number before the checks.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import itertools
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .mapping import GPS_EPOCH_UNIX_S, ReplayMapping, StreamMapping, axes_matrix, axes_name
+from fednav.service import earth
+from fednav.service.messages import DEFAULT_H_STD_M, DEFAULT_SPEED_STD_MPS, GnssFix, ImuSample
+
+from .mapping import (
+    G0_MPS2,
+    GPS_EPOCH_UNIX_S,
+    ReplayMapping,
+    StreamMapping,
+    axes_matrix,
+    axes_name,
+    from_gps_s,
+    with_stream,
+)
 from .sources import SourceError, stream_events
 
 STATIC_WINDOW_S = 1.0  # the first second of the IMU is tested for rest and gravity
 REST_ACCEL_STD_MPS2 = 0.3  # at rest: specific-force scatter below this (phone MEMS noise ~0.05)
 REST_RATE_RPS = 0.05  # at rest: mean rotation rate below this (about 3 deg/s)
 GRAVITY_RANGE_MPS2 = (9.5, 10.1)  # |g| anywhere on Earth is 9.76-9.84; allow for bias and noise
+#: in motion the median |specific force| is sqrt(g^2 + a^2) with vehicle accelerations a
+MOTION_GRAVITY_RANGE_MPS2 = (9.0, 11.5)
 TIME_BASES_DIFFER_S = 60.0
+#: a converted first stamp outside 1989..2059 (GPS seconds) is not a plausible GPS time of a log
+PLAUSIBLE_GPS_S = (3.0e8, 2.5e9)
 MIN_IMU_RATE_HZ = 50.0
 IMU_GAP_S = 0.5  # the service's default [intake] max_imu_gap_s
 COMMON_AXES = ("FLU", "FRD", "RFU")
@@ -36,6 +70,20 @@ SKIP_HINTS = {
     "(deg/s data declared rad/s?) and accel_unit",
     "no_velocity": ": no twist within 0.05 s of the fix (published as position-only fixes)",
 }
+
+# --- motion against the GNSS --------------------------------------------------------------------
+MIN_SPEED_MPS = 3.0  # course and course rate are used above this speed
+WINDOW_S = 1.0  # acceleration / course-rate windows (rounded to whole fix intervals)
+MIN_MOTION_EPOCHS = 20  # windows in motion needed to compare the IMU with the GNSS
+TURN_RATE_RPS = math.radians(2.0)  # a window turning faster than this counts as a turn
+MIN_TURN_EPOCHS = 8  # turning windows needed for the yaw and time-offset checks
+MIN_HORIZONTAL_ACCEL_MPS2 = 0.3  # RMS horizontal acceleration needed to check forward/right
+LAG_ERROR_S = 0.05  # IMU vs GNSS stamps: an error above this (1.5 m along track at 30 m/s)
+LAG_WARN_S = 0.02
+LAG_MIN_CORRELATION = 0.8
+MAX_LAG_S = 30.0  # lags searched (covers the 18 leap seconds)
+GYRO_SCALE_OK = (0.8, 1.25)  # yaw rate / course rate
+DEG_PER_RAD = 180.0 / math.pi
 
 
 @dataclass
@@ -50,6 +98,7 @@ class StreamReport:
     repeated: int = 0
     gaps: int = 0
     skipped: dict = field(default_factory=dict)
+    sigma: dict | None = None  # GNSS fixes: the sigmas they carry and where they came from
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -60,6 +109,10 @@ class Report:
     streams: list[StreamReport] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # what was found (motion check, derived values)
+    motion: dict = field(default_factory=dict)  # per IMU: the motion check's figures
+    #: decoded data by stream index (not serialised): ImuData / FixData for suggest and tests
+    data: dict = field(default_factory=dict, repr=False)
 
     @property
     def total(self) -> int:
@@ -70,6 +123,8 @@ class Report:
             "streams": [s.as_dict() for s in self.streams],
             "errors": self.errors,
             "warnings": self.warnings,
+            "notes": self.notes,
+            "motion": self.motion,
             "messages": self.total,
         }
 
@@ -79,6 +134,9 @@ class Report:
             span = f"{s.t_last - s.t_first:.1f} s" if s.count else "-"
             rate = f"{s.rate_hz:.1f} Hz" if s.rate_hz else "rate unknown"
             lines.append(f"  {s.name}: {s.count} messages, {span}, {rate}, starts {gps_str(s.t_first)}")
+            if s.sigma:
+                lines.append(f"    sigmas: {s.sigma['text']}")
+        lines += [f"  {n}" for n in self.notes]
         lines += [f"ERROR: {e}" for e in self.errors]
         lines += [f"warning: {w}" for w in self.warnings]
         lines.append(
@@ -98,6 +156,105 @@ def gps_str(t: float | None) -> str:
     return f"{when:%Y-%m-%d %H:%M:%S} GPS (t={t:.3f})"
 
 
+# --- decoded data -----------------------------------------------------------------------------------
+@dataclass
+class ImuData:
+    """An IMU stream as published: interval ends ``t``, lengths ``dt``, increments in fednav's
+    RFU body axes (the mapping's axes and units applied)."""
+
+    t: np.ndarray
+    dt: np.ndarray
+    dtheta: np.ndarray  # (N, 3) rad
+    dvel: np.ndarray  # (N, 3) m/s
+
+    @classmethod
+    def from_samples(cls, samples: list[ImuSample]) -> ImuData:
+        n = len(samples)
+        t = np.fromiter((s.t for s in samples), float, n)
+        d = np.fromiter((s.dt_s for s in samples), float, n)
+        th = np.array([s.dtheta_rad for s in samples], float).reshape(n, 3)
+        dv = np.array([s.dvel_mps for s in samples], float).reshape(n, 3)
+        return cls(t, d, th, dv)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def rates(self) -> tuple[np.ndarray, np.ndarray]:
+        """(angular rate rad/s, specific force m/s^2), (N, 3) each."""
+        return self.dtheta / self.dt[:, None], self.dvel / self.dt[:, None]
+
+    def cumulative(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Times (N+1: the first interval's start, then every end) and the running integrals of
+        angle and velocity increments at them."""
+        tc = np.concatenate([[self.t[0] - self.dt[0]], self.t])
+        th = np.vstack([np.zeros(3), np.cumsum(self.dtheta, axis=0)])
+        dv = np.vstack([np.zeros(3), np.cumsum(self.dvel, axis=0)])
+        return tc, th, dv
+
+    def gap_times(self, factor: float = 3.0) -> np.ndarray:
+        """Ends of intervals that follow a gap (stamp step above ``factor`` x the median step)."""
+        if len(self.t) < 3:
+            return np.zeros(0)
+        step = np.diff(self.t)
+        return self.t[1:][step > factor * float(np.median(step))]
+
+
+@dataclass
+class FixData:
+    """A GNSS fix stream: times, positions, ENU velocity (NaN rows where the fix has none)."""
+
+    t: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    h_m: np.ndarray
+    vel: np.ndarray  # (N, 3); vertical NaN for speed + course fixes without a vertical rate
+    msgs: list[GnssFix]
+
+    @classmethod
+    def from_fixes(cls, fixes: list[GnssFix]) -> FixData:
+        vel = np.full((len(fixes), 3), np.nan)
+        for i, f in enumerate(fixes):
+            if f.vel_enu_mps is not None:
+                vel[i] = f.vel_enu_mps
+            elif f.speed_mps is not None and f.course_deg is not None:
+                c = math.radians(f.course_deg)
+                vel[i, :2] = (f.speed_mps * math.sin(c), f.speed_mps * math.cos(c))
+                if f.vertical_rate_mps is not None:
+                    vel[i, 2] = f.vertical_rate_mps
+        return cls(
+            np.array([f.t for f in fixes], float),
+            np.array([f.lat_deg for f in fixes], float),
+            np.array([f.lon_deg for f in fixes], float),
+            np.array([f.height_m for f in fixes], float),
+            vel,
+            fixes,
+        )
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def enu(self) -> np.ndarray:
+        """(N, 3) positions in a local tangent plane at the first fix, m."""
+        lat0, h0 = math.radians(self.lat_deg[0]), float(self.h_m[0])
+        r_m, r_n = earth.radii(lat0)
+        e = np.radians(self.lon_deg - self.lon_deg[0]) * (r_n + h0) * math.cos(lat0)
+        n = np.radians(self.lat_deg - self.lat_deg[0]) * (r_m + h0)
+        return np.stack([e, n, self.h_m - h0], axis=1)
+
+    def velocity(self) -> np.ndarray:
+        """ENU velocity at every fix: the fix's own where it has one, else central differences of
+        the positions (the vertical from heights when the fix gives none)."""
+        v = self.vel.copy()
+        if len(self.t) < 3:
+            return v
+        p = self.enu()
+        dp = np.gradient(p, self.t, axis=0)
+        missing = np.isnan(v)
+        v[missing] = dp[missing]
+        return v
+
+
+# --- gravity and units -------------------------------------------------------------------------------
 def suggest_axes(declared: str, axis: int, up: bool) -> str | None:
     """The right-handed three-letter name closest to ``declared`` whose source axis ``axis``
     points up (``up``) or down."""
@@ -118,106 +275,579 @@ def suggest_axes(declared: str, axis: int, up: bool) -> str | None:
     return best[1] if best else None
 
 
-def gravity_check(stream: StreamMapping, samples: list, report: Report) -> None:
-    """``samples``: the ImuSample messages of the IMU's first STATIC_WINDOW_S (already mapped)."""
-    name = f"IMU {stream.sensor_id!r}"
+def _declared(stream: StreamMapping) -> str | None:
+    return stream.axes.upper() if isinstance(stream.axes, str) else axes_name(stream.matrix())
+
+
+def at_rest(samples: list[ImuSample]) -> bool | None:
+    """Whether the IMU is at rest over ``samples`` (None: too few to tell)."""
     if len(samples) < 5:
-        report.warnings.append(f"{name}: too few samples in its first second to check gravity")
-        return
+        return None
     dts = np.array([s.dt_s for s in samples])
     f = np.array([s.dvel_mps for s in samples]) / dts[:, None]
     w = np.array([s.dtheta_rad for s in samples]) / dts[:, None]
-    f_mean, w_mean = f.mean(axis=0), np.linalg.norm(w.mean(axis=0))
-    if f.std(axis=0).max() > REST_ACCEL_STD_MPS2 or w_mean > REST_RATE_RPS:
-        report.warnings.append(
-            f"{name} is not at rest in its first second (specific-force scatter "
-            f"{f.std(axis=0).max():.2f} m/s^2, rate {np.degrees(w_mean):.1f} deg/s): "
-            "gravity direction not checked"
-        )
-        return
-    g = float(np.linalg.norm(f_mean))
+    return bool(
+        f.std(axis=0).max() <= REST_ACCEL_STD_MPS2 and np.linalg.norm(w.mean(axis=0)) <= REST_RATE_RPS
+    )
+
+
+def gravity_check(
+    stream: StreamMapping,
+    imu: ImuData,
+    report: Report,
+    first: list[ImuSample],
+    speed_mps: float | None = None,
+) -> bool:
+    """Units and the up axis from the mean specific force: over the IMU's first second when it is
+    steady there (``first``: its samples; at rest, or at constant velocity: ``speed_mps`` from the
+    fixes), else over the whole log (``imu``). Returns True when the units and the up axis look
+    right (or cannot be told), False after naming an error."""
+    name = f"IMU {stream.sensor_id!r}"
+    rest = at_rest(first)
+    if rest:
+        dts = np.array([s.dt_s for s in first])
+        f_mean = (np.array([s.dvel_mps for s in first]) / dts[:, None]).mean(axis=0)
+        g_typ = float(np.linalg.norm(f_mean))
+        where, (lo, hi) = "at rest", GRAVITY_RANGE_MPS2
+        if speed_mps is not None and speed_mps > 1.0:
+            where = f"in its steady first second (moving at {speed_mps:.1f} m/s)"
+    else:
+        if len(imu) < 5:
+            report.warnings.append(f"{name}: too few samples to check gravity")
+            return True
+        _, f = imu.rates()
+        g_typ = float(np.median(np.linalg.norm(f, axis=1)))
+        f_mean = imu.dvel.sum(axis=0) / imu.dt.sum()
+        where, (lo, hi) = "on average over the log (in motion)", MOTION_GRAVITY_RANGE_MPS2
     m = stream.matrix()
-    f_src = m.T @ f_mean / stream.accel_scale()  # in the source's axes and unit
-    j = int(np.argmax(np.abs(f_src)))
-    axis = "xyz"[j]
     unit = stream.accel_unit
-    if 0.9 < g < 1.1 and stream.accel_unit == "m/s^2":
+    if 0.8 < g_typ < 1.3 and unit == "m/s^2":
         report.errors.append(
-            f"{name} reads {g:.2f} m/s^2 at rest (gravity is 9.8): the accelerometer looks like it is in g, "
-            "mapping says accel_unit = 'm/s^2'"
+            f"{name} reads {g_typ:.2f} m/s^2 {where} (gravity is 9.8): the accelerometer looks like it is "
+            "in g, mapping says accel_unit = 'm/s^2': set accel_unit = 'g'"
         )
-        return
-    if 85.0 < g < 110.0 and stream.accel_unit == "g":
+        return False
+    if 78.0 < g_typ < 128.0 and unit == "g":
         report.errors.append(
-            f"{name} reads {g / 9.80665:.1f} g at rest: the accelerometer looks like it is in m/s^2, "
-            "mapping says accel_unit = 'g'"
+            f"{name} reads {g_typ / G0_MPS2:.1f} g {where}: the accelerometer looks like it is in m/s^2, "
+            "mapping says accel_unit = 'g': set accel_unit = 'm/s^2'"
         )
-        return
-    if not GRAVITY_RANGE_MPS2[0] < g < GRAVITY_RANGE_MPS2[1]:
+        return False
+    if not lo < g_typ < hi:
         report.errors.append(
-            f"{name} reads |f| = {g:.2f} m/s^2 at rest, expected about 9.8: "
+            f"{name} reads |f| = {g_typ:.2f} m/s^2 {where}, expected about 9.8: "
             "check accel_unit and the scale of the data"
         )
-        return
+        return False
+    g = float(np.linalg.norm(f_mean))
+    if not rest and not 0.85 * g_typ < g < 1.15 * g_typ:
+        report.warnings.append(
+            f"{name}: its mean specific force over the log ({g:.1f} m/s^2) is not gravity's: the up axis "
+            "is not checked (not a land vehicle?)"
+        )
+        return True
     if f_mean[2] > 0.9 * g:
-        return  # gravity reaction on fednav's up axis: the axes agree
-    declared = stream.axes if isinstance(stream.axes, str) else axes_name(m)
+        return True  # gravity reaction on fednav's up axis: the axes agree
+    f_src = m.T @ f_mean / stream.accel_scale()  # in the source's axes and unit
+    j = int(np.argmax(np.abs(f_src)))
+    if abs(f_src[j]) * stream.accel_scale() < 0.9 * g:
+        report.warnings.append(
+            f"{name}: the mean specific force {where} points between the axes (fednav right/forward/up "
+            f"{np.round(f_mean, 2).tolist()} m/s^2): a tilted mount? A 3x3 axes matrix can state it"
+        )
+        return True
+    axis = "xyz"[j]
     read = f"{f_src[j]:+.1f} {unit}"
+    declared = _declared(stream)
     if declared:
-        hint = suggest_axes(declared.upper(), j, f_src[j] > 0)
+        hint = suggest_axes(declared, j, f_src[j] > 0)
         report.errors.append(
-            f"{name} {axis} axis reads {read} at rest: axes look like {hint}, mapping says {declared.upper()}"
+            f"{name} {axis} axis reads {read} {where}: axes look like {hint}, mapping says {declared}"
         )
     else:
         report.errors.append(
-            f"{name} {axis} axis reads {read} at rest, so it points {'up' if f_src[j] > 0 else 'down'}; "
+            f"{name} {axis} axis reads {read} {where}, so it points {'up' if f_src[j] > 0 else 'down'}; "
             f"the axes matrix sends it to fednav {np.round(m[:, j], 3).tolist()} (right, forward, up): "
             "check the matrix"
         )
+    return False
+
+
+# --- motion against the GNSS ---------------------------------------------------------------------------
+@dataclass
+class Kinematics:
+    """What the fixes say the IMU should read, per window [ta, tb] in motion (GNSS time):
+    mean specific force in the vehicle's right/forward/up axes with heading = course, the rate
+    about up (counter-clockwise positive: minus the course rate) and the course change."""
+
+    ta: np.ndarray
+    tb: np.ndarray
+    f_exp: np.ndarray  # (M, 3) m/s^2
+    w_up: np.ndarray  # (M,) rad/s
+    turn: np.ndarray  # (M,) |course change| over the window, rad
+    speed: np.ndarray  # (M,) m/s
+
+    def __len__(self) -> int:
+        return len(self.ta)
+
+
+def fix_kinematics(fx: FixData, window_s: float = WINDOW_S) -> Kinematics | None:
+    """Windows of about ``window_s`` (whole fix intervals) between fixes in motion."""
+    n = len(fx)
+    if n < 5:
+        return None
+    step = float(np.median(np.diff(fx.t)))
+    if not step > 0:
+        return None
+    k = max(1, int(round(0.5 * window_s / step)))
+    if n < 2 * k + 1:
+        return None
+    v = fx.velocity()
+    i = np.arange(k, n - k)
+    a_i, b_i = i - k, i + k
+    ta, tb = fx.t[a_i], fx.t[b_i]
+    span = tb - ta
+    ok = np.abs(span - 2 * k * step) < 0.5 * step  # no missing fix inside
+    va, vb = v[a_i], v[b_i]
+    sa, sb = np.hypot(va[:, 0], va[:, 1]), np.hypot(vb[:, 0], vb[:, 1])
+    ok &= (sa >= MIN_SPEED_MPS) & (sb >= MIN_SPEED_MPS) & np.isfinite(sa) & np.isfinite(sb)
+    if ok.sum() < MIN_MOTION_EPOCHS:
+        return None
+    ta, tb, va, vb, span, speed = ta[ok], tb[ok], va[ok], vb[ok], span[ok], 0.5 * (sa + sb)[ok]
+    acc = (vb - va) / span[:, None]
+    acc[:, 2] = np.where(np.isfinite(fx.vel[a_i[ok], 2]) & np.isfinite(fx.vel[b_i[ok], 2]), acc[:, 2], 0.0)
+    course_a, course_b = np.arctan2(va[:, 0], va[:, 1]), np.arctan2(vb[:, 0], vb[:, 1])
+    dcourse = (course_b - course_a + np.pi) % (2 * np.pi) - np.pi  # clockwise positive
+    vm = va + vb
+    c = np.arctan2(vm[:, 0], vm[:, 1])
+    right = acc[:, 0] * np.cos(c) - acc[:, 1] * np.sin(c)
+    fwd = acc[:, 0] * np.sin(c) + acc[:, 1] * np.cos(c)
+    g = earth.gravity_normal(math.radians(float(fx.lat_deg[0])), float(fx.h_m[0]))
+    f_exp = np.stack([right, fwd, g + acc[:, 2]], axis=1)
+    return Kinematics(ta, tb, f_exp, -dcourse / span, np.abs(dcourse), speed)
+
+
+def _at(tc: np.ndarray, cum: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Running integrals (columns of ``cum``) interpolated at times ``t`` (any shape) -> (*t.shape, 3)."""
+    return np.stack([np.interp(t, tc, cum[:, j]) for j in range(cum.shape[1])], axis=-1)
+
+
+def imu_means(imu: ImuData, ta: np.ndarray, tb: np.ndarray, lag: float = 0.0):
+    """Mean angular rate and specific force of the IMU over [ta + lag, tb + lag] (RFU), and which
+    windows the IMU covers without a gap."""
+    tc, th, dv = imu.cumulative()
+    a, b = ta + lag, tb + lag
+    valid = (a >= tc[0]) & (b <= tc[-1])
+    gaps = imu.gap_times()
+    if len(gaps):
+        valid &= np.searchsorted(gaps, a, "right") == np.searchsorted(gaps, b, "right")
+    span = (b - a)[:, None]
+    return (_at(tc, th, b) - _at(tc, th, a)) / span, (_at(tc, dv, b) - _at(tc, dv, a)) / span, valid
+
+
+def _corr(x: np.ndarray, y: np.ndarray) -> float:
+    x, y = x - x.mean(), y - y.mean()
+    d = math.sqrt(float((x * x).sum() * (y * y).sum()))
+    return float((x * y).sum() / d) if d > 0 else 0.0
+
+
+def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) -> dict | None:
+    """How late the IMU's stamps are against the GNSS's (s): the lag L maximising the correlation
+    of the IMU's rotation over [ta + L, tb + L] (its magnitude: whatever the axes) with the
+    course change over [ta, tb]. None without enough turns. The IMU's event at true time T is
+    stamped T + L: subtract L from its stamps (``time_offset_s -= L``)."""
+    turning = kin.turn / (kin.tb - kin.ta) > TURN_RATE_RPS
+    if turning.sum() < MIN_TURN_EPOCHS:
+        return None
+    sel = np.flatnonzero(turning | (np.arange(len(kin)) % max(1, len(kin) // 1500) == 0))[:4000]
+    ta, tb, g = kin.ta[sel], kin.tb[sel], kin.turn[sel]
+    tc, th, _ = imu.cumulative()
+    gaps = imu.gap_times()
+    max_lag_s = min(max_lag_s, 0.5 * float(tb[-1] - ta[0]))
+
+    def scores(lags: np.ndarray) -> np.ndarray:
+        out = np.full(len(lags), -np.inf)
+        for c0 in range(0, len(lags), 128):
+            L = lags[c0 : c0 + 128, None]
+            a, b = ta[None, :] + L, tb[None, :] + L
+            rot = np.linalg.norm(_at(tc, th, b) - _at(tc, th, a), axis=-1)
+            valid = (a >= tc[0]) & (b <= tc[-1])
+            if len(gaps):
+                valid &= np.searchsorted(gaps, a, "right") == np.searchsorted(gaps, b, "right")
+            for r in range(len(L)):
+                v = valid[r]
+                if v.sum() >= max(MIN_TURN_EPOCHS, 0.5 * len(g)) and (v & (g > 0)).any():
+                    out[c0 + r] = _corr(rot[r, v], g[v])
+        return out
+
+    coarse = 0.02 if max_lag_s > 2.0 else 0.005
+    lags = np.arange(-max_lag_s, max_lag_s + 0.5 * coarse, coarse)
+    sc = scores(lags)
+    if not np.isfinite(sc).any():
+        return None
+    best = lags[int(np.argmax(sc))]
+    fine = np.arange(best - 2 * coarse, best + 2 * coarse + 1e-4, 0.001)
+    sf = scores(fine)
+    j = int(np.argmax(sf))
+    lag = float(fine[j])
+    if 0 < j < len(fine) - 1 and np.all(np.isfinite(sf[j - 1 : j + 2])):
+        y0, y1, y2 = sf[j - 1], sf[j], sf[j + 1]
+        den = y0 - 2 * y1 + y2
+        if den < 0:
+            lag += 0.001 * 0.5 * (y0 - y2) / den
+    return {"lag_s": lag, "correlation": float(sf[j]), "turn_windows": int(turning.sum())}
+
+
+#: horizontal signed 2x2 maps (fednav right/forward from the mapped x/y): what each one means
+_HORIZONTAL = [
+    (np.array([[1, 0], [0, 1]]), "agree"),
+    (np.array([[-1, 0], [0, -1]]), "forward and right both read reversed (mounted backwards)"),
+    (np.array([[0, 1], [-1, 0]]), "forward and right are exchanged (turned 90 degrees)"),
+    (np.array([[0, -1], [1, 0]]), "forward and right are exchanged (turned 90 degrees)"),
+    (np.array([[1, 0], [0, -1]]), "forward reads reversed while right does not: the data are mirrored"),
+    (np.array([[-1, 0], [0, 1]]), "right reads reversed while forward does not: the data are mirrored"),
+    (np.array([[0, 1], [1, 0]]), "forward and right are exchanged and mirrored"),
+    (np.array([[0, -1], [-1, 0]]), "forward and right are exchanged and mirrored"),
+]
+
+
+def _horizontal_misfit(x: np.ndarray, y: np.ndarray) -> float:
+    """Mean squared misfit of measured (right, forward) ``x`` against expected ``y``, the lateral
+    part scaled by the factor in [0, 1] that fits best (banking vehicles read less of it)."""
+    den = float((y[:, 0] ** 2).sum())
+    gain = min(max(float((x[:, 0] * y[:, 0]).sum()) / den, 0.0), 1.0) if den > 0 else 1.0
+    return float(np.mean((x[:, 0] - gain * y[:, 0]) ** 2 + (x[:, 1] - y[:, 1]) ** 2))
+
+
+def motion_check(
+    stream: StreamMapping, imu: ImuData, kin: Kinematics, report: Report, fix_label: str, leap: int
+) -> dict:
+    """Axes, signs, gyro unit and time offset of an IMU against the GNSS's motion (module doc).
+    Appends errors / warnings / a note to ``report``; returns the figures."""
+    name = f"IMU {stream.sensor_id!r}"
+    out: dict = {"against": fix_label, "windows": len(kin)}
+    lag = estimate_lag(imu, kin)
+    shift = 0.0
+    if lag is not None:
+        out["time_offset"] = lag
+        L = lag["lag_s"]
+        fix_hint = (
+            f"boot_offset_s = {float(stream.boot_offset_s) - L:.3f}"
+            if stream.time_base == "boot"
+            else f"time_offset_s = {stream.time_offset_s - L:+.3f}"
+        )
+        why = ""
+        if abs(abs(L) - leap) < 0.5:
+            why = " (the leap seconds: is one stream in UTC and the other in GPS time? check time_base)"
+        text = (
+            f"{name}'s stamps are {abs(L):.3f} s {'late' if L > 0 else 'early'} against {fix_label}'s "
+            f"(its rotation against the course over {lag['turn_windows']} turning windows, correlation "
+            f"{lag['correlation']:.2f}){why}: set {fix_hint} in stream {stream.sensor_id!r}"
+        )
+        if lag["correlation"] >= LAG_MIN_CORRELATION and abs(L) > LAG_ERROR_S:
+            report.errors.append(text)
+            shift = L
+        elif lag["correlation"] >= LAG_MIN_CORRELATION and abs(L) > LAG_WARN_S:
+            report.warnings.append(text)
+            shift = L
+    w_bar, f_bar, valid = imu_means(imu, kin.ta, kin.tb, shift)
+    if valid.sum() < MIN_MOTION_EPOCHS:
+        report.warnings.append(f"{name}: too little IMU data beside the fixes in motion to check its axes")
+        return out
+    f_bar, w_bar, f_exp, w_up = f_bar[valid], w_bar[valid], kin.f_exp[valid], kin.w_up[valid]
+    turning = (kin.turn / (kin.tb - kin.ta) > TURN_RATE_RPS)[valid]
+    declared = _declared(stream)
+    problems = []
+    # horizontal accelerometer axes: the signed map of mapped x/y onto fednav right/forward that
+    # fits the acceleration from the fixes best. In a turn a car's IMU reads the centripetal
+    # acceleration sideways; a banking vehicle (aircraft, motorbike, the simulator's coordinated
+    # turns) reads less of it: the lateral part is fitted with a factor in [0, 1].
+    rms_h = float(np.sqrt(np.mean(np.sum(f_exp[:, :2] ** 2, axis=1))))
+    out["rms_horizontal_accel_mps2"] = rms_h
+    if rms_h >= MIN_HORIZONTAL_ACCEL_MPS2:
+        res = [_horizontal_misfit(f_bar[:, :2] @ S.T, f_exp[:, :2]) for S, _ in _HORIZONTAL]
+        b = int(np.argmin(res))
+        out["horizontal_fit_rms_mps2"] = {"declared": math.sqrt(res[0]), "best": math.sqrt(res[b])}
+        if b != 0 and res[0] > 2.5 * res[b] and res[0] - res[b] > 0.05:
+            S, meaning = _HORIZONTAL[b]
+            P = np.eye(3)
+            P[:2, :2] = S
+            evidence = (
+                f"its specific force against the acceleration from the fixes over {len(f_exp)} windows "
+                f"in motion: RMS misfit {math.sqrt(res[0]):.2f} m/s^2 as declared, {math.sqrt(res[b]):.2f} "
+                "with the fix"
+            )
+            if np.linalg.det(S) > 0:
+                right = axes_name(P @ stream.matrix())
+                fix = (
+                    f"set axes = '{right}'"
+                    if right
+                    else f"use the axes matrix {np.round(P @ stream.matrix(), 6).tolist()}"
+                )
+                problems.append(
+                    f"{name}: the IMU's axes look like {right or 'a rotation of them'}, not {declared}: "
+                    f"{meaning}; {fix} ({evidence})"
+                )
+                out["axes_suggested"] = right
+            else:
+                problems.append(
+                    f"{name}: {meaning} (no right-handed axes fit: one axis' sign is reversed in the log; "
+                    f"{evidence})"
+                )
+    else:
+        report.notes.append(
+            f"{name}: too little manoeuvring to check forward/right (RMS horizontal acceleration "
+            f"{rms_h:.2f} m/s^2, {MIN_HORIZONTAL_ACCEL_MPS2} needed): speed changes and turns check them"
+        )
+    # gyro: which mapped axis carries the yaw rate, its sign and scale
+    if turning.sum() >= MIN_TURN_EPOCHS:
+        r = [_corr(w_bar[:, j], w_up) for j in range(3)]
+        j = int(np.argmax(np.abs(r)))
+        sign = 1.0 if r[j] > 0 else -1.0
+        x = sign * w_bar[:, j]
+        k = float((x * w_up).sum() / max((x * x).sum(), 1e-30))
+        out["yaw"] = {"axis": "xyz"[j], "sign": sign, "correlation": r[j], "course_rate_over_yaw_rate": k}
+        if abs(r[j]) < 0.7:
+            report.warnings.append(
+                f"{name}: its rates do not follow the course rate (best correlation {abs(r[j]):.2f}): "
+                "the gyro is not checked"
+            )
+        elif j != 2 or sign < 0:
+            where = (
+                "fednav's up axis with the opposite sign"
+                if j == 2
+                else f"fednav's {('right', 'forward')[j]} axis"
+            )
+            problems.append(
+                f"{name}: its yaw rate appears on {where} (correlation {r[j]:+.2f} with minus the course "
+                f"rate over {int(turning.sum())} turning windows) while the mapping puts gravity right: "
+                "the gyro's axes or rate signs differ from the accelerometer's in the log"
+            )
+        elif abs(k / DEG_PER_RAD - 1.0) < 0.15 and stream.gyro_unit == "deg/s":
+            problems.append(
+                f"{name}: its yaw rate is {1 / k:.4f} x the course rate: the gyro looks like it is in rad/s, "
+                "mapping says gyro_unit = 'deg/s': set gyro_unit = 'rad/s'"
+            )
+        elif abs(k * DEG_PER_RAD - 1.0) < 0.15 and stream.gyro_unit == "rad/s":
+            problems.append(
+                f"{name}: its yaw rate is {1 / k:.1f} x the course rate: the gyro looks like it is in deg/s, "
+                "mapping says gyro_unit = 'rad/s': set gyro_unit = 'deg/s'"
+            )
+        elif not GYRO_SCALE_OK[0] < k < GYRO_SCALE_OK[1]:
+            problems.append(
+                f"{name}: its yaw rate is {1 / k:.3f} x the course rate: check gyro_unit and the data's scale"
+            )
+    else:
+        report.notes.append(f"{name}: too few turns to check the gyro's yaw axis, sign and unit")
+    report.errors.extend(problems)
+    if not problems:
+        lag_txt = (
+            f", time offset {out['time_offset']['lag_s']:+.3f} s (correlation "
+            f"{out['time_offset']['correlation']:.2f})"
+            if "time_offset" in out
+            else ""
+        )
+        report.notes.append(
+            f"motion: {name} against {fix_label} over {len(f_exp)} windows in motion: axes "
+            f"{declared or 'matrix'} fit{lag_txt}"
+        )
+    return out
+
+
+# --- sigmas -----------------------------------------------------------------------------------------
+_POS_ORIGIN = {
+    "GST": "the log's GST sentences",
+    "covariance": "the NavSatFix position covariance",
+    "receiver": "the receiver's accuracy estimate (NAV-PVT hAcc/vAcc)",
+    "mapping": "the mapping's pos_std_m",
+}
+_VEL_ORIGIN = {
+    "covariance": "the Twist covariance",
+    "receiver": "the receiver's speed accuracy (NAV-PVT sAcc)",
+    "mapping": "the mapping's vel_std_mps",
+}
+
+
+def sigma_summary(stream: StreamMapping, fx: FixData, stats: dict) -> dict:
+    """The sigmas a GNSS stream's fixes carry and where they came from (``stats``: the source's
+    ``sigma_pos:<origin>`` / ``sigma_vel:<origin>`` counts)."""
+    msgs = fx.msgs
+    pos = np.array([f.pos_std() for f in msgs])
+    med = np.median(pos, axis=0)
+    ftypes = sorted({f.fix_type for f in msgs})
+    hdops = [f.hdop for f in msgs if f.hdop is not None]
+    out: dict = {"pos_std_enu_m_median": med.tolist(), "pos_origin": {}, "vel_origin": {}}
+    parts = []
+    for key, n in sorted(stats.items()):
+        if key.startswith("sigma_pos:"):
+            origin = key.split(":", 1)[1]
+            out["pos_origin"][origin] = n
+            if origin == "default":
+                ft = ftypes[0] if len(ftypes) == 1 else "/".join(ftypes)
+                base_h = DEFAULT_H_STD_M.get(ftypes[0], 2.5)
+                hd = f" x HDOP (median {np.median(hdops):.2f})" if hdops else " (no HDOP: x 1)"
+                why = (
+                    f"GnssFix's default for fix type '{ft}' ({base_h} m per horizontal axis{hd}, vertical "
+                    "1.7 x): the log gives no sigma (NMEA without GST, a fix without covariance); set "
+                    "pos_std_m in the stream if you know better"
+                )
+            else:
+                why = _POS_ORIGIN.get(origin, origin)
+            parts.append(f"{why} ({n} of {len(msgs)} fixes)")
+    text = f"position E/N/U {med[0]:.2f}/{med[1]:.2f}/{med[2]:.2f} m (median) from " + "; ".join(
+        parts or ["-"]
+    )
+    vel_msgs = [f for f in msgs if f.variant != "position"]
+    if vel_msgs:
+        if all(f.variant == "speed_course" for f in vel_msgs):
+            v = float(np.median([f.speed_std() for f in vel_msgs]))
+            vtxt = f"speed {v:.3f} m/s (median)"
+            out["speed_std_mps_median"] = v
+        else:
+            vs = np.median(np.array([f.vel_std() for f in vel_msgs]), axis=0)
+            vtxt = f"velocity E/N/U {vs[0]:.3f}/{vs[1]:.3f}/{vs[2]:.3f} m/s (median)"
+            out["vel_std_enu_mps_median"] = vs.tolist()
+        vparts = []
+        for key, n in sorted(stats.items()):
+            if key.startswith("sigma_vel:"):
+                origin = key.split(":", 1)[1]
+                out["vel_origin"][origin] = n
+                if origin == "default":
+                    ft = ftypes[0]
+                    src = " (RMC/VTG carry no speed sigma)" if stream.resolved_format() == "nmea" else ""
+                    dflt = DEFAULT_SPEED_STD_MPS.get(ft, 0.15)
+                    why = f"GnssFix's default for fix type '{ft}' ({dflt} m/s){src}"
+                else:
+                    why = _VEL_ORIGIN.get(origin, origin)
+                vparts.append(f"{why} ({n} fixes)")
+        text += f"; {vtxt} from " + "; ".join(vparts or ["-"])
+    else:
+        text += "; no velocity (position-only fixes)"
+    out["text"] = text
+    return out
+
+
+# --- stamps -------------------------------------------------------------------------------------------
+def stamp_looks_like(raw: float, stream: StreamMapping) -> str:
+    """What a raw stamp (as written in the source) looks like, for messages."""
+    a = abs(raw)
+    if a < 1.0e7:
+        return "seconds since the device booted: set time_base = 'boot' with boot_offset_s (or 'auto')"
+    if 1.0e11 < a < 1.0e13:
+        return "milliseconds: the stamps need dividing by 1000 (not a supported unit: convert the column)"
+    if 1.0e14 < a < 1.0e16:
+        return "microseconds: convert the stamps to seconds"
+    if 1.0e17 < a < 1.0e19:
+        return "nanoseconds: convert the stamps to seconds"
+    if 1.0e9 < a < 2.5e9 and stream.time_base == "gps":
+        return "POSIX seconds (UTC): set time_base = 'unix'"
+    if 3.0e8 < a < 1.0e9 and stream.time_base in ("unix", "utc"):
+        return "GPS seconds: set time_base = 'gps'"
+    return f"something else: check time_base ('{stream.time_base}'), boot_offset_s and time_offset_s"
+
+
+# --- the checks ------------------------------------------------------------------------------------------
+def _read(stream: StreamMapping, base: Path, mapping: ReplayMapping, stats: dict, sr: StreamReport | None):
+    """Read a stream: (IMU rows (t, dt, 6 increments) or fix messages, first-second IMU samples)."""
+    rows: list = []
+    first: list = []
+    prev = None
+    dts = []
+    for ev in stream_events(stream, base, mapping, stats=stats):
+        t = ev.t_gps_s
+        m = ev.msg
+        if stream.kind == "imu":
+            rows.append((t, m.dt_s, *m.dtheta_rad, *m.dvel_mps))
+            if not first or t - first[0].t <= STATIC_WINDOW_S:
+                first.append(m)
+        elif isinstance(m, GnssFix):
+            rows.append(m)
+        if sr is not None:
+            sr.count += 1
+            if sr.t_first is None:
+                sr.t_first = t
+            sr.t_last = t if sr.t_last is None else max(sr.t_last, t)
+            if prev is not None:
+                if t < prev:
+                    sr.backwards += 1
+                elif t == prev:
+                    sr.repeated += 1
+                else:
+                    dts.append(t - prev)
+            prev = t
+    return rows, first, dts
+
+
+def _speed_near(fixes: list, t: float) -> float | None:
+    """Horizontal speed of the first fix within 1.5 s of ``t`` (any GNSS stream), None if none."""
+    for _, fx in fixes:
+        v = fx.velocity()
+        near = np.flatnonzero(np.abs(fx.t - t) <= 1.5)
+        for i in near:
+            if np.isfinite(v[i, :2]).all():
+                return float(np.hypot(v[i, 0], v[i, 1]))
+    return None
+
+
+def _imu_data(rows: list) -> ImuData:
+    a = np.array(rows, float).reshape(len(rows), 8)
+    return ImuData(a[:, 0], a[:, 1], a[:, 2:5], a[:, 5:8])
 
 
 def run_checks(mapping: ReplayMapping, base: Path) -> Report:
-    """Read every stream once (as it will be published) and check it."""
+    """Read every stream once (as it will be published) and check it. ``boot_offset_s = 'auto'``
+    is resolved first (:func:`resolve_boot_offsets`); ``report.mapping`` is the mapping to publish."""
     report = Report()
+    mapping, notes, errors = resolve_boot_offsets(mapping, base)
+    report.mapping = mapping
+    report.notes += notes
+    report.errors += errors
     imu_streams = [s for s in mapping.streams if s.kind == "imu"]
     if not imu_streams:
         report.errors.append("no IMU stream: the service needs an IMU to navigate")
     if not any(s.kind in ("gnss_fix", "gnss_raw") for s in mapping.streams):
         report.warnings.append("no GNSS stream: the service cannot align or aid the INS without one")
-    for stream in mapping.streams:
+    pending: list[tuple[StreamMapping, ImuData, list]] = []
+    fixes: list[tuple[StreamMapping, FixData]] = []
+    for idx, stream in enumerate(mapping.streams):
         sr = StreamReport(name=f"{stream.kind} {stream.sensor_id!r} ({stream.source})", kind=stream.kind)
         report.streams.append(sr)
-        first: list = []
-        prev = None
-        dts: list[float] = []
+        stats: dict = {}
+        label = f"{stream.kind} {stream.sensor_id!r}"
         try:
-            for ev in stream_events(stream, base, mapping, stats=sr.skipped):
-                t = ev.t_gps_s
-                sr.count += 1
-                if sr.t_first is None:
-                    sr.t_first = t
-                sr.t_last = t if sr.t_last is None else max(sr.t_last, t)
-                if prev is not None:
-                    if t < prev:
-                        sr.backwards += 1
-                    elif t == prev:
-                        sr.repeated += 1
-                    else:
-                        dts.append(t - prev)
-                prev = t
-                if stream.kind == "imu" and t - sr.t_first <= STATIC_WINDOW_S:
-                    first.append(ev.msg)
+            rows, first, dts = _read(stream, base, mapping, stats, sr)
         except SourceError as exc:
             report.errors.append(str(exc))
             continue
-        label = f"{stream.kind} {stream.sensor_id!r}"
+        finally:
+            sr.skipped = {k: v for k, v in stats.items() if not k.startswith(("_", "sigma_"))}
+        bad_t = stats.get("_bad_time_t")
         if sr.count == 0:
-            report.errors.append(f"{label}: no messages read from {stream.source}")
+            if bad_t is not None:
+                raw = from_gps_s(bad_t, stream, mapping.leap_seconds)
+                report.errors.append(
+                    f"{label}: no messages read from {stream.source}: all {stats.get('bad_time', 0)} stamps "
+                    f"convert to no GPS time (the first, {raw:.3f} read as time_base '{stream.time_base}', "
+                    f"gives t = {bad_t:.1f} s): the stamps look like {stamp_looks_like(raw, stream)}"
+                )
+            else:
+                skipped = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in sorted(sr.skipped.items()))
+                report.errors.append(
+                    f"{label}: no messages read from {stream.source}"
+                    + (f" (skipped: {skipped})" if skipped else "")
+                )
             continue
-        if sr.t_first < 0 or sr.t_first > 3.0e9:
+        if not PLAUSIBLE_GPS_S[0] <= sr.t_first <= PLAUSIBLE_GPS_S[1]:
+            raw = from_gps_s(sr.t_first, stream, mapping.leap_seconds)
             report.errors.append(
-                f"{label}: first stamp {sr.t_first:.1f} s is not a plausible GPS time: check time_base "
-                f"('{stream.time_base}') and boot_offset_s"
+                f"{label}: first stamp {sr.t_first:.1f} s ({gps_str(sr.t_first)}) is not a plausible "
+                "GPS time "
+                f"of a log: its stamps ({raw:.3f} as written) look like {stamp_looks_like(raw, stream)}"
+            )
+        elif bad_t is not None:
+            report.warnings.append(
+                f"{label}: {stats.get('bad_time', 0)} stamp(s) convert to no GPS time (t = {bad_t:.1f}): "
+                "skipped"
             )
         if dts:
             sr.rate_hz = 1.0 / float(np.median(dts))
@@ -235,15 +865,22 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
             sr.gaps = int(sum(d > IMU_GAP_S for d in dts)) + sr.skipped.get("gap", 0)
             if sr.gaps:
                 report.warnings.append(
-                    f"{label}: {sr.gaps} gap(s) longer than {IMU_GAP_S} s: "
-                    "the service treats them as IMU loss"
+                    f"{label}: {sr.gaps} gap(s) longer than {IMU_GAP_S} s: the service treats them as "
+                    "IMU loss"
                 )
             if sr.rate_hz and sr.rate_hz < MIN_IMU_RATE_HZ:
                 report.warnings.append(
                     f"{label}: IMU at {sr.rate_hz:.1f} Hz, below {MIN_IMU_RATE_HZ:.0f} Hz: rates are missing "
                     "or the log is decimated"
                 )
-            gravity_check(stream, first, report)
+            imu = _imu_data(rows)
+            report.data[idx] = imu
+            pending.append((stream, imu, first))
+        elif stream.kind == "gnss_fix" and rows:
+            fx = FixData.from_fixes(rows)
+            report.data[idx] = fx
+            sr.sigma = sigma_summary(stream, fx, stats)
+            fixes.append((stream, fx))
         for why in sorted(set(sr.skipped) - {"stamp_not_increasing", "gap"}):
             if sr.skipped.get(why):
                 hint = SKIP_HINTS.get(why, "")
@@ -272,4 +909,112 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
             report.warnings.append(
                 f"{b.name} starts {d_start:+.1f} s after {a.name} (they end together: a late first fix?)"
             )
+    # units and gravity (the speed of the first fixes says whether a steady start is a rest)
+    imus: list[tuple[StreamMapping, ImuData]] = []
+    for stream, imu, first in pending:
+        speed = _speed_near(fixes, float(imu.t[0]))
+        if gravity_check(stream, imu, report, first, speed):
+            imus.append((stream, imu))
+    # motion: every IMU whose units and up axis are right, against the first GNSS stream in motion
+    ref = next(((s, fx, k) for s, fx in fixes if (k := fix_kinematics(fx)) is not None), None)
+    for stream, imu in imus:
+        if ref is None:
+            if fixes:
+                report.notes.append(
+                    f"IMU {stream.sensor_id!r}: the fixes show too little motion (above {MIN_SPEED_MPS} m/s) "
+                    "to check its axes and time offset against the GNSS"
+                )
+            continue
+        fs, _, kin = ref
+        report.motion[stream.sensor_id] = motion_check(
+            stream, imu, kin, report, f"gnss_fix {fs.sensor_id!r}", mapping.leap_seconds
+        )
     return report
+
+
+# --- boot offsets -----------------------------------------------------------------------------------------
+def resolve_boot_offsets(mapping: ReplayMapping, base: Path) -> tuple[ReplayMapping, list[str], list[str]]:
+    """``boot_offset_s = "auto"`` -> a number: from a stream that carries both clocks (a ROS bag's
+    receive times beside an IMU's boot-time header stamps; NMEA lines led by the logger's stamp),
+    else the first fix minus the stream's first stamp (both logs started together); an IMU's
+    offset is then refined by the lag of its rotation against the GNSS course (turns needed).
+    Returns (mapping with numbers, notes saying how each was derived, errors)."""
+    notes: list[str] = []
+    errors: list[str] = []
+    for i, s in enumerate(mapping.streams):
+        if s.boot_offset_s != "auto":
+            continue
+        m0 = with_stream(mapping, i, boot_offset_s=0.0)
+        stats: dict = {}
+        try:
+            rows, _, _ = _read(m0.streams[i], base, m0, stats, None)
+        except SourceError as exc:
+            errors.append(f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: {exc}")
+            continue
+        if not rows:
+            errors.append(
+                f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: no messages read from {s.source}"
+            )
+            continue
+        raw_first = rows[0][0] if s.kind == "imu" else rows[0].t
+        how = None
+        pairs = stats.get("_clock_pairs")
+        if pairs:
+            d = np.array([g - r for r, g in pairs])
+            off, how = (
+                float(np.median(d)),
+                f"its bag's receive times against its stamps ({len(d)} pairs, median)",
+            )
+        fix_streams = [fs for fs in mapping.streams if fs.kind == "gnss_fix" and fs.boot_offset_s != "auto"]
+        fx = None
+        for fs in fix_streams:
+            fstats: dict = {}
+            try:
+                frows, _, _ = _read(fs, base, mapping, fstats, None)
+            except SourceError as exc:
+                errors.append(f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: {exc}")
+                continue
+            if not frows:
+                continue
+            fx = fx or FixData.from_fixes(frows)
+            fp = fstats.get("_clock_pairs")
+            if how is None and fp:
+                d = np.array([g - r for r, g in fp])
+                off = float(np.median(d))
+                how = (
+                    f"the logger's receive stamps on {len(d)} epochs of {fs.resolved_format().upper()} "
+                    f"stream {fs.sensor_id!r} (median fix GPS time - receive stamp; includes the receiver's "
+                    "output latency)"
+                )
+        if how is None and fx is not None:
+            off = float(fx.t[0]) - raw_first
+            how = (
+                "the first fix's GPS time minus the stream's first stamp (assumes both logs started together)"
+            )
+        if how is None:
+            errors.append(
+                f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: no GNSS fix stream to derive it from: "
+                "set boot_offset_s (the GPS time of the device's boot zero)"
+            )
+            continue
+        refine = ""
+        if s.kind == "imu" and fx is not None:
+            imu = _imu_data(rows)
+            imu.t = imu.t + off
+            kin = fix_kinematics(fx)
+            coarse = "first fix" in how
+            lag = estimate_lag(imu, kin, MAX_LAG_S if coarse else 2.0) if kin is not None else None
+            if lag is not None and lag["correlation"] >= LAG_MIN_CORRELATION:
+                off -= lag["lag_s"]
+                refine = (
+                    f", then {-lag['lag_s']:+.3f} s from its rotation against the course of the fixes "
+                    f"({lag['turn_windows']} turning windows, correlation {lag['correlation']:.2f})"
+                )
+            else:
+                refine = ", not refined (too few turns to align the IMU's rotation with the course)"
+        mapping = with_stream(mapping, i, boot_offset_s=round(off, 6))
+        notes.append(
+            f"boot_offset_s of stream {s.sensor_id!r} derived: {off:.3f} s, from {how}{refine}; write "
+            f"boot_offset_s = {off:.3f} in the mapping to use it as it is"
+        )
+    return mapping, notes, errors

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from fednav.service import keys
-from fednav.service.messages import MAX_DT_S, GnssFix, ImuSample, WireModel
+from fednav.service.messages import MAX_DT_S, T_MAX_S, GnssFix, ImuSample, WireModel
 
 
 class Event(NamedTuple):
@@ -27,6 +27,19 @@ class Event(NamedTuple):
 def key_suffix(kind: str, sensor_id: str) -> str:
     """``sensor/imu/<id>``, ``sensor/gnss/<id>/fix``, ... (service.keys builds it)."""
     return keys.sensor("v", kind, sensor_id, prefix="p").split("/", 2)[2]
+
+
+def count(stats: dict | None, key: str, n: int = 1) -> None:
+    """Count ``key`` in a source's ``stats`` (skip reasons; ``sigma_pos:<origin>`` and
+    ``sigma_vel:<origin>``: where each fix's sigmas came from, for the checks' summary)."""
+    if stats is not None:
+        stats[key] = stats.get(key, 0) + n
+
+
+def note(stats: dict | None, key: str, value) -> None:
+    """Keep the first ``value`` under an information key (``_`` prefix: not a count)."""
+    if stats is not None and key not in stats:
+        stats[key] = value
 
 
 def merge(streams: Iterable[Iterable[Event]]) -> Iterator[Event]:
@@ -41,7 +54,9 @@ class ImuBuilder:
     sample only opens the first interval). Increment form: the sample is the increment over the
     interval ending at t_k, its length from the source's dt or from the previous stamp. Intervals
     with dt <= 0 (stamps not increasing) or dt > MAX_DT_S (a gap) are not published: counted in
-    ``skipped`` by reason (the checks name them before publishing)."""
+    ``skipped`` by reason (the checks name them before publishing). A stamp that converts to no
+    GPS time a message can carry (before 1980, or absurdly late) is ``bad_time``, the first such
+    converted time kept under ``_bad_time_t`` (the checks say what the stamps look like)."""
 
     def __init__(
         self, matrix: np.ndarray, gyro_scale: float, accel_scale: float, form: str, stats: dict | None = None
@@ -60,6 +75,10 @@ class ImuBuilder:
         f = self.m @ (np.asarray(accel, float) * self.as_)
         if not (np.all(np.isfinite(w)) and np.all(np.isfinite(f)) and np.isfinite(t)):
             self._skip("not_finite")
+            return None
+        if not 0.0 <= t <= T_MAX_S:
+            self._skip("bad_time")
+            note(self.skipped, "_bad_time_t", float(t))
             return None
         prev, self._prev = self._prev, (t, w, f)
         if self.form == "rate":

@@ -14,7 +14,14 @@ Time bases (``t_gps = convert(stamp) + time_offset_s``):
 - ``unix``: POSIX seconds since 1970-01-01 in UTC (ROS header stamps, most loggers):
   ``t_gps = stamp - 315964800 + leap_seconds``;
 - ``utc``: calendar UTC (NMEA's date and time of day); numeric stamps are read as POSIX UTC;
-- ``boot``: seconds since the device booted; ``boot_offset_s`` is the GPS time of boot zero.
+- ``boot``: seconds since the device booted; ``boot_offset_s`` is the GPS time of boot zero, or
+  ``"auto"``: derived before the checks (replay/checks.py ``resolve_boot_offsets``) from a stream
+  that carries both clocks (a ROS bag's receive times beside the header stamps; NMEA lines that
+  start with the logger's own stamp), else from the first fix, then refined by the IMU's yaw rate
+  against the GNSS course rate; the derived value is printed so that it can be written in.
+
+Misplaced fields are named as such: in TOML every key after a ``[[streams]]`` header belongs to
+that stream, so ``leap_seconds`` written there is told to move above the first ``[[streams]]``.
 """
 
 from __future__ import annotations
@@ -44,6 +51,10 @@ _AXIS = {
 
 Format = Literal["ros", "nmea", "ubx", "csv", "rinex"]
 TimeBase = Literal["gps", "unix", "utc", "boot"]
+#: Zenoh endpoint ``<protocol>/<address>`` (tcp/127.0.0.1:7447, udp/..., tls/..., unixsock-stream/...)
+ENDPOINT_RE = r"^[a-z][a-z0-9\-]*/\S+$"
+#: receive stamps written in front of NMEA lines: their unit
+RECEIVE_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 
 
 class MappingError(ValueError):
@@ -119,7 +130,16 @@ class StreamMapping(_Model):
     )
     form: Literal["rate", "increment"] = Field("rate", description="Rates (rad/s, m/s^2) or increments")
     time_base: TimeBase = Field("unix", description="gps | unix | utc | boot (see module doc)")
-    boot_offset_s: float | None = Field(None, description="boot: GPS time (s) of the device's boot zero")
+    boot_offset_s: float | Literal["auto"] | None = Field(
+        None,
+        description="boot: GPS time (s) of the device's boot zero, or 'auto' (derived from the log and "
+        "printed: a stream carrying both clocks, else the first fix; refined by the motion)",
+    )
+    receive_unit: Literal["s", "ms", "us", "ns"] = Field(
+        "s",
+        description="NMEA: unit of the logger's receive stamp written in front of each line "
+        "('12345.678,$GPGGA,...'), in the clock of the IMU stamped in 'boot' time",
+    )
     time_offset_s: float = Field(0.0, description="Added to every converted stamp, s")
     tick_s: float | None = Field(
         None, gt=0, description="UBX ESF-RAW: duration of one sensor time-tag tick, s (receiver manual)"
@@ -155,7 +175,15 @@ class StreamMapping(_Model):
     def _consistent(self):
         fmt = self.resolved_format()
         if self.time_base == "boot" and self.boot_offset_s is None:
-            raise ValueError("time_base 'boot' needs boot_offset_s (the GPS time of the device's boot zero)")
+            raise ValueError(
+                "time_base 'boot' needs boot_offset_s: the GPS time of the device's boot zero, or 'auto' "
+                "to derive it from the log (printed by the checks)"
+            )
+        if self.time_base != "boot" and self.boot_offset_s is not None:
+            raise ValueError(
+                f"boot_offset_s applies to time_base 'boot' only (this stream's is {self.time_base!r}): "
+                "remove it, or set time_base = 'boot'"
+            )
         if fmt == "ros" and not self.topic:
             raise ValueError("a ROS bag/MCAP stream needs 'topic'")
         if fmt == "nmea" and self.kind != "gnss_fix":
@@ -199,10 +227,16 @@ class StreamMapping(_Model):
 
 
 class ReplayMapping(_Model):
-    """A replay: the vehicle, the key prefix, leap seconds and the streams."""
+    """A replay: the vehicle, the key prefix, leap seconds, the service's endpoint and the streams."""
 
     vehicle: str = Field("v1", pattern=r"^[A-Za-z0-9_\-.]+$", description="Vehicle name in the keys")
     prefix: str = Field("fednav", description="Key prefix (the service's 'prefix')")
+    endpoint: str | None = Field(
+        None,
+        pattern=ENDPOINT_RE,
+        description="Zenoh endpoint of the service to connect to, e.g. 'tcp/127.0.0.1:7447' (--connect "
+        "overrides it; None: the publisher's default, tcp/127.0.0.1:7447)",
+    )
     leap_seconds: int = Field(LEAP_SECONDS_NOW, ge=0, le=60, description="GPS - UTC at the log's date, s")
     rinex_nav: list[str] = Field(default_factory=list, description="RINEX navigation files (gnss_raw)")
     streams: list[StreamMapping] = Field(min_length=1)
@@ -227,8 +261,32 @@ def to_gps_s(stamp: float, stream: StreamMapping, leap_seconds: int) -> float:
     elif stream.time_base in ("unix", "utc"):
         t = stamp - GPS_EPOCH_UNIX_S + leap_seconds
     else:  # boot
+        if not isinstance(stream.boot_offset_s, float | int):
+            raise ValueError(
+                f"stream {stream.sensor_id!r}: boot_offset_s = 'auto' is resolved by the checks "
+                "(replay.checks.resolve_boot_offsets) before the stream is read"
+            )
         t = stamp + float(stream.boot_offset_s)
     return t + stream.time_offset_s
+
+
+def from_gps_s(t_gps: float, stream: StreamMapping, leap_seconds: int) -> float:
+    """The inverse of :func:`to_gps_s`: the stamp as written in the source (for messages)."""
+    t = t_gps - stream.time_offset_s
+    if stream.time_base in ("unix", "utc"):
+        return t + GPS_EPOCH_UNIX_S - leap_seconds
+    if stream.time_base == "boot" and isinstance(stream.boot_offset_s, float | int):
+        return t - float(stream.boot_offset_s)
+    return t
+
+
+def with_stream(mapping: ReplayMapping, index: int, **changes) -> ReplayMapping:
+    """A copy of the mapping with stream ``index`` changed (validated again)."""
+    streams = list(mapping.streams)
+    streams[index] = StreamMapping.model_validate({**streams[index].model_dump(), **changes})
+    return ReplayMapping.model_validate(
+        {**mapping.model_dump(), "streams": [s.model_dump() for s in streams]}
+    )
 
 
 def load_mapping(path: Path | str) -> tuple[ReplayMapping, Path]:
@@ -241,8 +299,37 @@ def load_mapping(path: Path | str) -> tuple[ReplayMapping, Path]:
     return from_dict(data, str(path)), path.resolve().parent
 
 
+def misplaced_fields(data: dict) -> list[str]:
+    """Lines naming fields written at the wrong level: a top-level field inside a stream (in TOML
+    every key after a ``[[streams]]`` header belongs to that stream) or a stream field at the top."""
+    top = set(ReplayMapping.model_fields) - {"streams"}
+    per_stream = set(StreamMapping.model_fields)
+    out = []
+    streams = data.get("streams")
+    for i, st in enumerate(streams if isinstance(streams, list) else []):
+        if not isinstance(st, dict):
+            continue
+        for k in st:
+            if k in top and k not in per_stream:
+                out.append(
+                    f"  streams.{i}.{k}: '{k}' is a top-level field of the mapping (it applies to every "
+                    f"stream), not a stream's: move the line '{k} = ...' above the first [[streams]] "
+                    "(in TOML every key after a [[streams]] header belongs to that stream)"
+                )
+    for k in data:
+        if k in per_stream and k not in top:
+            out.append(
+                f"  {k}: '{k}' is a field of a stream: move it into the [[streams]] table it describes"
+            )
+    return out
+
+
 def from_dict(data: dict, source: str = "<dict>") -> ReplayMapping:
+    heading = f"invalid mapping in {source}:"
+    misplaced = misplaced_fields(data) if isinstance(data, dict) else []
+    if misplaced:
+        raise MappingError("\n".join([heading, *misplaced]))
     try:
         return ReplayMapping.model_validate(data)
     except ValidationError as err:
-        raise MappingError(format_errors(err, ReplayMapping, f"invalid mapping in {source}:")) from None
+        raise MappingError(format_errors(err, ReplayMapping, heading)) from None

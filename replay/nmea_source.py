@@ -9,6 +9,13 @@ The variant is what the log gives: speed + course over ground (RMC or VTG) when 
 position only when not; NMEA has no vertical velocity and none is invented. Lines that are not
 NMEA or fail their checksum are
 counted in ``stats`` and skipped. The message itself is built by ``events.nmea_fix_to_wire``.
+
+A logger's own receive stamp in front of a line (``12345.678,$GPGGA,...``, or separated by a
+space, tab or ';'; unit ``receive_unit``) is kept: each epoch's (receive stamp, fix GPS time)
+pair goes to ``stats["_clock_pairs"]``, from which the checks derive the boot offset of an IMU
+stamped by the same logger (``boot_offset_s = "auto"``). Where each fix's sigmas came from is
+counted in ``stats`` (``sigma_pos:GST``, ``sigma_pos:mapping``, ``sigma_pos:default``,
+``sigma_vel:...``).
 """
 
 from __future__ import annotations
@@ -17,8 +24,8 @@ import datetime as dt
 from collections.abc import Iterator
 from pathlib import Path
 
-from .events import GGA_FIX_TYPE, Event, key_suffix, nmea_fix_to_wire
-from .mapping import ReplayMapping, StreamMapping, to_gps_s
+from .events import GGA_FIX_TYPE, Event, count, key_suffix, nmea_fix_to_wire
+from .mapping import RECEIVE_UNITS, ReplayMapping, StreamMapping, to_gps_s
 
 KNOT_MPS = 1852.0 / 3600.0
 
@@ -27,14 +34,28 @@ class SourceError(ValueError):
     pass
 
 
+def split_receive_stamp(line: str) -> tuple[float | None, str]:
+    """``'12345.678,$GPGGA,...'`` -> (12345.678, ``'$GPGGA,...'``); a line without a numeric prefix
+    keeps None (a line that is not NMEA comes back as it is)."""
+    i = line.find("$")
+    if i <= 0:
+        return None, line
+    head = line[:i].strip().rstrip(",;").strip()
+    try:
+        return float(head), line[i:]
+    except ValueError:
+        return None, line[i:]
+
+
 def _epochs(path: Path, wanted: set[str], stats: dict):
-    """Yield dicts {time, GGA, RMC, GST, VTG} in file order, one per UTC time of day."""
+    """Yield dicts {time, receive, GGA, RMC, GST, VTG} in file order, one per UTC time of day
+    (``receive``: the logger's stamp in front of the epoch's first line, or None)."""
     import pynmea2
 
     cur: dict | None = None
     with path.open(errors="replace") as f:
         for line in f:
-            line = line.strip()
+            recv, line = split_receive_stamp(line.strip())
             if not line.startswith("$"):
                 continue
             try:
@@ -49,7 +70,7 @@ def _epochs(path: Path, wanted: set[str], stats: dict):
             if typ != "VTG" and ts is not None and (cur is None or cur["time"] != ts):
                 if cur is not None:
                     yield cur
-                cur = {"time": ts}
+                cur = {"time": ts, "receive": recv}
             if cur is not None:
                 cur[typ] = m
     if cur is not None:
@@ -98,10 +119,11 @@ def events(
         height = alt + (sep or 0.0)
         gst = ep.get("GST")
         pstd = stream.pos_std_m
+        origin = "mapping" if pstd is not None else "default"
         if gst is not None:
             s = (_float(gst.std_dev_longitude), _float(gst.std_dev_latitude), _float(gst.std_dev_altitude))
             if all(x is not None and x > 0 for x in s):
-                pstd = s
+                pstd, origin = s, "GST"
         speed = course = None
         if rmc is not None and rmc.status == "A":
             speed, course = _float(rmc.spd_over_grnd), _float(rmc.true_course)
@@ -130,4 +152,11 @@ def events(
         except ValueError:
             stats["implausible"] = stats.get("implausible", 0) + 1
             continue
+        count(stats, f"sigma_pos:{origin}")
+        if fix.speed_mps is not None:
+            count(stats, "sigma_vel:mapping" if stream.vel_std_mps is not None else "sigma_vel:default")
+        if ep.get("receive") is not None:
+            stats.setdefault("_clock_pairs", []).append(
+                (ep["receive"] * RECEIVE_UNITS[stream.receive_unit], t)
+            )
         yield Event(t, suffix, fix)

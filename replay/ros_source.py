@@ -8,7 +8,10 @@ geometry_msgs/TwistWithCovarianceStamped on ``twist_topic`` (linear velocity in 
 ENU or NED) when there is one within 0.05 s: a 3-D velocity fix; a NavSatFix without a Twist
 (no ``twist_topic``, or none near its stamp: counted as ``no_velocity``) is published as a
 position-only fix, never with an invented velocity. Stamps are the message headers' (sensor
-time), not the bag's receive time.
+time), not the bag's receive time; an IMU stamped in ``boot`` time keeps (header stamp, receive
+time as GPS seconds) pairs in ``stats["_clock_pairs"]`` (every 10th message), from which the
+checks derive ``boot_offset_s = "auto"``. Where each fix's sigmas came from is counted in
+``stats`` (``sigma_pos:covariance|mapping|default``, ``sigma_vel:...``).
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .events import Event, ImuBuilder, gnss_fix_to_wire, key_suffix
-from .mapping import ReplayMapping, StreamMapping, to_gps_s
+from .events import Event, ImuBuilder, count, gnss_fix_to_wire, key_suffix
+from .mapping import GPS_EPOCH_UNIX_S, ReplayMapping, StreamMapping, to_gps_s
 
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
 FIX_TYPES = ("sensor_msgs/msg/NavSatFix",)
@@ -46,8 +49,8 @@ def _read(path: Path, topic: str):
         if not conns:
             have = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
             raise SourceError(f"{path}: no topic {topic!r}; the file has: {', '.join(have) or 'nothing'}")
-        for con, _t, raw in reader.messages(connections=conns):
-            yield con.msgtype, reader.deserialize(raw, con.msgtype)
+        for con, t_ns, raw in reader.messages(connections=conns):
+            yield con.msgtype, reader.deserialize(raw, con.msgtype), t_ns
 
 
 def events(
@@ -60,10 +63,15 @@ def events(
     leap = mapping.leap_seconds
     if stream.kind == "imu":
         b = ImuBuilder(stream.matrix(), stream.gyro_scale(), stream.accel_scale(), stream.form, stats=stats)
-        for msgtype, m in _read(path, stream.topic):
+        pairs = None
+        if stats is not None and stream.time_base == "boot":
+            pairs = stats.setdefault("_clock_pairs", [])
+        for k, (msgtype, m, t_bag_ns) in enumerate(_read(path, stream.topic)):
             if msgtype not in IMU_TYPES:
                 raise SourceError(f"{path} {stream.topic}: {msgtype} is not sensor_msgs/Imu")
             w, a = m.angular_velocity, m.linear_acceleration
+            if pairs is not None and k % 10 == 0:  # the bag's receive clock is POSIX (UTC)
+                pairs.append((_stamp(m), t_bag_ns * 1e-9 - GPS_EPOCH_UNIX_S + leap))
             t = to_gps_s(_stamp(m), stream, leap)
             s = b.push(t, (w.x, w.y, w.z), (a.x, a.y, a.z))
             if s is not None:
@@ -72,7 +80,7 @@ def events(
     # gnss_fix: NavSatFix + the nearest twist (both decoded once; fixes are small streams)
     twists: list[tuple[float, np.ndarray, np.ndarray]] = []
     if stream.twist_topic:
-        for msgtype, m in _read(path, stream.twist_topic):
+        for msgtype, m, _ in _read(path, stream.twist_topic):
             if msgtype not in TWIST_TYPES:
                 raise SourceError(f"{path} {stream.twist_topic}: {msgtype} is not TwistWithCovarianceStamped")
             v = np.array([m.twist.twist.linear.x, m.twist.twist.linear.y, m.twist.twist.linear.z])
@@ -83,7 +91,7 @@ def events(
             twists.append((_stamp(m), v, std))
     twists.sort(key=lambda x: x[0])
     tw_t = np.array([x[0] for x in twists])
-    for msgtype, m in _read(path, stream.topic):
+    for msgtype, m, _ in _read(path, stream.topic):
         if msgtype not in FIX_TYPES:
             raise SourceError(f"{path} {stream.topic}: {msgtype} is not sensor_msgs/NavSatFix")
         if m.status.status < 0:  # STATUS_NO_FIX
@@ -94,6 +102,8 @@ def events(
         cov = np.asarray(m.position_covariance, float).reshape(3, 3)
         known = m.position_covariance_type > 0 and np.all(np.diag(cov) > 0)
         pstd = np.sqrt(np.diag(cov)) if known else stream.pos_std_m  # None: GnssFix's defaults
+        p_origin = "covariance" if known else ("mapping" if stream.pos_std_m is not None else "default")
+        v_origin = None
         ftype = NAVSAT_FIX_TYPE.get(int(m.status.status), "single")
         t = to_gps_s(ts, stream, leap)
         vel = vstd = None
@@ -101,8 +111,10 @@ def events(
             i = int(np.argmin(np.abs(tw_t - ts)))
             if abs(tw_t[i] - ts) <= TWIST_MATCH_S:
                 _, vel, vstd = twists[i]
+                v_origin = "covariance"
                 if not np.all(vstd > 0):
                     vstd = stream.vel_std_mps  # None: GnssFix's default for the fix type
+                    v_origin = "mapping" if vstd is not None else "default"
             elif stats is not None:  # published as position only
                 stats["no_velocity"] = stats.get("no_velocity", 0) + 1
         try:
@@ -111,4 +123,7 @@ def events(
             if stats is not None:
                 stats["implausible"] = stats.get("implausible", 0) + 1
             continue
+        count(stats, f"sigma_pos:{p_origin}")
+        if v_origin is not None:
+            count(stats, f"sigma_vel:{v_origin}")
         yield Event(t, suffix, fix)

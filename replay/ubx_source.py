@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .events import Event, ImuBuilder, gnss_fix_to_wire, key_suffix
+from .events import Event, ImuBuilder, count, gnss_fix_to_wire, key_suffix
 from .mapping import GPS_EPOCH_UNIX_S, ReplayMapping, StreamMapping, to_gps_s
 
 WEEK_S = 604800.0
@@ -88,6 +88,8 @@ def events(
             fix = gnss_fix_to_wire(
                 t, m.lat, m.lon, m.height * 1e-3, vel, pstd, (s_std,) * 3, m.numSV, fix_type=ftype
             )
+            count(stats, "sigma_pos:receiver")
+            count(stats, "sigma_vel:receiver")
             yield Event(t, suffix, fix)
         return
     if stream.tick_s is None:

@@ -6,6 +6,11 @@ simulated drive: a car at rest for ``STATIC_S`` then accelerating and turning, n
 Each writer takes the simulated messages (fednav frames: body RFU, ENU, GPS time) and writes them
 the way a real device would (its axes, units, time base); ``write_all`` returns the mapping file
 of every case. Used by tests/test_replay*.py and benchmarks/replay.py.
+
+``simulate_car_drive`` is a drive that STARTS IN MOTION (no rest at all) with an IMU of a given
+grade (the imu_grades presets' numbers, drawn per run) and 10 Hz fixes: the simulator flies
+coordinated turns (its body rolls into a turn, as an aircraft), which ``car_imu`` rolls back into
+the level frame of a car body (a car's IMU reads the centripetal acceleration sideways).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from __future__ import annotations
 import csv
 import datetime as dt
 import io
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +125,143 @@ def simulate_drive(tmp: Path, duration_s: float = 40.0, seed: int = 3) -> Drive:
     return Drive(imu, fixes, truth)
 
 
+CAR_SCENARIO_TOML = """
+name = "replay_car_{grade}"
+description = "A car already driving when the log starts: speed changes and turns, no rest."
+duration_s = {duration}
+t0_gps_s = {t0}
+seed = 5
+truth_rate_hz = 100.0
+
+[start]
+lat_deg = 30.5283
+lon_deg = 114.3557
+height_m = 25.0
+heading_deg = 30.0
+speed_mps = 14.0
+
+{segments}
+
+[imu]
+id = "main"
+rate_hz = 100.0
+bias_mode = "random"
+gyro_bias_dph = [{g.gyro_bias_dph}, {g.gyro_bias_dph}, {g.gyro_bias_dph}]
+accel_bias_ug = [{g.accel_bias_ug}, {g.accel_bias_ug}, {g.accel_bias_ug}]
+arw_dpsh = {g.arw_dpsh}
+vrw_ugpsHz = {g.vrw_ugpsHz}
+gyro_bias_instability_dph = {g.gyro_bias_instability_dph}
+gyro_bias_tau_s = {g.gyro_bias_tau_s}
+accel_bias_instability_ug = {g.accel_bias_instability_ug}
+accel_bias_tau_s = {g.accel_bias_tau_s}
+
+[gnss]
+id = "main"
+rate_hz = 10.0
+pos_std_enu_m = [{pos_std}, {pos_std}, {pos_std_u}]
+vel_std_enu_mps = [0.05, 0.05, 0.1]
+correlated_pos_std_enu_m = [{gm}, {gm}, {gm_u}]
+correlation_time_s = 30.0
+"""
+
+#: a minute of town driving from 14 m/s: speed changes and turns both ways, a stop-free loop
+CAR_SEGMENTS = (
+    ("straight", 4.0, {}),
+    ("accelerate", 6.0, {"accel_mps2": 1.2, "ramp_s": 1.0}),
+    ("turn", 9.0, {"turn_rate_dps": 10.0, "ramp_s": 2.0}),
+    ("straight", 5.0, {}),
+    ("accelerate", 6.0, {"accel_mps2": -1.5, "ramp_s": 1.0}),
+    ("turn", 9.0, {"turn_rate_dps": -12.0, "ramp_s": 2.0}),
+    ("accelerate", 5.0, {"accel_mps2": 1.0, "ramp_s": 1.0}),
+    ("turn", 8.0, {"turn_rate_dps": 8.0, "ramp_s": 2.0}),
+    ("straight", 4.0, {}),
+    ("turn", 8.0, {"turn_rate_dps": -9.0, "ramp_s": 2.0}),
+)
+
+
+def car_segments(duration_s: float) -> str:
+    out, t, k = [], 0.0, 0
+    while True:
+        kind, d, kw = CAR_SEGMENTS[k % len(CAR_SEGMENTS)]
+        k += 1
+        if t + d > duration_s:  # the rest is padded with straight driving
+            break
+        lines = [f'kind = "{kind}"', f"duration_s = {d}"] + [f"{a} = {b}" for a, b in kw.items()]
+        out.append("[[segments]]\n" + "\n".join(lines))
+        t += d
+    return "\n\n".join(out)
+
+
+def car_imu(imu: list[ImuSample], truth: list[Truth]) -> list[ImuSample]:
+    """The simulator's IMU increments (body rolled into coordinated turns) as a car's IMU reads them:
+    rotated about the forward axis into the level-roll car body (C_cb from the truth's roll, the
+    roll rate taken out of the angle increment). The IMU's errors stay as simulated."""
+    from fednav.service import earth
+
+    roll = {round(x.t, 4): math.radians(x.rpy_deg[0]) for x in truth}
+    out = []
+    for s in imu:
+        r1 = roll[round(s.t, 4)]
+        r0 = roll.get(round(s.t - s.dt_s, 4), r1)
+        rm = 0.5 * (r0 + r1)
+        c, sn = math.cos(rm), math.sin(rm)
+        c_cb = np.array([[c, 0.0, sn], [0.0, 1.0, 0.0], [-sn, 0.0, c]])  # Ry(roll): right wing down +
+        dth = c_cb @ np.asarray(s.dtheta_rad) - np.array([0.0, r1 - r0, 0.0])
+        dv = c_cb @ np.asarray(s.dvel_mps)
+        out.append(ImuSample(t=s.t, dt_s=s.dt_s, dtheta_rad=tuple(dth), dvel_mps=tuple(dv)))
+    del earth
+    return out
+
+
+def simulate_car_drive(
+    tmp: Path,
+    grade: str = "consumer_mems",
+    duration_s: float = 60.0,
+    seed: int = 5,
+    pos_std_m: float = 0.5,
+    gm_std_m: float = 0.0,
+) -> Drive:
+    """A car drive that starts in motion, IMU of ``grade`` (docs/imu_grades.md presets), 10 Hz fixes
+    (white ``pos_std_m`` plus a 30 s Gauss-Markov error ``gm_std_m``, vertical 2x)."""
+    from fednav.service.ins.imu_grades import PRESETS
+    from fednav.simulators.scenario import load_scenario
+    from fednav.simulators.stream import simulate
+
+    p = tmp / f"car_{grade}_{seed}.toml"
+    p.write_text(
+        CAR_SCENARIO_TOML.format(
+            grade=grade,
+            duration=duration_s,
+            t0=T0_GPS_S,
+            segments=car_segments(duration_s),
+            g=PRESETS[grade],
+            pos_std=pos_std_m,
+            pos_std_u=2 * pos_std_m,
+            gm=gm_std_m,
+            gm_u=2 * gm_std_m,
+        )
+    )
+    imu, fixes, truth = [], [], []
+    for _key, msg in simulate(load_scenario(p), seed=seed):
+        if isinstance(msg, ImuSample):
+            imu.append(msg)
+        elif isinstance(msg, GnssFix):
+            fixes.append(msg)
+        elif isinstance(msg, Truth):
+            truth.append(msg)
+    return Drive(car_imu(imu, truth), fixes, truth)
+
+
+def trim(drive: Drive, start_s: float) -> Drive:
+    """The drive without its first ``start_s`` seconds: a log that starts mid-manoeuvre."""
+    t0 = drive.imu[0].t - drive.imu[0].dt_s + start_s
+    return Drive(
+        [s for s in drive.imu if s.t - s.dt_s >= t0 - 1e-9],
+        [f for f in drive.fixes if f.t >= t0],
+        [x for x in drive.truth if x.t >= t0],
+    )
+
+
 def service_config(tmp: Path, align_s: float = 8.0) -> Path:
     p = tmp / "service.toml"
     p.write_text(SERVICE_TOML.format(align=align_s))
@@ -144,8 +287,10 @@ def gps_to_utc(t: float, leap: int = LEAP_SECONDS_NOW) -> dt.datetime:
 
 
 # --- ROS (rosbags writers) ---------------------------------------------------------------------------
-def _ros_msgs(ts, drive: Drive, axes: str, ros1: bool):
-    """(topic, msgtype, stamp_ns, message) of sensor_msgs/Imu, NavSatFix and TwistWithCovarianceStamped."""
+def _ros_msgs(ts, drive: Drive, axes: str, ros1: bool, imu_boot: bool = False):
+    """(topic, msgtype, receive time (POSIX s), message) of sensor_msgs/Imu, NavSatFix and
+    TwistWithCovarianceStamped. ``imu_boot``: the IMU's header stamps are seconds since the device
+    booted (``BOOT_GPS_S``), received 2 ms after they were taken."""
     T = ts.types
     Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
     V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
@@ -165,8 +310,11 @@ def _ros_msgs(ts, drive: Drive, axes: str, ros1: bool):
         w, f = rates(s)
         w, f = to_source(axes, w), to_source(axes, f)
         tu = gps_to_unix(s.t)
+        stamp = s.t - BOOT_GPS_S if imu_boot else tu
+        if imu_boot:
+            tu += 0.002
         msg = T["sensor_msgs/msg/Imu"](
-            header=header(tu, "imu_link"),
+            header=header(stamp, "imu_link"),
             orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
             orientation_covariance=np.array([-1.0] + [0.0] * 8),
             angular_velocity=V3(x=w[0], y=w[1], z=w[2]),
@@ -205,8 +353,10 @@ def _ros_msgs(ts, drive: Drive, axes: str, ros1: bool):
     return out
 
 
-def write_ros2(path: Path, drive: Drive, axes: str = "FLU", storage: str = "sqlite3") -> Path:
-    """A ROS 2 bag directory (sqlite3 or MCAP storage)."""
+def write_ros2(
+    path: Path, drive: Drive, axes: str = "FLU", storage: str = "sqlite3", imu_boot: bool = False
+) -> Path:
+    """A ROS 2 bag directory (sqlite3 or MCAP storage); ``imu_boot``: IMU header stamps in boot time."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -214,7 +364,7 @@ def write_ros2(path: Path, drive: Drive, axes: str = "FLU", storage: str = "sqli
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     with Writer(path, version=9, storage_plugin=plugin) as w:
         conns = {}
-        for topic, typ, tu, msg in _ros_msgs(ts, drive, axes, ros1=False):
+        for topic, typ, tu, msg in _ros_msgs(ts, drive, axes, ros1=False, imu_boot=imu_boot):
             if topic not in conns:
                 conns[topic] = w.add_connection(topic, typ, typestore=ts)
             w.write(conns[topic], int(round(tu * 1e9)), ts.serialize_cdr(msg, typ))
@@ -289,16 +439,32 @@ def nmea_lines(drive: Drive, gst: bool = True) -> list[str]:
     return lines
 
 
-def write_nmea(path: Path, drive: Drive, gst: bool = True) -> Path:
-    path.write_text("\n".join(nmea_lines(drive, gst)) + "\n")
+def write_nmea(path: Path, drive: Drive, gst: bool = True, receive_latency_s: float | None = None) -> Path:
+    """NMEA sentences; ``receive_latency_s``: every line led by the logger's own receive stamp in
+    seconds since boot (``BOOT_GPS_S``), the receiver's output coming that long after its epoch."""
+    lines = nmea_lines(drive, gst)
+    if receive_latency_s is not None:
+        per_epoch = len(lines) // len(drive.fixes)
+        lines = [
+            f"{drive.fixes[i // per_epoch].t - BOOT_GPS_S + receive_latency_s:.3f},{ln}"
+            for i, ln in enumerate(lines)
+        ]
+    path.write_text("\n".join(lines) + "\n")
     return path
 
 
 # --- CSV --------------------------------------------------------------------------------------------
 def write_csv(
-    path: Path, drive: Drive, axes: str = "FRD", form: str = "increment", boot: bool = True
+    path: Path,
+    drive: Drive,
+    axes: str = "FRD",
+    form: str = "increment",
+    boot: bool = True,
+    negate: tuple[int, ...] = (),
 ) -> Path:
-    """IMU CSV in ``axes``; increment form (deg, g*s) with a dt column, or rate form (deg/s, g)."""
+    """IMU CSV in ``axes``; increment form (deg, g*s) with a dt column, or rate form (deg/s, g).
+    ``negate``: columns (1-3 gyro x/y/z, 4-6 accelerometer x/y/z) written with the opposite sign
+    (a logger with one axis or one sensor's sign convention reversed)."""
     g0 = 9.80665
     out = io.StringIO()
     w = csv.writer(out)
@@ -310,18 +476,16 @@ def write_csv(
     for s in drive.imu:
         t = s.t - BOOT_GPS_S if boot else gps_to_unix(s.t)
         if form == "increment":
-            th = np.degrees(to_source(axes, s.dtheta_rad))
-            dv = to_source(axes, s.dvel_mps) / g0
-            w.writerow([f"{t:.6f}", *(f"{x:.10e}" for x in th), *(f"{x:.10e}" for x in dv), f"{s.dt_s:.6f}"])
+            vals = np.concatenate(
+                [np.degrees(to_source(axes, s.dtheta_rad)), to_source(axes, s.dvel_mps) / g0]
+            )
         else:
             wr, f = rates(s)
-            w.writerow(
-                [
-                    f"{t:.6f}",
-                    *(f"{x:.10e}" for x in np.degrees(to_source(axes, wr))),
-                    *(f"{x:.10e}" for x in to_source(axes, f) / g0),
-                ]
-            )
+            vals = np.concatenate([np.degrees(to_source(axes, wr)), to_source(axes, f) / g0])
+        for c in negate:
+            vals[c - 1] = -vals[c - 1]
+        row = [f"{t:.6f}", *(f"{x:.10e}" for x in vals)]
+        w.writerow(row + [f"{s.dt_s:.6f}"] if form == "increment" else row)
     path.write_text(out.getvalue())
     return path
 

@@ -202,7 +202,9 @@ def test_nmea_without_rmc_needs_a_date_and_takes_it_from_the_mapping(tmp_path, d
     from fednav.replay import nmea_source
 
     fixes = list(nmea_source.events(m.streams[0], tmp_path, m, stats=stats))
-    assert stats == {"bad_sentence": 1} and len(fixes) == len(drive.fixes)
+    # one bad line; every fix's position sigma is GnssFix's default (no GST, no pos_std_m)
+    assert stats == {"bad_sentence": 1, "sigma_pos:default": len(drive.fixes)}
+    assert len(fixes) == len(drive.fixes)
     assert fixes[5].t_gps_s == pytest.approx(drive.fixes[5].t, abs=1e-6)
     f = fixes[5].msg  # no GST, no RMC: position only, sigmas the documented defaults from GGA
     assert f.variant == "position" and f.velocity() is None and f.vel_std() is None
