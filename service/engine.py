@@ -49,20 +49,16 @@ from typing import Protocol
 import numpy as np
 
 from fednav.service.config import ServiceConfig
-from fednav.service.estimation import snapshot
 from fednav.service.evaluation import errors_against_truth
 from fednav.service.imu_batch import ImuRow
-from fednav.service.ins import alignment
 from fednav.service.ins.mechanisation import NavState, Preintegrator
 from fednav.service.intake_rules import AcceptanceRules, Verdict
+from fednav.service.lifecycle import VehicleLife
 from fednav.service.messages import (
     MAX_HEIGHT_M,
     MAX_SPEED_MPS,
     MIN_HEIGHT_M,
-    GnssFix,
-    GnssRaw,
     ImuSample,
-    InitialNav,
     Solution,
     Truth,
     WireModel,
@@ -133,26 +129,18 @@ class VehicleEngine:
         self.rejected: Counter = counters if counters is not None else Counter()
         self.notes: Counter = Counter()  # counted events that are not refusals (Health notes)
         self.pipelines: list[Pipeline] = [build_pipeline(p, config) for p in config.pipelines]
-        self.initialised = False
         self.pre = Preintegrator()  # the vehicle's one minor loop, shared by every pipeline
         self.last_imu_t: float | None = None
         self.pending: list[tuple[float, str, str, WireModel]] = []
         self.rules = AcceptanceRules(config.intake)
         self._truth: dict[int, Truth] = {}
-        self._last_fix: GnssFix | None = None
-        self._fix_from_raw = False  # _last_fix is a snapshot solution of a raw epoch (snapshot.py)
-        self._align = alignment.ImuAccumulator()
         self._last_out_k = -1
-        self._lost = False
         self.last_t: float | None = None
-        self._pending_init: InitialNav | None = None  # refused for its time: kept for a time jump
-        self._check_first_fix = False  # an InitialNav start not yet confirmed by a GNSS fix
         self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
         self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
         self._warned: set[tuple[str, str]] = set()
         #: streams whose time is more than TIME_BASE_MISMATCH_S from the IMU time: offset, s (Health)
         self.time_base_mismatch: dict[str, float] = {}
-        self._start_t: float | None = None
         # IMU nodes (transfer alignment): ids routed to pipelines, never to the vehicle's INS
         self._node_imus: dict[str, list[Pipeline]] = {}
         for p in self.pipelines:
@@ -160,6 +148,12 @@ class VehicleEngine:
                 self._node_imus.setdefault(sid, []).append(p)
         self._sample_pipes = [p for p in self.pipelines if p.wants_imu_samples]
         self._node_truth: dict[tuple[str, int], WireModel] = {}
+        #: the vehicle's life: starts, verification, suspicion, resets (service/lifecycle.py)
+        self.life = VehicleLife(self)
+
+    @property
+    def initialised(self) -> bool:
+        return self.life.initialised
 
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
@@ -180,21 +174,21 @@ class VehicleEngine:
         self._watch_refusals(kind, sensor_id, msg.t, verdict.reason)
         if kind == "imu":
             return self._on_imu(msg, verdict)
+        life = self.life
         if kind == "gnss_fix" and verdict.in_sequence:
-            self._last_fix = msg  # the newest fix, also when not applied (alignment uses it)
-            self._fix_from_raw = False
-        elif kind == "gnss_raw" and verdict.in_sequence and not self.initialised:
-            self._snapshot_reference(msg)  # a raw receiver without a fix stream aligns like one with it
+            life.on_fix(msg)  # the newest fix, also when not applied (alignment uses it)
+        elif kind == "gnss_raw" and verdict.in_sequence and not life.initialised:
+            life.on_raw(msg)  # a raw receiver without a fix stream aligns like one with it
         if verdict.reason == "not_initialised":
-            self._try_initialise_from_aiding()  # this message may complete an alignment
-            if self.initialised:
+            life.try_align()  # this message may complete an alignment
+            if life.initialised:
                 return True
         if kind == "init" and verdict.reason in ("future", "late"):
-            self._pending_init = msg  # usable if the IMU time base moves to it (restart)
+            life.pending_init = msg  # usable if the IMU time base moves to it (restart)
         if not verdict.accepted:
             return self._reject(verdict.reason)
         if kind == "init":
-            if not self._initialise_from_message(msg):
+            if not life.on_initial_nav(msg):
                 self.rules.withdraw(kind, sensor_id, previous_t)
                 return False
         elif kind == "truth":
@@ -298,7 +292,8 @@ class VehicleEngine:
 
     def _watch_inputs(self, p: Pipeline, t: float) -> None:
         """Log once when a pipeline has had no aiding for ``UNAIDED_WARNING_S`` since its start."""
-        if p.aided_since_start or self._start_t is None or t - self._start_t < UNAIDED_WARNING_S:
+        start_t = self.life.start_t
+        if p.aided_since_start or start_t is None or t - start_t < UNAIDED_WARNING_S:
             return
         if ("unaided", p.name) in self._warned:
             return
@@ -308,7 +303,7 @@ class VehicleEngine:
             "consumes %s; this vehicle's streams: %s",
             self.vehicle,
             p.name,
-            t - self._start_t,
+            t - start_t,
             sorted(p.sensor_kinds()),
             sorted(self.streams),
         )
@@ -340,10 +335,10 @@ class VehicleEngine:
             return True
         if not verdict.accepted:
             return self._reject(verdict.reason)
-        if not self.initialised:
-            self._align.add(t, dt, dtheta, dvel)
+        if not self.life.initialised:
+            self.life.align.add(t, dt, dtheta, dvel)
             self.last_imu_t = t
-            self._try_initialise_from_aiding()
+            self.life.try_align()
             return True
         span = t - self.last_imu_t
         scale = span / dt  # a short gap (< max_imu_gap_s) stretches the sample over it
@@ -402,35 +397,18 @@ class VehicleEngine:
         """An IMU gap or a confirmed time jump: the INS is lost; re-initialised from a current
         InitialNav (one refused for its time is kept for this) or the next alignment."""
         self.rejected[reason] += 1
-        self._lost = True
-        self.initialised = False
         self.pending.clear()
         self.last_imu_t = self.last_t = t
-        self._align = alignment.ImuAccumulator()
-        for p in self.pipelines:
-            p.mark_lost()
         if reason == "time_jump":  # a new time base: nothing of the old one applies
             self.rules.forget_times()
             self.rules.imu_t = t
-            self._last_fix = None
             self.streams.clear()
-        init, self._pending_init = self._pending_init, None
-        if init is not None and abs(init.t - t) <= self.config.intake.future_window_s:
-            self._initialise_from_message(init)
+        self.life.on_imu_lost(t, reason)
 
     # --- aiding ---------------------------------------------------------------------------------
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:
         self._advance_all()
-        if kind == "gnss_fix":
-            if self._check_first_fix:
-                self._confirm_start(msg)
-            self._restart_failed(msg)
-        elif kind == "gnss_raw" and (self._check_first_fix or any(p.failed for p in self.pipelines)):
-            fix = self._snapshot_reference(msg)
-            if fix is not None:
-                if self._check_first_fix:
-                    self._confirm_start(fix)
-                self._restart_failed(fix)
+        self.life.before_aiding(kind, msg)
         for p in self.pipelines:
             p.sync()  # every pipeline at the aiding epoch (the same propagation steps as before)
             if kind not in p.consumed_kinds():
@@ -445,6 +423,7 @@ class VehicleEngine:
             err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:
                 self.sink.on_output(self.vehicle, out, err9)
+        self.life.after_aiding(kind, msg, self.pre.t_end)
 
     def _unused(self, p: Pipeline, kind: str) -> None:
         """A sensor kind reached a pipeline that is not configured to use it: counted (Health
@@ -462,24 +441,6 @@ class VehicleEngine:
             sorted(p.consumed_kinds()),
             kind,
         )
-
-    def _restart_failed(self, fix: GnssFix) -> None:
-        """Failed pipelines restart from a running sibling's estimate, else (in motion) from the fix."""
-        failed = [p for p in self.pipelines if p.failed]
-        if not failed:
-            return
-        ref = self._running_pipeline(fix.t)
-        if ref is not None:
-            ref.sync()
-            est = ref.estimate()
-            sd = np.sqrt(np.clip(np.diagonal(est.P9), 0.0, None))
-            nav, std = est.nav.copy(), InitStd(sd[0:3], sd[3:6], sd[6:9])
-        elif alignment.fix_speed(fix) >= self.config.init.min_speed_mps:
-            nav, std = alignment.motion_alignment(fix, self.last_imu_t)
-        else:
-            return
-        for p in failed:
-            p.start(nav.copy(), std, after_loss=True)
 
     @staticmethod
     def _usable(est: Estimate) -> bool:
@@ -531,112 +492,40 @@ class VehicleEngine:
             return None
         return errors_against_truth((est or p.estimate()).nav, truth)
 
-    # --- initialisation ---------------------------------------------------------------------------
-    def _start(self, nav: NavState, std: InitStd) -> None:
-        for p in self.pipelines:
-            p.start(nav, std, after_loss=self._lost)
+    # --- initialisation (the transitions themselves: service/lifecycle.py) ---------------------------
+    def _restart_clock(self, t: float) -> None:
+        """Every pipeline (re)started at ``t``: the vehicle's clock and outputs restart there."""
         self.pre = Preintegrator()
-        self.pre.reset(nav.t)
-        self.initialised = True
-        self._start_t = nav.t
-        self._lost = False
-        self.last_imu_t = nav.t
-        self.last_t = nav.t
+        self.pre.reset(t)
+        self.last_imu_t = t
+        self.last_t = t
         self._last_out_k = -1
         self.pending.clear()
 
-    def _initialise_from_message(self, msg: InitialNav) -> bool:
-        """Start (or re-start) from an InitialNav. A re-initialisation of a running vehicle must
-        agree with the sensors: with the latest GNSS fix when current, else with the running
-        estimate (``alignment.plausible``); otherwise it is refused ``implausible_init``. A first
-        start is checked against the first GNSS fix instead (:meth:`_confirm_start`)."""
-        if self.config.init.mode not in ("auto", "message"):
-            return True
-        nav, std = alignment.from_initial_nav(msg)
-        if self.initialised:
-            ref = self._reference_state(nav.t)
-            if ref is not None and not alignment.plausible(nav, ref[0], alignment.std_cov6(std) + ref[1])[0]:
-                return self._reject("implausible_init")
-        self._start(nav, std)
-        self._check_first_fix = True
-        return True
+    def _start(self, nav: NavState, std: InitStd) -> None:
+        """Every pipeline starts from ``nav`` (a verified start: :meth:`VehicleLife.start_all`)."""
+        self.life.start_all(nav, std)
 
-    def _snapshot_reference(self, raw: GnssRaw) -> GnssFix | None:
-        """The snapshot least-squares fix of a raw epoch (``snapshot.snapshot_fix``) as the latest
-        fix, unless a receiver's own fix is current (that one is better: it models the atmosphere)."""
-        own = self._last_fix
-        if own is not None and not self._fix_from_raw and alignment.fix_is_current(own, raw.t):
-            return None
-        fix = snapshot.snapshot_fix(raw)
-        if fix is not None:
-            self._last_fix, self._fix_from_raw = fix, True
-        return fix
+    def hand_over(self, nav: NavState, std: InitStd, source: str) -> bool:
+        """Start or restart every pipeline from another service's last state (fleet scale-out).
 
-    def _reference_state(self, t: float) -> tuple[NavState, np.ndarray] | None:
-        """An independent position/velocity at ``t`` and its 6x6 covariance: the latest GNSS fix if
-        current, else the first running pipeline's estimate."""
-        fix = self._last_fix
-        if fix is not None and alignment.fix_is_current(fix, t):
-            nav, std = alignment.motion_alignment(fix, t)
-            return nav, alignment.std_cov6(std)
-        p = self._running_pipeline(t)
-        if p is None:
-            return None
-        p.sync()
-        est = p.estimate()
-        return est.nav, est.P9[:6, :6]
+        ``nav``: the navigation state at the time the vehicle resumes here (before its first IMU
+        sample: that sample's start time; on a running vehicle: within ``[intake]
+        future_window_s`` of its running time), biases included; ``std``: its 1-sigma (position
+        ENU m, velocity ENU m/s, attitude nav-frame rad), raised to the lifecycle's absolute
+        floors; ``source``: who handed it over (the other service's id, for the log).
 
-    def _running_pipeline(self, t: float) -> Pipeline | None:
-        """The first pipeline with a usable estimate (not initialising, not failed)."""
-        usable = (p for p in self.pipelines if p.current_status(t) not in ("initialising", "failed"))
-        return next(usable, None)
-
-    def _confirm_start(self, fix: GnssFix) -> None:
-        """The first GNSS fix after an InitialNav start: an InitialNav that disagrees with it
-        (``alignment.plausible`` against the estimate) is counted ``implausible_init`` and the
-        pipelines restart from the fix (in motion: its velocity track; else the attitude kept)."""
-        self._check_first_fix = False
-        p = self._running_pipeline(fix.t)
-        if p is None:
-            return
-        p.sync()
-        est = p.estimate()
-        nav_fix, std_fix = alignment.motion_alignment(fix, est.nav.t)
-        ok, _ = alignment.plausible(est.nav, nav_fix, est.P9[:6, :6] + alignment.std_cov6(std_fix))
-        if ok:
-            return
-        self.rejected["implausible_init"] += 1
-        if alignment.fix_speed(fix) < self.config.init.min_speed_mps:  # keep the attitude
-            nav_fix = alignment.nav_at_fix(fix, est.nav.rpy_rad, est.nav.t)
-            att_std = np.sqrt(np.clip(np.diagonal(est.P9)[6:9], 0.0, None))
-            std_fix = alignment.InitStd(std_fix.pos_enu_m, std_fix.vel_enu_mps, att_std)
-        self._lost = False
-        self._start(nav_fix, std_fix)
-        self._check_first_fix = False
-
-    def _try_initialise_from_aiding(self) -> None:
-        """Coarse alignment from the latest GNSS fix and the IMU data so far, when ``[init] mode``
-        allows it: in motion (fix speed >= ``min_speed_mps``), or static after ``align_time_s``."""
-        mode = self.config.init.mode
-        t = self.last_imu_t
-        if self.initialised or mode == "message" or t is None:
-            return
-        fix = self._last_fix
-        if fix is None or not alignment.fix_is_current(fix, t):
-            return
-        speed = alignment.fix_speed(fix)
-        if mode in ("auto", "gnss_motion") and speed >= self.config.init.min_speed_mps:
-            self._start(*alignment.motion_alignment(fix, t))
-            return
-        if (
-            mode in ("auto", "static")
-            and self._align.covers(t, self.config.init.align_time_s)
-            and speed < alignment.STATIC_MAX_SPEED_MPS
-        ):
-            sg, sa = self.config.imu.bias_sigmas()
-            aligned = alignment.static_alignment(self._align, fix, t, sg, sa)
-            if aligned is not None:  # else not static: wait for motion initialisation
-                self._start(*aligned)
+        A vehicle not yet initialised starts every pipeline from it (lifecycle transition
+        ``hand_over``). A running vehicle treats it as a reset request: it must agree with the
+        latest GNSS fix (else the running estimate) like a re-initialising InitialNav, or it is
+        refused (``implausible_handover``, or ``stale_handover`` out of the time window, counted
+        in Health ``rejected``) and False is returned; taken, every pipeline restarts from it with
+        sigmas that cover its difference from that reference. Either way the state is
+        *unverified*: every pipeline reports ``degraded`` until the vehicle's own aiding agrees
+        with it (``lifecycle.VERIFY_EPOCHS`` agreeing GNSS epochs), and a GNSS reference that
+        disagrees with it restarts the pipeline from the vehicle's own fix. Counted in Health
+        ``notes`` as ``handed_over``. Returns whether the state was taken."""
+        return self.life.hand_over(nav, std, source)
 
     # --- state for health ---------------------------------------------------------------------------
     def pipeline_states(self) -> dict[str, dict]:

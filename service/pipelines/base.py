@@ -120,6 +120,9 @@ class Pipeline(ABC):
         self.aided_since_start = False
         self.failed = False
         self.lost = False
+        #: why the running state is not verified by the vehicle's own aiding (None: verified);
+        #: set by the vehicle's lifecycle (:mod:`service.lifecycle`), reported ``degraded``
+        self.unverified: str | None = None
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
@@ -150,6 +153,15 @@ class Pipeline(ABC):
         """The INS is lost (IMU gap, time jump): no navigation until the next start."""
         self.lost = True
 
+    def mark_unverified(self, reason: str) -> None:
+        """The running state came from a source the vehicle's own aiding has not confirmed (a
+        hand-over, a reset request) or is suspect: ``degraded`` until :meth:`mark_verified`."""
+        self.unverified = reason
+
+    def mark_verified(self) -> None:
+        """The vehicle's own aiding agrees with the running state again."""
+        self.unverified = None
+
     def restarted(self) -> None:
         """The filter was restarted in place (covariance recovery): counts a re-initialisation;
         ``unaided`` until the next aiding."""
@@ -163,13 +175,16 @@ class Pipeline(ABC):
         return max(self.coast_after_periods * self.aiding_period_s, self.min_coast_after_s)
 
     def current_status(self, t: float | None) -> str:
-        """``initialising`` (no filter, or the INS lost), ``failed``, ``degraded`` (screening refused
-        aiding recently), ``unaided`` (never aided since the start), ``coasting`` (aided before,
-        nothing for longer than :meth:`coast_after_s`), ``aided``."""
+        """``initialising`` (no filter, or the INS lost), ``failed``, ``degraded`` (the state is not
+        verified by the vehicle's own aiding, or screening refused aiding recently), ``unaided``
+        (never aided since the start), ``coasting`` (aided before, nothing for longer than
+        :meth:`coast_after_s`), ``aided``."""
         if self.bank is None or self.lost:
             return "initialising"
         if self.failed:
             return "failed"
+        if self.unverified is not None:
+            return "degraded"
         t = self.bank.t if t is None else t
         window = self.coast_after_s()
         if self.last_screened_t is not None and t - self.last_screened_t <= window:
