@@ -411,7 +411,7 @@ def suggest_config(mapping: ReplayMapping, base_dir: Path, report: Report) -> Su
     sr = report.streams[fix_idx]
     sig = sr.sigma or {}
     sigma = np.array(sig.get("pos_std_enu_m_median", [float("nan")] * 3))
-    origin = ", ".join(f"{k} {n}" for k, n in sig.get("pos_origin", {}).items()) or "unknown"
+    origin = ", ".join(f"{k}: {n} fixes" for k, n in sig.get("pos_origin", {}).items()) or "unknown"
     white = white_scatter(fx, run["solutions"])
     fixes = {
         "stream": fstream.sensor_id,

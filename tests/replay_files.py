@@ -179,8 +179,20 @@ CAR_SEGMENTS = (
 )
 
 
-def car_segments(duration_s: float) -> str:
+def car_segments(duration_s: float, stop_s: float = 0.0) -> str:
+    """The segments of ``duration_s``; ``stop_s`` > 0: first a stop of that long (braking from
+    14 m/s over 8 s, standing, pulling away over 8 s)."""
     out, t, k = [], 0.0, 0
+    if stop_s > 0:
+        for kind, d, kw in (
+            ("straight", 3.0, {}),
+            ("accelerate", 8.0, {"accel_mps2": -2.0, "ramp_s": 1.0}),
+            ("straight", stop_s, {}),
+            ("accelerate", 8.0, {"accel_mps2": 2.0, "ramp_s": 1.0}),
+        ):
+            lines = [f'kind = "{kind}"', f"duration_s = {d}"] + [f"{a} = {b}" for a, b in kw.items()]
+            out.append("[[segments]]\n" + "\n".join(lines))
+            t += d
     while True:
         kind, d, kw = CAR_SEGMENTS[k % len(CAR_SEGMENTS)]
         k += 1
@@ -220,20 +232,22 @@ def simulate_car_drive(
     seed: int = 5,
     pos_std_m: float = 0.5,
     gm_std_m: float = 0.0,
+    stop_s: float = 0.0,
 ) -> Drive:
     """A car drive that starts in motion, IMU of ``grade`` (docs/imu_grades.md presets), 10 Hz fixes
-    (white ``pos_std_m`` plus a 30 s Gauss-Markov error ``gm_std_m``, vertical 2x)."""
+    (white ``pos_std_m`` plus a 30 s Gauss-Markov error ``gm_std_m``, vertical 2x); ``stop_s``: a
+    stop of that long after 11 s."""
     from fednav.service.ins.imu_grades import PRESETS
     from fednav.simulators.scenario import load_scenario
     from fednav.simulators.stream import simulate
 
-    p = tmp / f"car_{grade}_{seed}.toml"
+    p = tmp / f"car_{grade}_{seed}_{stop_s:g}.toml"
     p.write_text(
         CAR_SCENARIO_TOML.format(
             grade=grade,
             duration=duration_s,
             t0=T0_GPS_S,
-            segments=car_segments(duration_s),
+            segments=car_segments(duration_s, stop_s),
             g=PRESETS[grade],
             pos_std=pos_std_m,
             pos_std_u=2 * pos_std_m,
@@ -558,15 +572,22 @@ def write_ubx(path: Path, drive: Drive, axes: str = "FRD") -> Path:
 
 
 # --- mappings ---------------------------------------------------------------------------------------
-def write_all(tmp: Path, drive: Drive) -> dict[str, Path]:
-    """Every format's files and a mapping file for each; returns {case: mapping path}."""
+def write_all(tmp: Path, drive: Drive, only: tuple[str, ...] | None = None) -> dict[str, Path]:
+    """Every format's files and a mapping file for each (``only``: these cases: ros2, ros1, mcap,
+    nmea_csv, ubx); returns {case: mapping path}."""
     tmp.mkdir(parents=True, exist_ok=True)
-    write_ros2(tmp / "drive_ros2", drive)
-    write_ros1(tmp / "drive.bag", drive)
-    write_mcap(tmp / "drive.mcap", drive)
-    write_nmea(tmp / "drive.nmea", drive)
-    write_csv(tmp / "imu.csv", drive)
-    write_ubx(tmp / "drive.ubx", drive)
+    want = set(only or ("ros2", "ros1", "mcap", "nmea_csv", "ubx"))
+    if "ros2" in want:
+        write_ros2(tmp / "drive_ros2", drive)
+    if "ros1" in want:
+        write_ros1(tmp / "drive.bag", drive)
+    if "mcap" in want:
+        write_mcap(tmp / "drive.mcap", drive)
+    if "nmea_csv" in want:
+        write_nmea(tmp / "drive.nmea", drive)
+        write_csv(tmp / "imu.csv", drive)
+    if "ubx" in want:
+        write_ubx(tmp / "drive.ubx", drive)
     ros = """
 [[streams]]
 source = "{src}"
@@ -625,7 +646,61 @@ time_base = "gps"
     }
     out = {}
     for name, text in cases.items():
+        if name not in want:
+            continue
         p = tmp / f"{name}.toml"
         p.write_text(f'vehicle = "{name}"\n' + text)
         out[name] = p
     return out
+
+
+# --- a configuration on a drive, against its truth ------------------------------------------------------
+def evaluate_config(drive: Drive, cfg, vehicle: str = "v1", skip_s: float = 20.0) -> dict:
+    """Run the service's per-vehicle loop in-process on the drive's messages (IMU, fixes, truth in
+    time order) with configuration ``cfg``; position errors against truth after ``skip_s`` from the
+    first solution: horizontal / vertical RMS error, RMS reported sigma, their ratio, NEES/3."""
+    import heapq
+
+    from fednav.service.vehicle import VehicleLoop
+
+    class Sink:
+        def __init__(self):
+            self.rows = []
+
+        def on_estimate(self, v, out):
+            if out.err9 is not None:
+                self.rows.append((out.t, np.asarray(out.err9[:3]), np.asarray(out.P9[:3, :3])))
+
+        def on_output(self, v, msg, err9=None):
+            pass
+
+        def on_truth(self, v, truth):
+            pass
+
+    sink = Sink()
+    loop = VehicleLoop(vehicle, cfg, sink)
+    streams = [
+        [(m.t, 1, "imu", "imu", m) for m in drive.imu],
+        [(m.t, 0, "gnss_fix", "rx", m) for m in drive.fixes],
+        [(m.t, -1, "truth", "", m) for m in drive.truth],
+    ]
+    for _t, _o, kind, sid, msg in heapq.merge(*streams, key=lambda x: (x[0], x[1])):
+        loop.process(kind, sid, msg)
+    if not sink.rows:
+        return {"solutions": 0}
+    t0 = sink.rows[0][0]
+    rows = [r for r in sink.rows if r[0] - t0 >= skip_s]
+    e = np.array([r[1] for r in rows])
+    P = np.array([r[2] for r in rows])
+    h_err = np.hypot(e[:, 0], e[:, 1])
+    h_sig = np.sqrt(P[:, 0, 0] + P[:, 1, 1])
+    nees = [float(x @ np.linalg.solve(p, x)) for x, p in zip(e, P, strict=True)]
+    return {
+        "solutions": len(rows),
+        "h_rms_m": float(np.sqrt(np.mean(h_err**2))),
+        "h_max_m": float(h_err.max()),
+        "h_sigma_rms_m": float(np.sqrt(np.mean(h_sig**2))),
+        "h_err_over_sigma": float(np.sqrt(np.mean(h_err**2)) / np.sqrt(np.mean(h_sig**2))),
+        "v_err_over_sigma": float(np.sqrt(np.mean(e[:, 2] ** 2)) / np.sqrt(np.mean(P[:, 2, 2]))),
+        "nees_per_dof": float(np.mean(nees) / 3.0),
+    }
