@@ -323,20 +323,35 @@ _PALETTE = (
 TRACK_POINTS = 1000
 
 
-def fleet_blueprint():
-    """Map and ENU view of every vehicle, a status lane per vehicle, the load of each service."""
+def fleet_blueprint(
+    enu_bounds: tuple[float, float, float, float] | None = None, time_panel: str = "expanded"
+):
+    """Map and ENU view of every vehicle, a status lane per vehicle, the load of each service; the
+    time cursor follows the latest snapshot and the plots span the whole recording.
+    ``enu_bounds`` (x0, x1, y0, y1): what the ENU view shows (default: the viewer's choice)."""
     import rerun.blueprint as rrb
+    import rerun.blueprint.components as rrc
+    import rerun.datatypes as rre
 
-    whole = [
-        rrb.VisibleTimeRange(
-            WALL_TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+    def window(end):
+        return [rrb.VisibleTimeRange(WALL_TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=end)]
+
+    whole_axis = rrb.TimeAxis(
+        link="Independent",
+        view_range=rre.TimeRange(
+            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+        ),
+    )
+
+    def series(name: str, origin: str) -> rrb.TimeSeriesView:
+        return rrb.TimeSeriesView(
+            name=name,
+            origin=origin,
+            time_ranges=window(rrb.TimeRangeBoundary.infinite()),
+            axis_x=whole_axis,
+            plot_legend=rrb.PlotLegend(corner="LeftTop", visible=True),
         )
-    ]
-    to_cursor = [
-        rrb.VisibleTimeRange(
-            WALL_TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
-        )
-    ]
+
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
@@ -344,22 +359,34 @@ def fleet_blueprint():
                 rrb.Spatial2DView(
                     name="Fleet, ENU from the first vehicle (m): x east, y = -north",
                     origin="/enu",
-                    time_ranges=to_cursor,
+                    time_ranges=window(rrb.TimeRangeBoundary.cursor_relative()),
+                    visual_bounds=(
+                        rrb.VisualBounds2D(x_range=enu_bounds[:2], y_range=enu_bounds[2:])
+                        if enu_bounds
+                        else None
+                    ),
                 ),
                 row_shares=[1, 1],
             ),
             rrb.Vertical(
-                rrb.StateTimelineView(name="Status per vehicle", origin="/status"),
-                rrb.TimeSeriesView(name="Vehicles per service", origin="/load/vehicles", time_ranges=whole),
-                rrb.TimeSeriesView(
-                    name="Messages per second per service", origin="/load/messages_per_s", time_ranges=whole
-                ),
+                rrb.StateTimelineView(name="Status per vehicle", origin="/status", time_view=whole_axis),
+                series("Vehicles per service", "/load/vehicles"),
+                series("Messages per second per service", "/load/messages_per_s"),
                 row_shares=[2, 1, 1],
             ),
             column_shares=[3, 2],
         ),
-        collapse_panels=True,
+        rrb.TimePanel(timeline=WALL_TIMELINE, play_state=rrc.PlayState.Following, state=time_panel),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
     )
+
+
+def enu_view_bounds(b: tuple[float, float, float, float], margin: float = 0.08) -> tuple[float, ...]:
+    """ENU extents (x0, x1, y0, y1) with a margin, at least 100 m wide."""
+    x0, x1, y0, y1 = b
+    m = max(x1 - x0, y1 - y0, 100.0) * margin
+    return (x0 - m, x1 + m, y0 - m, y1 + m)
 
 
 def _worst(states: list[str]) -> str:
@@ -391,10 +418,13 @@ class FleetRecorder:
         self.colors: dict[str, int] = {}
         self.tracks: dict[str, list[tuple[float, float]]] = {}
         self.states: dict[str, str] = {}
-        self.counts: dict[str, tuple[float, int]] = {}  # zid -> (wall, messages) for the rate
+        self.counts: dict[tuple[str, str], int] = {}  # (zid, vehicle) -> received, last look
+        self.counts_wall: float | None = None
         self.ticks = 0
         self.vehicles_seen: set[str] = set()
         self.services_seen: set[str] = set()
+        self.services_named: set[str] = set()
+        self.enu_bounds = (math.inf, -math.inf, math.inf, -math.inf)  # x (east), y (-north)
 
     def _color(self, v: str) -> int:
         if v not in self.colors:
@@ -462,6 +492,8 @@ class FleetRecorder:
                 self.origin = llh
             e, n, _ = earth.ecef_to_enu(earth.llh_to_ecef(llh), self.origin)
             self.rec.log(f"/enu/{v}", rr.Points2D(positions=[[e, -n]]))
+            b = self.enu_bounds
+            self.enu_bounds = (min(b[0], e), max(b[1], e), min(b[2], -n), max(b[3], -n))
             track = self.tracks.setdefault(v, [])
             if not track or track[-1] != (lat, lon):
                 track.append((lat, lon))
@@ -469,28 +501,48 @@ class FleetRecorder:
                 track[:] = track[::2]
             if len(track) > 1 and self.ticks % self.track_every == 0:
                 self.rec.log(f"/fleet/{v}/track", rr.GeoLineStrings(lat_lon=[track]))
-        # load per service: vehicles (ServiceHealth, else the answers) and messages per second
-        received = {s["zid"]: s["received"] for s in snap["services"]}
+        # load per service: vehicles (ServiceHealth's active vehicles, else the vehicles it answers
+        # for) and messages per second (the growth of its vehicles' received counts since the last
+        # look; a vehicle that moved to another service counts from its second look there)
+        counts = {
+            (zid, veh["vehicle"]): info["received"]
+            for veh in snap["vehicles"]
+            for zid, info in veh["by_service"].items()
+            if isinstance(info.get("received"), int)
+        }
         answering = {s["zid"]: len(s["vehicles"]) for s in snap["services"]}
-        for zid in sorted(set(received) | set(service_health)):
+        prev_wall, self.counts_wall = self.counts_wall, wall
+        for zid in sorted(set(answering) | set(service_health)):
             self.services_seen.add(zid)
             sh = service_health.get(zid)
             n_veh = len(sh.get("active_vehicles", [])) if sh else answering.get(zid, 0)
+            if zid not in self.services_named:  # the legend: the zid's first 8 characters
+                self.services_named.add(zid)
+                for what in ("vehicles", "messages_per_s"):
+                    self.rec.log(
+                        f"/load/{what}/{zid}",
+                        rr.SeriesLines.from_fields(
+                            names=[f"service {zid[:8]}"],
+                            colors=[_PALETTE[(len(self.services_named) - 1) % len(_PALETTE)]],
+                        ),
+                        static=True,
+                    )
             self.rec.log(f"/load/vehicles/{zid}", rr.Scalars(float(n_veh)))
-            total = sh.get("received") if sh and isinstance(sh.get("received"), int) else received.get(zid)
-            if total is None:
+            if prev_wall is None or wall <= prev_wall:
                 continue
-            prev = self.counts.get(zid)
-            self.counts[zid] = (wall, total)
-            if prev is not None and wall > prev[0]:
-                self.rec.log(
-                    f"/load/messages_per_s/{zid}", rr.Scalars(max(0.0, (total - prev[1]) / (wall - prev[0])))
-                )
+            grown = [n - self.counts[k] for k, n in counts.items() if k[0] == zid and k in self.counts]
+            if grown or answering.get(zid):
+                rate = sum(max(0, g) for g in grown) / (wall - prev_wall)
+                self.rec.log(f"/load/messages_per_s/{zid}", rr.Scalars(float(rate)))
+        self.counts = counts
 
     def close(self) -> None:
         for v, track in self.tracks.items():  # the whole track at the end
             if len(track) > 1:
                 self.rec.log(f"/fleet/{v}/track", self.rr.GeoLineStrings(lat_lon=[track]))
+        x0, x1, y0, y1 = self.enu_bounds
+        if x0 <= x1:  # the blueprint again, its ENU view framing every track
+            self.rec.send_blueprint(fleet_blueprint(enu_view_bounds(self.enu_bounds)), make_default=True)
         self.rec.flush(timeout_sec=10.0)
         self.rec.disconnect()
 

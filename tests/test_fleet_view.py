@@ -156,7 +156,7 @@ def test_fleet_status_and_record_of_five_vehicles(tmp_path):
     assert record.returncode == 0, rec_out + rec_err
     assert "5 vehicle(s), 1 service(s)" in rec_out, rec_out
     rows, states, scalars, blueprints = _read(rrd)
-    assert blueprints == 1
+    assert blueprints == 2  # the default at the start, then again with the ENU view framing every track
     for v in VEHICLES:
         assert rows.get(f"/fleet/{v}/position", 0) >= 8, (v, rows)  # 2 Hz for 6 s
         assert rows.get(f"/enu/{v}", 0) >= 8
