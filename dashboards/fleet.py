@@ -331,7 +331,7 @@ def fleet_blueprint(
     ``enu_bounds`` (x0, x1, y0, y1): what the ENU view shows (default: the viewer's choice)."""
     import rerun.blueprint as rrb
     import rerun.blueprint.components as rrc
-    import rerun.datatypes as rre
+    import rerun.encodings as rre
 
     def window(end):
         return [rrb.VisibleTimeRange(WALL_TIMELINE, start=rrb.TimeRangeBoundary.infinite(), end=end)]
