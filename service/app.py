@@ -621,6 +621,10 @@ class Service:
             active_vehicles=sorted(self.workers),
             refused_before_routing=dict(self.unrouted),
             unserved_vehicles=dict(self.unserved),
+            messages_received=sum(w.received for w in list(self.workers.values())),
+            fleet_group=self.fleet_group if self.fleet_view is not None else None,
+            fleet_members=self.fleet_view.members() if self.fleet_view is not None else [],
+            vehicles_moved_away=self.retired_vehicles,
         )
 
     def _health_loop(self) -> None:

@@ -726,6 +726,20 @@ class ServiceHealth(WireModel):
         default_factory=dict,
         description="Messages per vehicle name the service does not serve (the first 100 names)",
     )
+    messages_received: int = Field(
+        0,
+        ge=0,
+        description="Messages received for the vehicles it serves now (an ImuBatch counts its samples)",
+    )
+    fleet_group: str | None = Field(
+        None, description="Fleet group it shares vehicles in ([fleet] sharding = 'rendezvous'), else None"
+    )
+    fleet_members: list[str] = Field(
+        default_factory=list, description="The live services of its fleet group (Zenoh ids), itself included"
+    )
+    vehicles_moved_away: int = Field(
+        0, ge=0, description="Vehicles handed to another service of the fleet since the start"
+    )
 
 
 #: input messages that are not sensors: the initial state, truth (simulators), alignment truth;
