@@ -455,3 +455,74 @@ def test_residual_test_flags_a_faulty_row():
     H = rows(IDS[:2])
     std = residual_test(bank.x[0], bank.P[0], np.array([0.1, 30.0]), H, np.ones(2))
     assert abs(std[0]) < 1.0 and abs(std[1]) > 10.0
+
+
+# --- the bank's arithmetic (issue 21) against the general masked update --------------------------------
+def tc_bank_and_rows(N: int = 6, seed: int = 7):
+    """A 17-state bank (depth 2) after one update and two predictions, and tightly coupled rows:
+    pseudoranges on position + clock bias, range rates on velocity + clock drift."""
+    rng = np.random.default_rng(seed)
+    n = 17
+    A = rng.normal(size=(n, n))
+    bank = MhssBank.initial(np.zeros(n), A @ A.T / n + np.eye(n), [f"S{i}" for i in range(N)], depth=2)
+    Phi = np.eye(n) + 0.05 * rng.normal(size=(n, n))
+    Qd = 0.01 * np.eye(n)
+    u = rng.normal(size=(N, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    H = np.zeros((2 * N, n))
+    H[:N, 0:3], H[:N, 15], H[N:, 3:6], H[N:, 16] = -u, 1.0, -1.0001 * u, 1.0
+    r_var = np.r_[np.full(N, 0.16), np.full(N, 0.0025)]
+    row_sat = np.r_[np.arange(N), np.arange(N)]
+    bank.predict(Phi, Qd)
+    bank.update(rng.normal(size=2 * N), H, r_var, row_sat)
+    bank.predict(Phi, Qd)
+    return bank, rng.normal(size=2 * N), H, r_var, row_sat
+
+
+def general_update(bank: MhssBank, z, H, r_var, row_sat):
+    """kalman.gain on every member with its row mask, cross_update on every block."""
+    keep = ~bank.excl[:, row_sat]
+    ref = kalman.gain(bank.x, bank.P, z, H, r_var, keep)
+    pa, pb = bank.pa, bank.pb
+    blocks = cross_update(bank.blocks, ref.IKH[pa], ref.IKH[pb], ref.K[pa], ref.K[pb], r_var)
+    return ref, blocks
+
+
+@pytest.mark.parametrize("general_path", [False, True])
+def test_bank_update_equals_the_general_masked_update(general_path, monkeypatch):
+    """Gains in the observed states and the low-rank Joseph products give the general update
+    (Cholesky of each member's S, explicit gains, Joseph of every block) to rounding; so does the
+    general path the bank takes when a member's covariance is not positive definite (forced)."""
+    from fednav.service.estimation.integrity import mhss
+
+    if general_path:
+        monkeypatch.setattr(mhss, "_masked_gain", lambda *args: None)
+    bank, z, H, r_var, row_sat = tc_bank_and_rows()
+    ref, blocks = general_update(bank, z, H, r_var, row_sat)
+    upd = bank.update(z, H, r_var, row_sat)
+    scale = np.abs(blocks).max(axis=(1, 2))[:, None, None]
+    np.testing.assert_allclose(bank.x, ref.x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(bank.blocks / scale, blocks / scale, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(bank.P, np.swapaxes(bank.P, 1, 2))  # members symmetrised
+    np.testing.assert_allclose(upd.K, ref.K, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(upd.IKH, ref.IKH, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(upd.whitened, ref.result.whitened, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(upd.nis, ref.result.nis, rtol=1e-9)
+    np.testing.assert_array_equal(upd.innovation == 0.0, ref.result.innovation == 0.0)
+
+
+def test_bank_update_raises_when_an_innovation_covariance_is_not_positive_definite():
+    bank, z, H, r_var, row_sat = tc_bank_and_rows()
+    bank.blocks[5] = -np.eye(bank.n)  # a sub-filter whose covariance went negative
+    with pytest.raises(kalman.NotPositiveDefinite):
+        bank.update(z, H, r_var, row_sat)
+
+
+def test_bank_arrays_stay_valid_until_the_second_update_after():
+    """predict/update alternate between two arrays: a view taken now keeps its values through one
+    more step (the documented contract); the estimate copies what it keeps."""
+    bank, z, H, r_var, row_sat = tc_bank_and_rows()
+    P0 = bank.P[0]
+    kept = P0.copy()
+    bank.update(z, H, r_var, row_sat)
+    np.testing.assert_array_equal(P0, kept)
