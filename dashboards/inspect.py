@@ -7,6 +7,16 @@ vehicles and pipelines; per pipeline the number of solutions, RMS / max of each 
 status; fault tests (flagged observations per label); integrity (HPL/VPL statistics, alarms,
 detections, exclusions, HMI epochs, Stanford-diagram regions); the last health counters.
 
+A real run has no truth: per pipeline inspect also gives the status timeline (time in each status,
+re-initialisations), solution gaps, the median 1-sigma once aided, the recorded Faults per
+subsystem and row against their expected rate (gate refusals against the fixes received), the
+consistency of the claimed sigma from the recording alone (update jumps x fix residuals, whose
+expectation is the claimed posterior variance: :func:`_fix_residual_consistency`) with the
+innovations' whiteness, and one verdict line. The final status is the last recorded one; when
+the recording's last Health rows repeat the same sensor time, the input had stopped and the
+service's Health said coasting: both are said (``input_stopped``). ``--config SERVICE.toml``: the
+run's configuration (lever arm, correlated-error states) refines the consistency check.
+
 ``inspect_rrd(path) -> dict`` is the library entry point (the ``--json`` output). Result keys for
 pipelines are the pipeline name when the file holds one vehicle, else ``"{vehicle}/{pipeline}"``.
 Exit codes: 0 ok, 2 file missing, unreadable, or holding no fednav recording.
@@ -29,7 +39,7 @@ import pyarrow.compute as pc
 
 from fednav.service.transport import rerun_paths as paths
 
-_COMPONENTS = ("Scalars:scalars", "StateChange:state", "TextLog:text")
+_COMPONENTS = ("Scalars:scalars", "StateChange:state", "TextLog:text", "Points2D:positions")
 
 
 class InspectError(Exception):
@@ -38,7 +48,8 @@ class InspectError(Exception):
 
 @dataclass
 class Series:
-    """One entity's rows sorted by sensor time: ``t_ns`` int64; ``values`` float array or list of str."""
+    """One entity's rows sorted by sensor time: ``t_ns`` int64; ``values`` float array, (N, 2) float
+    array (2-D points: the ENU views, x = east, y = -north) or list of str."""
 
     t_ns: np.ndarray
     values: Any
@@ -93,6 +104,10 @@ def read_series(path: str | Path) -> tuple[dict[str, Any], dict[str, Series]]:
                 if comp == "Scalars:scalars":
                     vals = first.to_numpy(zero_copy_only=False).astype(np.float64)
                     kind[chunk.entity_path] = "scalar"
+                elif comp == "Points2D:positions":
+                    flat = pc.list_flatten(first).to_numpy(zero_copy_only=False).astype(np.float64)
+                    vals = flat.reshape(-1, 2)
+                    kind[chunk.entity_path] = "points"
                 else:
                     vals = first.to_pylist()
                     kind[chunk.entity_path] = "text"
@@ -107,7 +122,7 @@ def read_series(path: str | Path) -> tuple[dict[str, Any], dict[str, Series]]:
     for ent, ts in t_parts.items():
         t = np.concatenate(ts)
         order = np.argsort(t, kind="stable")
-        if kind[ent] == "scalar":
+        if kind[ent] in ("scalar", "points"):
             vals = np.concatenate(v_parts[ent])[order]
         else:
             flat = [x for part in v_parts[ent] for x in part]
@@ -293,7 +308,386 @@ def _health_summary(v: str, data: dict[str, Series]) -> dict[str, Any] | None:
     return out or None
 
 
-def summarize(info: dict[str, Any], data: dict[str, Series], file: str) -> dict[str, Any]:
+# --- a real run without truth: consistency, screening, status -----------------------------------------
+#: A pipeline's claimed sigma is called off when the evidence puts the real error this many times
+#: above or below it (and the figure's own uncertainty does not reach back to 1)
+CONSISTENT_FACTOR = 1.5
+SETTLE_S = 10.0  # the first seconds after a pipeline is first aided are not judged
+#: lag-1 autocorrelation of the fix innovations above which they are not white (and at least 4
+#: standard errors, 1/sqrt(n)): measured on the simulated drives, white fixes 0.07 at most, fixes
+#: with a 30 s Gauss-Markov error twice their white part 0.33-0.49
+LAG1_CORRELATED = 0.2
+CHI2_1_MEDIAN = 0.454936  # median of chi-square with one degree of freedom
+#: Health rows at the same sensor time after the input stopped: the service reports once a second
+#: (output.health_period_s), and calls a pipeline coasting when no input came for 2 s of wall time
+#: (service.vehicle.STALE_WALL_S): three such rows mean its Health said coasting.
+STOPPED_HEALTH_ROWS = 3
+
+
+def _status_timeline(status: Series | None, t_end: float | None) -> dict[str, Any]:
+    """Status changes, time per status, re-initialisations (back to initialising after the
+    first status)."""
+    if status is None or len(status) == 0:
+        return {"changes": [], "time_in_s": {}, "reinitialisations": 0}
+    t = status.t_ns / 1e9
+    vals = list(status.values)
+    end = max(t_end if t_end is not None else t[-1], t[-1])
+    dur: dict[str, float] = defaultdict(float)
+    for i, v in enumerate(vals):
+        dur[v] += (t[i + 1] if i + 1 < len(vals) else end) - t[i]
+    reinit = sum(1 for i, v in enumerate(vals) if i > 0 and v == "initialising")
+    changes = [{"t": float(a), "status": v} for a, v in zip(t, vals, strict=True)]
+    return {
+        "changes": changes,
+        "time_in_s": {k: float(v) for k, v in dur.items()},
+        "reinitialisations": reinit,
+    }
+
+
+def _gaps(t_ns: np.ndarray, min_gap_s: float = 1.0) -> list[dict[str, float]]:
+    """Intervals between rows longer than max(3 x the median step, ``min_gap_s``)."""
+    if len(t_ns) < 3:
+        return []
+    t = t_ns / 1e9
+    d = np.diff(t)
+    lim = max(3.0 * float(np.median(d)), min_gap_s)
+    return [{"t": float(t[i]), "length_s": float(d[i])} for i in np.flatnonzero(d > lim)]
+
+
+def _sigma_levels(v: str, p: str, data: dict[str, Series], t_from: float | None) -> dict[str, Any]:
+    """Median and last reported 1-sigma per solution component (after ``t_from``)."""
+    out: dict[str, Any] = {}
+    for name in paths.STD_SCALARS:
+        sd = data.get(paths.solution_std(v, p, name))
+        if sd is None or len(sd) == 0:
+            continue
+        x = np.asarray(sd.values)
+        if t_from is not None:
+            keep = sd.t_ns / 1e9 >= t_from
+            x = x[keep] if keep.any() else x
+        out[name] = {"median": _f(np.median(x)), "last": _f(sd.values[-1])}
+    return out
+
+
+def _enu_ref(
+    lat_deg: np.ndarray, lon_deg: np.ndarray, h: np.ndarray, pts: np.ndarray
+) -> tuple[float, float, float]:
+    """The recording's ENU reference (the sink's first position of the vehicle) from solution rows
+    and their recorded ENU points: solved at the row nearest to it (float32 points are exact there)."""
+    from fednav.service import earth
+
+    i = int(np.argmin(np.hypot(pts[:, 0], pts[:, 1])))
+    lat_ref, lon_ref, h_ref = math.radians(lat_deg[i]), math.radians(lon_deg[i]), float(h[i])
+    e, n = pts[i, 0], -pts[i, 1]
+    for _ in range(3):
+        r_m, r_n = earth.radii(lat_ref)
+        lat_ref = math.radians(lat_deg[i]) - n / (r_m + h_ref)
+        lon_ref = math.radians(lon_deg[i]) - e / ((r_n + h_ref) * math.cos(lat_ref))
+    return lat_ref, lon_ref, h_ref
+
+
+def _fix_residual_consistency(
+    v: str, p: str, data: dict[str, Series], t_from: float | None, lever_arm=None
+) -> dict[str, Any] | None:
+    """Consistency of the claimed horizontal sigma from the recorded fixes and solutions, without
+    truth and without the fixes' sigmas.
+
+    At a fix, the update moves the solution by D = K nu (nu: the innovation) and leaves it at the
+    residual d = fix - solution = (I - H K) nu; their product has expectation
+    E[D d'] = H K S (I - H K)' = H P+ H' (the update's own identity: S = H P- H' + R,
+    P+ = (I - K H) P-). So mean(D_e d_e) / mean(P+_ee), per horizontal axis, is the ratio of the
+    actual innovation variance to the one the filter claims: 1 consistent, k^2 when the real errors
+    are k times the claimed ones. D is the solution just after the fix minus the one before it
+    carried forward to the fix time with its velocity and acceleration; d uses the fixes recorded
+    on the ENU view (``service/inputs``); P+ the recorded 1-sigma (interpolated, 1 Hz). Holds for
+    fixes fused as independent; an antenna lever arm only adds scatter (it is the same at D's both
+    ends); with ``gnss_correlated_error`` part of d is the estimated receiver error, not recorded:
+    the ratio reads low (the caller says so)."""
+    from fednav.service import earth
+
+    lat, lon = data.get(paths.solution(v, p, "lat_deg")), data.get(paths.solution(v, p, "lon_deg"))
+    h = data.get(paths.solution(v, p, "height_m"))
+    ve, vn = data.get(paths.solution(v, p, "ve_mps")), data.get(paths.solution(v, p, "vn_mps"))
+    pts = data.get(paths.enu(v, p))
+    sd_e, sd_n = data.get(paths.solution_std(v, p, "pos_e_m")), data.get(paths.solution_std(v, p, "pos_n_m"))
+    series = (lat, lon, h, ve, vn, pts, sd_e, sd_n)
+    if any(x is None or len(x) < 10 for x in series):
+        return None
+    if not all(len(x) == len(lat) and np.array_equal(x.t_ns, lat.t_ns) for x in (lon, h, ve, vn, pts)):
+        return None
+    # one row per output time: the service's last solutions at shutdown repeat the latest time
+    last = np.append(np.diff(lat.t_ns) > 0, True)
+    if not last.all():
+        lat, lon, h, ve, vn, pts = (
+            Series(x.t_ns[last], np.asarray(x.values)[last]) for x in (lat, lon, h, ve, vn, pts)
+        )
+    ts = lat.t_ns / 1e9
+    lat_ref, lon_ref, h_ref = _enu_ref(
+        np.asarray(lat.values), np.asarray(lon.values), np.asarray(h.values), np.asarray(pts.values)
+    )
+    r_m, r_n = earth.radii(lat_ref)
+    e = np.radians(np.asarray(lon.values)) - lon_ref
+    e = e * (r_n + h_ref) * math.cos(lat_ref)
+    n = (np.radians(np.asarray(lat.values)) - lat_ref) * (r_m + h_ref)
+    pos = np.stack([e, n], axis=1)
+    vel = np.stack([np.asarray(ve.values), np.asarray(vn.values)], axis=1)
+    if lever_arm is not None and any(lever_arm):
+        hd = np.radians(np.asarray(data[paths.solution(v, p, "heading_deg")].values))
+        lr, lf = lever_arm[0], lever_arm[1]  # body right/forward -> east/north at the heading
+        pos = pos + np.stack([lr * np.cos(hd) + lf * np.sin(hd), -lr * np.sin(hd) + lf * np.cos(hd)], axis=1)
+    root = f"/{paths.part(v)}/{paths.SERVICE}/inputs/"
+    out: dict[str, Any] = {}
+    for ent, fx in data.items():
+        if not (ent.startswith(root) and ent.endswith("/enu")) or len(fx) < 10:
+            continue
+        sensor = ent[len(root) : -len("/enu")]
+        tf = fx.t_ns / 1e9
+        f_en = np.stack([fx.values[:, 0], -fx.values[:, 1]], axis=1)
+        # the rows around the update: the last one before the fix and the first one half an output
+        # period after it (a row at the fix's own time may come before or after the update,
+        # depending on which message reached the engine first)
+        step = float(np.median(np.diff(ts)))
+        a = np.searchsorted(ts, tf - 1e-4) - 1  # last row before the fix
+        b = np.searchsorted(ts, tf + 0.5 * step)  # first row clearly after it
+        ok = (a >= 1) & (b < len(ts) - 1)
+        a, b = np.clip(a, 1, len(ts) - 2), np.clip(b, 1, len(ts) - 2)
+        ok &= (tf - ts[a] <= 2.5 * step) & (ts[b] - tf <= 2.5 * step)
+        if t_from is not None:
+            ok &= tf >= t_from
+        if ok.sum() < 20:
+            continue
+        a, b, tf, f_en = a[ok], b[ok], tf[ok], f_en[ok]
+        tau, dlt = (tf - ts[a])[:, None], (ts[b] - tf)[:, None]
+        acc_a = (vel[a] - vel[a - 1]) / (ts[a] - ts[a - 1])[:, None]  # accelerations away from the update
+        acc_b = (vel[b + 1] - vel[b]) / (ts[b + 1] - ts[b])[:, None]
+        before = pos[a] + vel[a] * tau + 0.5 * acc_a * tau**2
+        after = pos[b] - vel[b] * dlt + 0.5 * acc_b * dlt**2
+        jump, resid = after - before, f_en - after
+        var = np.stack(
+            [
+                np.interp(tf, sd_e.t_ns / 1e9, np.square(sd_e.values)),
+                np.interp(tf, sd_n.t_ns / 1e9, np.square(sd_n.values)),
+            ],
+            axis=1,
+        )
+        prod = jump * resid
+        good = np.isfinite(prod).all(axis=1) & np.isfinite(var).all(axis=1)
+        prod, var, resid = prod[good], var[good], resid[good]
+        if len(prod) < 20:
+            continue
+        # the innovations' whiteness: fix minus the prediction, consecutive fixes (a consistent
+        # filter's innovations are white; fixes whose error is slow give correlated ones)
+        nu = (f_en - before)[good]
+        tg = tf[good]
+        consecutive = np.diff(tg) <= 1.5 * float(np.median(np.diff(tg)))
+        axes = {}
+        for k, name in enumerate(("east", "north")):
+            ratio = float(prod[:, k].mean() / var[:, k].mean())
+            se = float(prod[:, k].std() / math.sqrt(len(prod)) / var[:, k].mean())
+            x = nu[:, k] - nu[:, k].mean()
+            lag1 = float((x[1:] * x[:-1])[consecutive].sum() / max((x * x).sum(), 1e-30))
+            axes[name] = {"ratio": ratio, "ratio_se": se, "factor": math.sqrt(max(ratio, 0.0)), "lag1": lag1}
+        out[sensor] = {
+            "epochs": int(len(prod)),
+            "axes": axes,
+            "residual_rms_m": [float(x) for x in np.sqrt(np.mean(resid**2, axis=0))],
+            "sigma_rms_m": [float(x) for x in np.sqrt(var.mean(axis=0))],
+        }
+    return out or None
+
+
+def _is_sensor_kind(name: str) -> bool:
+    try:
+        from fednav.service.estimation import measurements
+
+        return name in measurements.REGISTRY
+    except ImportError:  # a trimmed install
+        return name in ("gnss_fix", "star")
+
+
+def _screening(v: str, p: str, data: dict[str, Series], n_fixes: int) -> dict[str, Any]:
+    """Per subsystem and row of the recorded Faults: tests, refusals and their expected rate.
+
+    A subsystem named after a sensor kind is the loosely coupled innovation gate (statistic
+    |r|/sqrt(S) against k sigma, recorded only when it refuses a row and once when it clears:
+    the tests are the fixes received); any other is a federated local's per-row chi-square test
+    (statistic r^2/S, recorded every few seconds and whenever it flags: its median against
+    chi-square(1)'s, 0.455, is the NIS per degree of freedom)."""
+    from scipy.stats import chi2, norm
+
+    root = paths.faults(v, p) + "/"
+    rows: dict[str, Any] = {}
+    for ent, flag in data.items():
+        if not ent.startswith(root) or not ent.endswith("/flagged"):
+            continue
+        sub, label = ent[len(root) :].split("/")[:2]
+        stat = data.get(paths.faults(v, p, sub, label, "statistic"))
+        thr = data.get(paths.faults(v, p, sub, label, "threshold"))
+        refused = sum(1 for x in flag.values if x == "isolated")
+        flagged = sum(1 for x in flag.values if x != "ok")
+        threshold = float(np.median(thr.values)) if thr is not None and len(thr) else None
+        r: dict[str, Any] = {
+            "recorded": len(flag),
+            "flagged": flagged,
+            "refused": refused,
+            "threshold": threshold,
+        }
+        if _is_sensor_kind(sub):
+            r["test"] = "innovation gate |r|/sqrt(S)"
+            tests = n_fixes if sub == "gnss_fix" and n_fixes else None
+            r["tests"] = tests
+            if threshold is not None:
+                r["expected_rate"] = float(2.0 * norm.sf(threshold))
+            if tests:
+                rate = refused / tests
+                r["rate"] = rate
+                if refused >= 3 and threshold is not None and rate < 1.0:
+                    # |N(0, k^2)| > g with probability rate: k = g / z(1 - rate/2)
+                    r["implied_factor"] = float(threshold / norm.isf(rate / 2.0))
+        else:
+            r["test"] = "chi-square(1) per row r^2/S"
+            if threshold is not None:
+                r["expected_rate"] = float(chi2.sf(threshold, 1))
+            if stat is not None and len(stat) >= 20:
+                med = float(np.median(stat.values))
+                r["median_statistic"] = med
+                r["implied_factor"] = math.sqrt(med / CHI2_1_MEDIAN)
+        rows[f"{sub}/{label}"] = r
+    return rows
+
+
+def _verdict(fixres: dict | None, screening: dict, correlated: bool | None) -> tuple[str, list[dict]]:
+    """One line from the evidence: the largest significant over- or underconfidence, else
+    consistent, else not decidable."""
+    ev: list[dict] = []
+    slow: list[tuple[str, str, float]] = []  # innovations correlated in time: (sensor, axis, lag-1)
+    if fixres and correlated is not True:
+        for sensor, r in fixres.items():
+            for axis, a in r["axes"].items():
+                if a["lag1"] > max(LAG1_CORRELATED, 4.0 / math.sqrt(r["epochs"])):
+                    slow.append((sensor, axis, a["lag1"]))
+                lo = max(a["ratio"] - 2 * a["ratio_se"], 1e-9)
+                hi = a["ratio"] + 2 * a["ratio_se"]
+                ev.append(
+                    {
+                        "source": f"fix residuals ({sensor})",
+                        "axis": axis,
+                        "factor": a["factor"],
+                        "over": a["factor"] > CONSISTENT_FACTOR and lo > 1.0,
+                        "under": a["factor"] < 1 / CONSISTENT_FACTOR and hi < 1.0,
+                    }
+                )
+    for label, r in screening.items():
+        k = r.get("implied_factor")
+        if k is None:
+            continue
+        gate = r["test"].startswith("innovation gate")
+        ev.append(
+            {
+                "source": f"{'gate refusals' if gate else 'fault-test statistics'} ({label})",
+                "axis": label.split("/")[-1],
+                "factor": k,
+                "over": k > CONSISTENT_FACTOR,
+                # refusals cannot show underconfidence: a gate that refuses nothing says nothing
+                "under": (not gate) and k < 1 / CONSISTENT_FACTOR and r.get("median_statistic") is not None,
+            }
+        )
+    over = [e for e in ev if e["over"]]
+    under = [e for e in ev if e["under"]]
+    # without the configuration, fix residuals assume fixes fused as independent
+    caveat = (
+        " [fix residuals assume fixes fused as independent: give --config if the pipeline has "
+        "gnss_correlated_error]"
+        if correlated is None and fixres
+        else ""
+    )
+    if over:
+        worst = max(over, key=lambda e: e["factor"])
+        return f"overconfident in {worst['axis']} by {worst['factor']:.1f}x ({worst['source']})", ev
+    if slow:
+        lags = ", ".join(f"{axis} {lag:.2f}" for _, axis, lag in slow)
+        return (
+            f"fix innovations correlated in time (lag-1 autocorrelation {lags}; white: 0): the fixes' error "
+            "is slow. Fused as independent, the filter's error against the truth exceeds its sigma even "
+            "where its innovations look small (set gnss_correlated_error: fednav-replay --suggest-config); "
+            "if it is set, give --config. Underconfidence cannot be told from these residuals",
+            ev,
+        )
+    if under:
+        worst = min(under, key=lambda e: e["factor"])
+        return (
+            f"underconfident in {worst['axis']} by {1 / worst['factor']:.1f}x ({worst['source']}){caveat}",
+            ev,
+        )
+    if any(e["source"].startswith(("fix residuals", "fault-test")) for e in ev):
+        figures = ", ".join(f"{e['axis']} {e['factor']:.2f}" for e in ev if "factor" in e)
+        return f"consistent (real / claimed error within {CONSISTENT_FACTOR}x: {figures}){caveat}", ev
+    why = (
+        "gnss_correlated_error holds part of the fix error as states the recording does not hold"
+        if correlated
+        else "no fix residuals or innovation tests in the recording"
+    )
+    tail = "; no gate refusals beyond their expected rate" if screening else ""
+    return f"not decidable from this recording ({why}){tail}", ev
+
+
+def _input_stopped(v: str, data: dict[str, Series]) -> dict[str, Any] | None:
+    """The service's Health after its input stopped: rows at the same sensor time, one per health
+    period of wall time; from the third on (2 s without input) its Health reported coasting."""
+    rec = data.get(paths.health(v, "received"))
+    if rec is None or len(rec) < STOPPED_HEALTH_ROWS:
+        return None
+    t = rec.t_ns
+    n = 1
+    while n < len(t) and t[-1 - n] == t[-1] and rec.values[-1 - n] == rec.values[-1]:
+        n += 1
+    if n < STOPPED_HEALTH_ROWS:
+        return None
+    return {"t": float(t[-1] / 1e9), "health_reports_after": n - 1}
+
+
+def _fix_counts(v: str, data: dict[str, Series]) -> dict[str, Any]:
+    root = f"/{paths.part(v)}/{paths.SERVICE}/inputs/"
+    out = {}
+    for ent, s in data.items():
+        if ent.startswith(root) and ent.endswith("/enu"):
+            out[ent[len(root) : -len("/enu")]] = {"fixes": len(s), "gaps": _gaps(s.t_ns, 2.0)}
+    return out
+
+
+def real_run_summary(
+    v: str, p: str, data: dict[str, Series], res: dict[str, Any], pipeline_cfg=None
+) -> dict[str, Any]:
+    """What a run without truth says about pipeline ``p``: status timeline, re-initialisations,
+    gaps, sigma levels, screening, consistency and one verdict. ``pipeline_cfg``: its service
+    configuration (lever arm, correlated error) when known."""
+    status = data.get(paths.solution(v, p, "status"))
+    timeline = _status_timeline(status, res.get("t_end"))
+    aided_from = next((c["t"] for c in timeline["changes"] if c["status"] in ("aided", "degraded")), None)
+    t_from = None if aided_from is None else aided_from + SETTLE_S
+    lat = data.get(paths.solution(v, p, "lat_deg"))
+    inputs = _fix_counts(v, data)
+    n_fixes = sum(x["fixes"] for x in inputs.values())
+    correlated = (
+        None if pipeline_cfg is None else getattr(pipeline_cfg, "gnss_correlated_error", None) is not None
+    )
+    lever = None if pipeline_cfg is None else getattr(pipeline_cfg, "gnss_lever_arm_b_m", None)
+    fixres = _fix_residual_consistency(v, p, data, t_from, lever)
+    screening = _screening(v, p, data, n_fixes)
+    verdict, evidence = _verdict(fixres, screening, correlated)
+    return {
+        "status": timeline,
+        "solution_gaps": _gaps(lat.t_ns) if lat is not None else [],
+        "sigma": _sigma_levels(v, p, data, t_from),
+        "fix_residuals": fixres,
+        "fix_residuals_apply": correlated is not True,
+        "screening": screening,
+        "evidence": evidence,
+        "verdict": verdict,
+    }
+
+
+def summarize(info: dict[str, Any], data: dict[str, Series], file: str, config=None) -> dict[str, Any]:
     """Summary dict (the ``--json`` document) of series read by :func:`read_series`."""
     layout: dict[str, set[str]] = defaultdict(set)
     t_min, t_max = math.inf, -math.inf
@@ -320,11 +714,24 @@ def summarize(info: dict[str, Any], data: dict[str, Series], file: str) -> dict[
         "integrity": {},
         "faults": {},
         "health": {},
+        "inputs": {},
+        "input_stopped": {},
     }
     for v in vehicles:
+        stopped = _input_stopped(v, data)
+        result["inputs"][v] = _fix_counts(v, data)
+        if stopped is not None:
+            result["input_stopped"][v] = stopped
         for p in sorted(layout[v]):
             key = p if single else f"{v}/{p}"
-            result["pipelines"][key] = _pipeline_summary(v, p, data)
+            res = _pipeline_summary(v, p, data)
+            pcfg = None
+            if config is not None:
+                pcfg = next((c for c in config.pipelines if paths.part(c.name) == p), None)
+            res.update(real_run_summary(v, p, data, res, pcfg))
+            if stopped is not None and res["final_status"] in ("aided", "degraded", "unaided"):
+                res["health_final_status"] = "coasting"
+            result["pipelines"][key] = res
             integ = _integrity_summary(v, p, data)
             if integ is not None:
                 result["integrity"][key] = integ
@@ -337,10 +744,11 @@ def summarize(info: dict[str, Any], data: dict[str, Series], file: str) -> dict[
     return result
 
 
-def inspect_rrd(path: str | Path) -> dict[str, Any]:
-    """Summary of a fednav .rrd (see the module docstring). Raises :class:`InspectError`."""
+def inspect_rrd(path: str | Path, config=None) -> dict[str, Any]:
+    """Summary of a fednav .rrd (see the module docstring). ``config``: the service configuration
+    of the run (a ServiceConfig), when known. Raises :class:`InspectError`."""
     info, data = read_series(path)
-    return summarize(info, data, str(path))
+    return summarize(info, data, str(path), config)
 
 
 # --- text rendering --------------------------------------------------------------------------------
@@ -359,11 +767,25 @@ def render_text(s: dict[str, Any]) -> str:
         return "\n".join(lines)
     lines.append(f"sensor time: {s['t_start']:.3f} .. {s['t_end']:.3f} s  (duration {s['duration_s']:.3f} s)")
     lines.append(f"vehicles: {', '.join(s['vehicles'])}")
+    t0 = s["t_start"]
     for key, p in s["pipelines"].items():
-        lines.append(
-            f"pipeline {key}: {p['solutions']} solutions, final status {p['final_status']}, "
-            f"{p['error_epochs']} epochs with errors vs truth"
-        )
+        final = f"final status {p['final_status']} (the last recorded)"
+        v = p["vehicle"]
+        stop = s.get("input_stopped", {}).get(v)
+        if stop is not None:
+            final += (
+                f"; input stopped at +{stop['t'] - t0:.1f} s: the service's "
+                f"{stop['health_reports_after']} Health "
+                "reports after it said "
+                + (
+                    "coasting (no input for 2 s of wall time)"
+                    if p.get("health_final_status")
+                    else p["final_status"]
+                )
+            )
+        truth = f"{p['error_epochs']} epochs with errors vs truth" if p["error_epochs"] else "no truth"
+        lines.append(f"pipeline {key}: {p['solutions']} solutions, {final}, {truth}")
+        lines += _render_real_run(p, t0)
         if p["rms"]:
             lines.append(f"    {'error':<14}{'RMS':>12}{'max':>12}{'mean':>12}{'>3σ':>9}")
             for name in (*paths.ERROR_NAMES, "horizontal_m"):
@@ -406,7 +828,70 @@ def render_text(s: dict[str, Any]) -> str:
                 )
     for v, h in s["health"].items():
         lines.append(f"health {v} (last): " + ", ".join(f"{k} {_fmt(x, 'g')}" for k, x in h.items()))
+    for v, ins in s.get("inputs", {}).items():
+        for sensor, x in ins.items():
+            gaps = f", {len(x['gaps'])} gap(s) over 2 s" if x["gaps"] else ""
+            lines.append(f"inputs {v}: {x['fixes']} GNSS fixes from {sensor}{gaps}")
     return "\n".join(lines)
+
+
+def _render_real_run(p: dict[str, Any], t0: float) -> list[str]:
+    """The lines of :func:`real_run_summary`'s figures."""
+    out = []
+    st = p.get("status") or {}
+    if st.get("changes"):
+        tl = " -> ".join(f"{c['status']} at +{c['t'] - t0:.1f} s" for c in st["changes"][:8])
+        more = f" (+{len(st['changes']) - 8} more)" if len(st["changes"]) > 8 else ""
+        times = ", ".join(f"{k} {v:.1f} s" for k, v in st["time_in_s"].items())
+        out.append(
+            f"    status: {tl}{more}; time in each: {times}; re-initialisations {st['reinitialisations']}"
+        )
+    gaps = p.get("solution_gaps") or []
+    if gaps:
+        g = ", ".join(f"{x['length_s']:.1f} s at +{x['t'] - t0:.1f} s" for x in gaps[:5])
+        out.append(f"    solution gaps: {len(gaps)} ({g})")
+    sig = p.get("sigma") or {}
+    if sig:
+
+        def m(*names):
+            return "/".join(_fmt((sig.get(n) or {}).get("median"), ".2f") for n in names)
+
+        out.append(
+            f"    1-sigma (median once aided): position E/N/U {m('pos_e_m', 'pos_n_m', 'pos_u_m')} m, "
+            f"velocity {m('ve_mps', 'vn_mps', 'vu_mps')} m/s, roll/pitch/heading "
+            f"{m('roll_deg', 'pitch_deg', 'heading_deg')} deg"
+        )
+    fr = p.get("fix_residuals")
+    if fr:
+        for sensor, r in fr.items():
+            ax = ", ".join(
+                f"{a} {x['factor']:.2f} (ratio {x['ratio']:.2f} +- {x['ratio_se']:.2f})"
+                for a, x in r["axes"].items()
+            )
+            note = (
+                "" if p.get("fix_residuals_apply", True) else " [not used: gnss_correlated_error configured]"
+            )
+            out.append(
+                f"    fixes {sensor}: real/claimed error (update jumps x fix residuals, {r['epochs']} "
+                f"fixes): {ax}; fix residual RMS E/N {_fmt(r['residual_rms_m'][0], '.2f')}/"
+                f"{_fmt(r['residual_rms_m'][1], '.2f')} m{note}"
+            )
+    for label, r in (p.get("screening") or {}).items():
+        tests = r.get("tests")
+        rate = (
+            f" of {tests} tests ({100 * r['rate']:.2g} %)" if tests else f" ({r['recorded']} rows recorded)"
+        )
+        exp = f", expected {r['expected_rate']:.1g} per test" if r.get("expected_rate") is not None else ""
+        k = f", implied real/claimed {r['implied_factor']:.2f}" if r.get("implied_factor") is not None else ""
+        med = (
+            f", median statistic {r['median_statistic']:.2f} (chi2(1): 0.45)"
+            if "median_statistic" in r
+            else ""
+        )
+        out.append(f"    {r['test']} {label}: refused {r['refused']}{rate}{exp}{med}{k}")
+    if p.get("verdict"):
+        out.append(f"    verdict: {p['verdict']}")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -415,9 +900,25 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("file", type=Path, help="recording to read")
     ap.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="the service configuration of the run (its pipelines' lever arm and correlated-error states "
+        "refine the consistency check)",
+    )
     args = ap.parse_args(argv)
+    config = None
+    if args.config is not None:
+        from fednav.service.config import ConfigError, load
+
+        try:
+            config = load(args.config)
+        except ConfigError as exc:
+            print(f"fednav-inspect: error: {exc}", file=sys.stderr)
+            return 2
     try:
-        summary = inspect_rrd(args.file)
+        summary = inspect_rrd(args.file, config)
     except InspectError as exc:
         print(f"fednav-inspect: error: {exc}", file=sys.stderr)
         return 2

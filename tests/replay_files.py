@@ -704,3 +704,46 @@ def evaluate_config(drive: Drive, cfg, vehicle: str = "v1", skip_s: float = 20.0
         "v_err_over_sigma": float(np.sqrt(np.mean(e[:, 2] ** 2)) / np.sqrt(np.mean(P[:, 2, 2]))),
         "nees_per_dof": float(np.mean(nees) / 3.0),
     }
+
+
+def record_replay(mapping_path: Path, cfg, out: Path, health_period_s: float = 1.0) -> dict:
+    """A replay recorded in-process, as fednav-record records a scenario: the mapping's events
+    through the service's per-vehicle loop (service.vehicle.VehicleLoop) into the service's output
+    sink and Rerun sink (the recording the service would write), health every ``health_period_s`` of
+    sensor time. Returns the loop's counters."""
+    from fednav.dashboards.blueprints import blueprint_factory
+    from fednav.replay.mapping import load_mapping
+    from fednav.replay.sources import all_events
+    from fednav.service import keys
+    from fednav.service.app import OutputSink
+    from fednav.service.config import recording_kinds
+    from fednav.service.transport.rerun_sink import RerunSink
+    from fednav.service.vehicle import VehicleLoop
+
+    class _NoPublish:
+        def publish(self, key, msg):
+            return None
+
+    m, base = load_mapping(mapping_path)
+    clock = [0.0]
+    sink = RerunSink(
+        out,
+        blueprint=blueprint_factory(recording_kinds(cfg.pipelines)),
+        flush_interval_s=cfg.rrd_flush_interval_s,
+        clock=lambda: clock[0],
+        background_flush=False,
+        decimation=cfg.rrd_decimation,
+        slow_flush_interval_s=cfg.rrd_slow_flush_interval_s,
+    )
+    outputs = OutputSink(cfg.prefix, _NoPublish(), sink, vehicle_interval_s=cfg.rrd_vehicle_interval_s)
+    loop = VehicleLoop(m.vehicle, cfg, outputs, on_fix=outputs.log_fix)
+    next_health = -np.inf
+    for ev in all_events(m, base):
+        clock[0] = ev.t_gps_s
+        pk = keys.parse_input(f"{m.prefix}/{m.vehicle}/{ev.key_suffix}", m.prefix)
+        loop.process(pk.kind, pk.sensor_id, ev.msg)
+        if loop.engine.last_t is not None and loop.engine.last_t >= next_health:
+            next_health = loop.engine.last_t + health_period_s
+            outputs.log_health(m.vehicle, loop.health())
+    sink.close()
+    return {"received": loop.received, "accepted": loop.accepted, "rejected": dict(loop.counters)}

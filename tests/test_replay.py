@@ -419,6 +419,11 @@ def test_example_mappings_and_service_config_are_valid():
         assert {s.kind for s in m.streams} == kinds
         cfg = load(root / service)
         assert cfg.vehicles == [m.vehicle]
+    # the first service file the README shows is not navigation grade (issue 24): the cautious preset
+    assert load(root / "service.toml").imu.grade == "consumer_mems"
+    assert mapping.load_mapping(root / "ros2_bag.toml")[0].endpoint == "tcp/127.0.0.1:7447"
+    csv_imu = mapping.load_mapping(root / "nmea_imu_csv.toml")[0].streams[0]
+    assert csv_imu.time_base == "boot" and csv_imu.boot_offset_s == "auto"
     nmea = load(root / "nmea_service.toml")
     assert nmea.imu.grade == "consumer_mems" and nmea.pipelines[0].gnss_correlated_error is not None
     tc = load(root / "rinex_service.toml")

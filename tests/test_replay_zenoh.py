@@ -127,3 +127,9 @@ def test_recording_reads_back_with_every_vehicle(replayed):
     assert summary["vehicles"] == sorted(CASES)
     for case in CASES:
         assert f"{case}/lc" in summary["pipelines"], summary["pipelines"].keys()
+    # issue 24, item 6: the first vehicle's input stopped while the others replayed; the service's
+    # Health then said coasting (wall-time rule) and inspect says so beside the last recorded status
+    first = summary["pipelines"][f"{CASES[0]}/lc"]
+    assert first["final_status"] == "aided" and first["health_final_status"] == "coasting"
+    assert summary["input_stopped"][CASES[0]]["health_reports_after"] >= 3
+    assert first["verdict"], first
