@@ -31,8 +31,10 @@ states the rows observe (position, velocity, clock: s = 8 for m = 2N rows) by th
 identity H_a' S^-1 = E' (I + J C)^-1 G_a' R^-1 (:func:`_masked_gain`), so K = L G_a' R^-1 with
 L = P E' (I + J C)^-1 (n x s), K H = L J E and K_a R K_b' = L_a J_b L_b'; then the Joseph product
 of every block with (n, s) x (s, n) products only (:meth:`MhssBank._joseph_observed`):
-T = P_ab - (L_a J_a)(E P_ab), P_ab <- T + (L_a - T E') J_b L_b'. Members whose C is not
-positive definite take the general path (``kalman.gain``: Cholesky of S, explicit gains).
+T = P_ab - (L_a J_a)(E P_ab), P_ab <- T + (L_a - T E') J_b L_b'. A bank of one filter
+(integrity off) and banks with a member whose C is not positive definite take the general path:
+``kalman.gain`` (Cholesky of S, explicit gains, as every other pipeline) and the Joseph product
+of the explicit factors.
 
 Closed loop: only the main filter's correction dx_0 is fed back; every member shifts by it,
 x_i <- x_i - dx_0 (covariances unchanged), so after feedback x_0 = 0 and dx_0n = -x_n.
@@ -85,6 +87,7 @@ import numpy as np
 from scipy import integrate, special
 
 from fednav.service.estimation import kalman
+from fednav.service.estimation.kalman import symmetrise
 
 H_IDX = (0, 1)  # east, north position error (ENU metres) in the INS error state
 V_IDX = 2  # up
@@ -607,28 +610,18 @@ class MhssBank:
         r_var = np.asarray(r_var, dtype=float)
         m = len(z)
         keep_b = ~self.excl[:, np.asarray(row_sat, dtype=int)] if self.N else np.ones((B, m), dtype=bool)
-        g = _masked_gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
+        # a bank of one filter (integrity off) takes the plain update of every other pipeline
+        g = _masked_gain(self.x, self.blocks[:B], z, H, r_var, keep_b) if B > 1 else None
         if g is None:  # general path (raises NotPositiveDefinite when an S is not positive definite)
             ref = kalman.gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
-            factors = self._dense_factors(ref.IKH, ref.K, r_var)
             self.x = ref.x
-            self.blocks = self._joseph_all(*factors)
+            self.blocks = self._joseph_all(ref.IKH, ref.K, r_var)
             res = ref.result
             return BankUpdate(res.innovation, res.dof, ref.K, ref.IKH, res.whitened, res.nis)
         blocks = self._joseph_observed(g)
         self.x = g.x
         self.blocks = blocks
         return BankUpdate(g.innovation, g.dof, gain=g)
-
-    def _dense_factors(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Factors of :meth:`_joseph_all` from explicit gains K (B, n, m) and I - K H: Lf = K,
-        W = R K'."""
-        n, m = self.n, K.shape[-1]
-        RF, LF = self._factor_arrays(m)
-        RF[:, :n, :] = np.swapaxes(IKH, 1, 2)
-        np.multiply(np.swapaxes(K, 1, 2), r_var[None, :, None], out=RF[:, n:, :])
-        LF[:, :, n:] = K
-        return np.swapaxes(RF[:, :n, :], 1, 2), RF, LF
 
     def _joseph_observed(self, g: _Gain) -> np.ndarray:
         """:func:`cross_update` of every block from the factored gains (:func:`_masked_gain`).
@@ -640,10 +633,9 @@ class MhssBank:
             T = (I - K_a H) P_ab = P_ab - (L_a J_a) (E P_ab)
             T (I - K_b H)' + K_a R K_b' = T + (L_a - T E') W_b
 
-        two (n, s) x (s, n) products per block instead of n x n ones, by segment: members
-        (a = b), main-sub (a = 0, broadcast), sub-subsub (a = sub n, broadcast over its N-1
-        sub-subs; W_b gathered)."""
-        B, N, n, Wk = self.B, self.N, self.n, self._work
+        two (n, s) x (s, n) products per block instead of n x n ones, for all blocks at once (the
+        factors of a and b gathered per block)."""
+        n, Wk = self.n, self._work
         sel, blocks = g.sel, self.blocks
         nb, s = len(blocks), len(sel)
         LJ = g.L @ g.J  # K H on the observed columns (B, n, s)
@@ -653,64 +645,35 @@ class MhssBank:
         X = Wk.get("x", (nb, n, s))
         out = self._next_blocks()
 
-        def segment(k: slice, shape: tuple[int, ...], LJa, La, Wbb) -> None:
-            t, x, o = (
-                T[k].reshape(shape + (n, n)),
-                X[k].reshape(shape + (n, s)),
-                out[k].reshape(shape + (n, n)),
-            )
-            np.matmul(LJa, Ps[k].reshape(shape + (s, n)), out=t)
-            np.subtract(blocks[k].reshape(shape + (n, n)), t, out=t)
-            np.take(t, sel, axis=-1, out=x, mode="clip")
-            np.subtract(La, x, out=x)
-            np.matmul(x, Wbb, out=o)
-            o += t
-
-        segment(slice(0, B), (B,), LJ, g.L, Wb)
+        pa, pb = self.pa, self.pb
+        LJa = np.take(LJ, pa, axis=0, out=Wk.get("lj_a", (nb, n, s)), mode="clip")
+        np.matmul(LJa, Ps, out=T)
+        np.subtract(blocks, T, out=T)
+        np.take(T, sel, axis=-1, out=X, mode="clip")
+        np.subtract(np.take(g.L, pa, axis=0, out=LJa, mode="clip"), X, out=X)
+        np.matmul(X, np.take(Wb, pb, axis=0, out=Wk.get("w_b", (nb, s, n)), mode="clip"), out=out)
+        out += T
         self._symmetrise_members(out)
-        if self.depth >= 1 and N:
-            subs = slice(1, 1 + N)
-            segment(slice(B, B + N), (N,), LJ[0], g.L[0], Wb[subs])
-            if self.depth >= 2 and N > 1:
-                mem = self.subsub_members  # (N, N-1)
-                Wm = np.take(Wb, mem, axis=0, out=Wk.get("w_m", mem.shape + Wb.shape[1:]), mode="clip")
-                segment(slice(B + N, nb), (N, N - 1), LJ[subs, None], g.L[subs, None], Wm)
         return out
 
-    def _factor_arrays(self, s: int) -> tuple[np.ndarray, np.ndarray]:
-        """RF = [I - K H | W']' (B, n + s, n) and LF = [(I - K H) P | Lf] (B, n, n + s) of every
-        member, with K_a R K_b' = Lf_a W_b."""
-        B, n, W = self.B, self.n, self._work
-        return W.get("rf", (B, n + s, n)), W.get("lf", (B, n, n + s))
-
-    def _joseph_all(self, ikh: np.ndarray, RF: np.ndarray, LF: np.ndarray) -> np.ndarray:
-        """:func:`cross_update` of every block, P_ab <- (I - K_a H) P_ab (I - K_b H)' + K_a R K_b',
-        with explicit gains (the general path; :meth:`_dense_factors`: K_a R K_b' = Lf_a W_b), one product per
-        block:
-
-            [(I - K_a H) P_ab | Lf_a] [I - K_b H | W_b']'
-
-        by segment: members (a = b), main-sub (a = 0, broadcast), sub-subsub (a = sub n,
-        broadcast over its N-1 sub-subs; the factors of b gathered)."""
-        B, N, n, W = self.B, self.N, self.n, self._work
-        w = RF.shape[1]
-        out = self._next_blocks()
-        np.matmul(ikh, self.blocks[:B], out=LF[:, :, :n])
-        np.matmul(LF, RF, out=out[:B])
-        self._symmetrise_members(out)
+    def _joseph_all(self, IKH: np.ndarray, K: np.ndarray, r_var: np.ndarray) -> np.ndarray:
+        """:func:`cross_update` of every block with explicit gains (the general path), by segment:
+        members (a = b), main-sub (a = 0, broadcast), sub-subsub (a = sub n, broadcast over its
+        N-1 sub-subs; b gathered). Right factors are pre-transposed into contiguous arrays."""
+        B, N, n = self.B, self.N, self.n
+        IKHt = np.ascontiguousarray(np.swapaxes(IKH, 1, 2))
+        Kt = np.ascontiguousarray(np.swapaxes(K, 1, 2))
+        KR = K * r_var
+        out = np.empty_like(self.blocks)
+        out[:B] = symmetrise(IKH @ self.blocks[:B] @ IKHt + KR @ Kt)
         if self.depth >= 1 and N:
             subs = slice(1, 1 + N)
-            L0 = W.get("lf0", (N, n, w))
-            np.matmul(ikh[0], self.blocks[B : B + N], out=L0[:, :, :n])
-            L0[:, :, n:] = LF[0, :, n:]
-            np.matmul(L0, RF[subs], out=out[B : B + N])
+            out[B : B + N] = IKH[0] @ self.blocks[B : B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
             if self.depth >= 2 and N > 1:
-                mem = self.subsub_members  # (N, N-1)
-                L2 = W.get("lf2", (N, N - 1, n, w))
-                np.matmul(ikh[subs, None], self.blocks[B + N :].reshape(N, N - 1, n, n), out=L2[..., :n])
-                L2[..., n:] = LF[subs, None, :, n:]
-                RFm = np.take(RF, mem, axis=0, out=W.get("rfm", mem.shape + RF.shape[1:]), mode="clip")
-                np.matmul(L2, RFm, out=out[B + N :].reshape(N, N - 1, n, n))
+                mem = self.subsub_members
+                blk = self.blocks[B + N :].reshape(N, N - 1, n, n)
+                a, ka = IKH[subs][:, None], KR[subs][:, None]
+                out[B + N :] = (a @ blk @ IKHt[mem] + ka @ Kt[mem]).reshape(-1, n, n)
         return out
 
     def shift(self, dx: np.ndarray) -> None:
