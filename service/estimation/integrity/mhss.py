@@ -386,7 +386,8 @@ def solution_separation(
 
 # --- the bank ---------------------------------------------------------------------------------------------
 class _Work:
-    """Scratch arrays reused from epoch to epoch (no allocation, warm caches); never returned."""
+    """Arrays reused from epoch to epoch (no allocation, warm caches): scratch arrays and the two
+    covariance arrays the updates alternate between."""
 
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
@@ -395,13 +396,6 @@ class _Work:
         a = self._arrays.get(name)
         if a is None or a.shape != shape:
             a = self._arrays[name] = np.empty(shape)
-        return a
-
-    def identity(self, B: int, n: int) -> np.ndarray:
-        """(B, n, n) identity matrices (read only)."""
-        a = self._arrays.get("identity")
-        if a is None or a.shape != (B, n, n):
-            a = self._arrays["identity"] = np.broadcast_to(np.eye(n), (B, n, n)).copy()
         return a
 
 
