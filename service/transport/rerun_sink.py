@@ -60,6 +60,11 @@ from fednav.service.messages import Faults, GnssFix, Health, ImmModels, Integrit
 from fednav.service.transport import rerun_paths as paths
 
 log = logging.getLogger(__name__)
+#: vehicles that get tabs of their own in the embedded blueprint (a fleet's others are recorded
+#: too, and reachable in the viewer's entity tree; fednav-fleet record gives the fleet's view)
+BLUEPRINT_VEHICLES = 8
+#: wall seconds between two blueprints sent for new vehicles (the last one is sent at close)
+BLUEPRINT_INTERVAL_S = 10.0
 
 #: A blueprint object, or a callable that builds one from the vehicles recorded so far.
 BlueprintSource = Any | Callable[[Sequence[str]], Any]
@@ -301,6 +306,9 @@ class RerunSink:
         self._state_last: dict[str, str] = {}
         self._marker_last: dict[tuple[str, str], int] = {}
         self._vehicles: list[str] = []
+        self._bp_more = 0  # vehicles beyond BLUEPRINT_VEHICLES (recorded, without tabs of their own)
+        self._bp_pending = False  # a new vehicle's blueprint waits for BLUEPRINT_INTERVAL_S
+        self._bp_sent_at = -math.inf
         # A Rerun blueprint (Blueprint, Container or View) has to_blueprint(); anything else callable
         # is a factory of the vehicles seen so far.
         self._bp_object = blueprint if hasattr(blueprint, "to_blueprint") else None
@@ -757,6 +765,8 @@ class RerunSink:
                 self._closed = True
                 return
             try:
+                if self._bp_pending:
+                    self._send_vehicle_blueprint()
                 for track in self._tracks.values():
                     self._send_track(track)
                 self._flush_locked()
@@ -797,13 +807,30 @@ class RerunSink:
     def _new_vehicle(self, vehicle: str) -> None:
         self._last_t[vehicle] = -math.inf
         self._vehicles.append(vehicle)
-        if self._bp_factory is not None:
-            try:
-                bp = self._bp_factory(list(self._vehicles))
-            except Exception as exc:
-                log.warning("rerun sink: blueprint factory failed for %s: %s", self._vehicles, exc)
-                return
-            self.send_blueprint(bp)
+        if self._bp_factory is None:
+            return
+        if len(self._vehicles) <= BLUEPRINT_VEHICLES:
+            # the first at once; later ones at most every BLUEPRINT_INTERVAL_S (and at close):
+            # each blueprint is the whole layout again (MBs for a few vehicles)
+            if len(self._vehicles) == 1 or self._clock() - self._bp_sent_at >= BLUEPRINT_INTERVAL_S:
+                self._send_vehicle_blueprint()
+            else:
+                self._bp_pending = True
+        else:  # a fleet: the per-vehicle tabs stay those of the first vehicles (each blueprint is
+            # the whole layout again: one per new vehicle would grow the file with the square of
+            # the fleet); the recording still holds every vehicle's entities
+            self._bp_more += 1
+
+    def _send_vehicle_blueprint(self) -> None:
+        self._bp_pending = False
+        self._bp_sent_at = self._clock()
+        vehicles = self._vehicles[:BLUEPRINT_VEHICLES]
+        try:
+            bp = self._bp_factory(list(vehicles))
+        except Exception as exc:
+            log.warning("rerun sink: blueprint factory failed for %s: %s", vehicles, exc)
+            return
+        self.send_blueprint(bp)
 
     def _due(self, stream: str, vehicle: str, pipeline: str, t: float, force: bool = False) -> bool:
         """Decimation: True when a row of ``stream`` at ``t`` is to be recorded (``force``: always)."""
@@ -1003,6 +1030,8 @@ class RerunSink:
         self._add(path, "marker", tn, ((en[0], -en[1]), label, color))
 
     def _maybe_flush(self) -> None:
+        if self._bp_pending and self._clock() - self._bp_sent_at >= BLUEPRINT_INTERVAL_S:
+            self._send_vehicle_blueprint()
         if self._rows >= self._max_rows:
             self._flush_locked()
             self._sdk_flush_start()
