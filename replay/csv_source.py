@@ -1,4 +1,5 @@
-"""IMU samples from a CSV file (read with the standard library's csv module).
+"""IMU samples (and the readings of sensor registry kinds with a CSV hook, e.g. ``baro``) from a CSV
+file (read with the standard library's csv module).
 
 Format (a header row names the columns; lines starting with '#' are comments; order free):
 
@@ -31,6 +32,9 @@ class SourceError(ValueError):
 def events(
     stream: StreamMapping, base: Path, mapping: ReplayMapping, stats: dict | None = None
 ) -> Iterator[Event]:
+    if stream.kind != "imu":
+        yield from registry_events(stream, base, mapping)
+        return
     path = base / stream.source
     cols = RATE_COLUMNS if stream.form == "rate" else INCREMENT_COLUMNS
     b = ImuBuilder(stream.matrix(), stream.gyro_scale(), stream.accel_scale(), stream.form, stats=stats)
@@ -59,3 +63,43 @@ def events(
             s = b.push(t, v[1:4], v[4:7], dt=dt)
             if s is not None:
                 yield Event(t, suffix, s)
+
+
+def registry_events(stream: StreamMapping, base: Path, mapping: ReplayMapping) -> Iterator[Event]:
+    """A CSV stream of a sensor registry kind (e.g. ``baro``: t, altitude_m[, std_m]): the columns
+    and the message come from the kind's entry (``csv_columns``, ``from_csv``); ``t`` in the
+    stream's time base."""
+    from fednav.service import sensors
+
+    entry = sensors.get(stream.kind)
+    path = base / stream.source
+    suffix = key_suffix(stream.kind, stream.sensor_id)
+    try:
+        f = path.open(newline="")
+    except OSError as exc:
+        raise SourceError(f"{path}: {exc}") from None
+    with f:
+        reader = csv.DictReader(line for line in f if not line.lstrip().startswith("#"))
+        names = [n.strip() for n in (reader.fieldnames or [])]
+        missing = [c for c in entry.csv_columns if c not in names and c not in entry.csv_optional]
+        if missing:
+            raise SourceError(
+                f"{path}: a {stream.kind} CSV needs columns {', '.join(entry.csv_columns)} "
+                f"({', '.join(entry.csv_optional) or 'none'} optional); missing {', '.join(missing)}"
+            )
+        for line, row in enumerate(reader, start=2):
+            row = {k.strip(): v for k, v in row.items() if k is not None}
+            try:
+                values = {
+                    c: (float(row[c]) if row.get(c) not in (None, "") else None) for c in entry.csv_columns
+                }
+            except (TypeError, ValueError):
+                raise SourceError(f"{path} line {line}: a value is not a number") from None
+            if values["t"] is None:
+                raise SourceError(f"{path} line {line}: no time")
+            values["t"] = to_gps_s(values["t"], stream, mapping.leap_seconds)
+            try:
+                msg = entry.from_csv(values, stream.sensor_id)
+            except ValueError as exc:
+                raise SourceError(f"{path} line {line}: {str(exc).splitlines()[0]}") from None
+            yield Event(values["t"], suffix, msg)

@@ -108,7 +108,10 @@ class StreamMapping(_Model):
         description="File (path relative to the mapping file): bag dir/.bag/.mcap, .nmea, .ubx, .csv"
     )
     format: Format | None = Field(None, description="Parser; None: from the file name")
-    kind: Literal["imu", "gnss_fix", "gnss_raw"] = Field(description="fednav sensor kind it becomes")
+    kind: str = Field(
+        description="fednav sensor kind it becomes: imu, gnss_fix, gnss_raw, or a kind of the sensor "
+        "registry with a CSV hook (e.g. baro: columns t, altitude_m[, std_m])"
+    )
     sensor_id: str = Field(pattern=r"^[A-Za-z0-9_\-.]+$", description="Sensor id in the key")
     topic: str | None = Field(None, description="ROS: topic of sensor_msgs/Imu or sensor_msgs/NavSatFix")
     twist_topic: str | None = Field(
@@ -190,8 +193,18 @@ class StreamMapping(_Model):
             raise ValueError("NMEA gives GNSS fixes: kind must be 'gnss_fix'")
         if fmt == "nmea" and self.time_base != "utc":
             raise ValueError("NMEA time is UTC: time_base must be 'utc'")
-        if fmt == "csv" and self.kind != "imu":
-            raise ValueError("the CSV format is for IMU data: kind must be 'imu'")
+        from fednav.service import sensors
+
+        csv_kinds = ["imu", *sensors.csv_kinds()]
+        if self.kind not in ("imu", "gnss_fix", "gnss_raw", *csv_kinds):
+            raise ValueError(
+                f"kind {self.kind!r} is not one fednav-replay reads: imu, gnss_fix, gnss_raw, or (CSV) "
+                f"{', '.join(sensors.csv_kinds())}"
+            )
+        if fmt == "csv" and self.kind not in csv_kinds:
+            raise ValueError(f"the CSV format is for these kinds: {', '.join(csv_kinds)}")
+        if fmt != "csv" and self.kind in sensors.csv_kinds():
+            raise ValueError(f"kind {self.kind!r} comes from a CSV file (format 'csv')")
         if fmt == "rinex" and self.kind != "gnss_raw":
             raise ValueError("RINEX gives raw GNSS: kind must be 'gnss_raw'")
         if self.kind == "gnss_raw" and fmt != "rinex":

@@ -262,3 +262,43 @@ def test_ros2_bridge_takes_fluid_pressure_from_the_registry():
         Ros2Config.model_validate(
             {"vehicle": "v1", "inputs": [{"topic": "/x", "type": "sensor_msgs/msg/Range", "sensor_id": "r"}]}
         )
+
+
+def test_replay_reads_a_barometer_csv_through_the_registry(tmp_path):
+    """fednav-replay: a CSV stream of kind 'baro' (the entry's columns t, altitude_m[, std_m]) next
+    to an IMU CSV and NMEA: BaroAltitude events under the barometer's key, in the stream's time base;
+    a missing column and a kind without a CSV hook are refused naming them."""
+    from fednav.replay import mapping as rmapping
+    from fednav.replay.checks import run_checks
+    from fednav.replay.sources import SourceError, all_events
+
+    from . import replay_files as rf
+
+    drive = rf.simulate_drive(tmp_path, duration_s=32.0)
+    files = rf.write_all(tmp_path, drive, only=("nmea_csv",))
+    rows = ["t,altitude_m,std_m"] + [
+        f"{tr.t - rf.BOOT_GPS_S!r},{tr.height_m + 7.5!r},0.4" for tr in drive.truth[::5]
+    ]
+    (tmp_path / "baro.csv").write_text("\n".join(rows) + "\n")
+    text = files["nmea_csv"].read_text() + (
+        f'\n[[streams]]\nsource = "baro.csv"\nkind = "baro"\nsensor_id = "b1"\n'
+        f'time_base = "boot"\nboot_offset_s = {rf.BOOT_GPS_S}\n'
+    )
+    path = tmp_path / "with_baro.toml"
+    path.write_text(text)
+    m, base = rmapping.load_mapping(path)
+    baro = [e for e in all_events(m, base) if e.key_suffix == "sensor/baro/b1"]
+    assert len(baro) == len(rows) - 1
+    truth = {round(tr.t, 6): tr.height_m for tr in drive.truth}
+    for e in baro:
+        assert isinstance(e.msg, BaroAltitude) and e.msg.std_m == 0.4
+        assert abs(e.msg.altitude_m - 7.5 - truth[round(e.t_gps_s, 6)]) < 1e-6
+    assert not run_checks(m, base).errors
+    (tmp_path / "bad.csv").write_text("t,std_m\n1.0,0.3\n")
+    path.write_text(text.replace('source = "baro.csv"', 'source = "bad.csv"'))
+    m, base = rmapping.load_mapping(path)
+    with pytest.raises(SourceError, match="altitude_m"):
+        list(all_events(m, base))
+    path.write_text(text.replace('kind = "baro"', 'kind = "star"'))
+    with pytest.raises(rmapping.MappingError, match="star"):
+        rmapping.load_mapping(path)

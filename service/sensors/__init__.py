@@ -50,9 +50,10 @@ class SensorKind:
     simulate
         ``(spec, trajectory, rng) -> [(imu_index, message), ...]`` for a scenario's
         ``[sensors.<kind>]`` table, ``spec`` validated by ``simulate_spec``.
-    csv_columns / from_csv
-        fednav-replay CSV streams of this kind: the columns (time first) and
-        ``(row: dict[str, float], sensor_id) -> WireModel`` (time already in GPS seconds).
+    csv_columns / csv_optional / from_csv
+        fednav-replay CSV streams of this kind: the columns (time first; those in ``csv_optional``
+        may be absent) and ``(row: dict[str, float | None], sensor_id) -> WireModel`` (time
+        already in GPS seconds).
     """
 
     kind: str
@@ -65,6 +66,7 @@ class SensorKind:
     simulate: Callable[..., list] | None = None
     simulate_spec: type | None = None
     csv_columns: tuple[str, ...] = ()
+    csv_optional: tuple[str, ...] = ()
     from_csv: Callable[..., WireModel] | None = None
     doc: str = ""
 
@@ -154,6 +156,11 @@ def input_message(kind: str) -> type[WireModel] | None:
 
     s = registry().get(kind)
     return s.message if s is not None else CONTROL_MESSAGES.get(kind)
+
+
+def csv_kinds() -> list[str]:
+    """Kinds fednav-replay reads from a CSV file through their registry hook (beyond the IMU's)."""
+    return [k for k, s in registry().items() if s.from_csv is not None]
 
 
 def ros2_decoder(msgtype: str) -> tuple[str, Callable] | None:

@@ -159,6 +159,7 @@ SENSOR = SensorKind(
     simulate=simulate,
     simulate_spec=BaroSim,
     csv_columns=("t", "altitude_m", "std_m"),
+    csv_optional=("std_m",),
     from_csv=from_csv,
     doc="barometric altitude with an estimated offset",
 )
