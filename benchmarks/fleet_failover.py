@@ -57,6 +57,7 @@ def _takeover(watch: FleetWatch, moved: list[str], t_event_wall: float, last_t: 
     """Figures of the vehicles that moved at ``t_event_wall`` (their last sensor time before it in
     ``last_t``)."""
     gaps, errs_max, back_s, lost = [], [], [], 0
+    worst = None
     for v in moved:
         with watch.lock:
             after = [(w, t) for w, t, _ in watch.sols.get(v, []) if t > last_t[v]]
@@ -81,6 +82,8 @@ def _takeover(watch: FleetWatch, moved: list[str], t_event_wall: float, last_t: 
         if pairs:
             pairs.sort()
             errs_max.append(max(e for _, e in pairs))
+            if errs_max[-1] >= max(errs_max):
+                worst = (v, [(round(t - last_t[v], 1), round(e, 1)) for t, e in pairs[:8]])
             over = [t for t, e in pairs if e > bound]
             back_s.append((over[-1] - last_t[v]) if over else 0.0)
     g = np.array(gaps)
@@ -91,6 +94,7 @@ def _takeover(watch: FleetWatch, moved: list[str], t_event_wall: float, last_t: 
         "epochs_lost_after_takeover": int(lost),
         "h_err_max_m": round(float(max(errs_max)), 2) if errs_max else None,
         "back_under_p95_s_max": round(float(max(back_s)), 1) if back_s else None,
+        "worst_vehicle": worst,  # (name, [(s after its last Solution before the event, error m), ...])
     }
 
 
