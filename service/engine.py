@@ -53,7 +53,7 @@ from fednav.service.evaluation import errors_against_truth
 from fednav.service.imu_batch import ImuRow
 from fednav.service.ins.mechanisation import NavState, Preintegrator
 from fednav.service.intake_rules import AcceptanceRules, Verdict
-from fednav.service.lifecycle import VehicleLife
+from fednav.service.lifecycle import CONTESTED_IMU, VehicleLife
 from fednav.service.messages import (
     MAX_HEIGHT_M,
     MAX_SPEED_MPS,
@@ -176,7 +176,7 @@ class VehicleEngine:
             return self._on_imu(msg, verdict)
         life = self.life
         if kind == "gnss_fix" and verdict.in_sequence:
-            life.on_fix(msg)  # the newest fix, also when not applied (alignment uses it)
+            life.on_fix(msg, f"gnss_fix/{sensor_id}")  # the newest fix, also when not applied (alignment)
         elif kind == "gnss_raw" and verdict.in_sequence and not life.initialised:
             life.on_raw(msg)  # a raw receiver without a fix stream aligns like one with it
         if verdict.reason == "not_initialised":
@@ -292,7 +292,7 @@ class VehicleEngine:
 
     def _watch_inputs(self, p: Pipeline, t: float) -> None:
         """Log once when a pipeline has had no aiding for ``UNAIDED_WARNING_S`` since its start."""
-        start_t = self.life.start_t
+        start_t = self.life.lives[p.name].started_t
         if p.aided_since_start or start_t is None or t - start_t < UNAIDED_WARNING_S:
             return
         if ("unaided", p.name) in self._warned:
@@ -334,6 +334,8 @@ class VehicleEngine:
             self._imu_lost(t, verdict.reason)
             return True
         if not verdict.accepted:
+            if verdict.reason in CONTESTED_IMU and self.life.initialised:
+                self.life.on_imu_contested(t, verdict.reason)
             return self._reject(verdict.reason)
         if not self.life.initialised:
             self.life.align.add(t, dt, dtheta, dvel)
@@ -423,7 +425,7 @@ class VehicleEngine:
             err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:
                 self.sink.on_output(self.vehicle, out, err9)
-        self.life.after_aiding(kind, msg, self.pre.t_end)
+        self.life.after_aiding(kind, msg, self.pre.t_end, sensor_id)
 
     def _unused(self, p: Pipeline, kind: str) -> None:
         """A sensor kind reached a pipeline that is not configured to use it: counted (Health
@@ -479,6 +481,7 @@ class VehicleEngine:
                 p.mark_failed()
                 self.rejected["pipeline_failed"] += 1
                 continue
+            self.life.note_estimate(p, est)
             self.sink.on_estimate(self.vehicle, EstimateOutput(p, est, self._errors(p, est.nav.t, est)))
             for out in p.epoch_outputs():  # per-node outputs, with the node's truth when present
                 node = getattr(out, "node", None)

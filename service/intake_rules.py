@@ -25,7 +25,13 @@ it are refused, and only a run of samples that agree with each other re-bases it
   ``late_tolerance_s`` ``late`` (checked before ``time_backwards``: the more useful reason); older
   than the same sensor's previous message ``time_backwards``; before initialisation
   ``not_initialised`` (the message may still complete an alignment); ahead of the INS by more
-  than ``max_lead_s`` ``early``.
+  than ``max_lead_s`` ``early``; off its stream's established cadence ``off_cadence`` (below).
+- Cadence: a sensor stream that has kept a period (``CADENCE_ESTABLISH`` messages in a row with
+  intervals within ``CADENCE_TOLERANCE`` of each other) has a phase: a message further than
+  ``CADENCE_TOLERANCE`` periods from it is a second publisher interleaving with the sensor under
+  its key (a forged stream between the genuine fixes) and is refused ``off_cadence``, as long as
+  the sensor keeps its phase; a phase silent for ``CADENCE_RELEARN_PERIODS`` periods is learnt
+  again from the new messages (a receiver restarted on another timing, a rate change).
 
 Messages accepted (and aiding refused only as ``not_initialised``) become their key's latest time.
 """
@@ -39,12 +45,62 @@ from fednav.service.messages import WireModel
 
 #: reasons for which a message is out of sequence for its key or the INS (it is not used at all);
 #: other refusals (``not_initialised``, ``early``) still leave it the newest of its sensor
-OUT_OF_SEQUENCE = frozenset({"duplicate", "time_backwards", "late", "future", "overlap", "unexpected_sensor"})
+OUT_OF_SEQUENCE = frozenset(
+    {"duplicate", "time_backwards", "late", "future", "overlap", "unexpected_sensor", "off_cadence"}
+)
 #: an IMU sample whose interval starts this fraction of itself before the previous sample's end
 #: overlaps it (timestamp jitter of genuine samples is far smaller)
 OVERLAP_FRACTION = 0.25
 #: kinds without a sensor id
 _NO_ID = frozenset({"init", "truth", "imu_node"})  # node ids: declared by their pipelines
+#: kinds whose messages keep no cadence (not sensors, or judged by their own rules)
+_NO_CADENCE = frozenset({"init", "truth", "imu_node", "alignment_truth"})
+#: a stream's intervals agree (and a message is on its phase) within this fraction of its period
+CADENCE_TOLERANCE = 0.25
+#: consecutive agreeing intervals that establish a stream's period and phase
+CADENCE_ESTABLISH = 4
+#: an established phase without a message for this many periods is learnt again
+CADENCE_RELEARN_PERIODS = 3.0
+#: streams faster than this (s) keep no cadence (a phase to a millisecond says nothing)
+CADENCE_MIN_PERIOD_S = 0.02
+
+
+@dataclass
+class _Cadence:
+    """A stream's learnt period and phase: ``period`` None while learning (``count`` intervals
+    agree so far); ``anchor`` the time of its last on-phase message."""
+
+    period: float | None = None
+    count: int = 0
+    anchor: float | None = None
+    established: bool = False
+
+    def judge(self, t: float) -> bool:
+        """Whether ``t`` fits the stream (learning, or on its phase); learns from it if so."""
+        a = self.anchor
+        if a is None:
+            self.anchor = t
+            return True
+        dt = t - a
+        if self.established:
+            n = round(dt / self.period)
+            if n >= 1 and abs(dt - n * self.period) <= CADENCE_TOLERANCE * self.period:
+                self.anchor = t
+                return True
+            if dt > CADENCE_RELEARN_PERIODS * self.period:  # its phase went silent: learn again
+                self.period, self.count, self.anchor, self.established = None, 0, t, False
+                return True
+            return False
+        if dt <= 0.0:
+            return True
+        if self.period is not None and abs(dt - self.period) <= CADENCE_TOLERANCE * self.period:
+            self.count += 1
+        else:
+            self.period, self.count = dt, 1
+        self.anchor = t
+        if self.count >= CADENCE_ESTABLISH and self.period >= CADENCE_MIN_PERIOD_S:
+            self.established = True
+        return True
 
 
 @dataclass(frozen=True)
@@ -84,6 +140,7 @@ class AcceptanceRules:
         self.sensor_of: dict[str, str] = {}  # kind -> the id adopted (kinds not in sensor_ids)
         self.imu_t: float | None = None  # end of the last accepted IMU sample
         self._jump: _JumpCandidate | None = None
+        self._cadence: dict[tuple[str, str], _Cadence] = {}
 
     def forget_times(self) -> None:
         """A new time base (confirmed time jump): per-key records and the IMU time are forgotten;
@@ -91,6 +148,7 @@ class AcceptanceRules:
         self.last_t.clear()
         self.imu_t = None
         self._jump = None
+        self._cadence.clear()
 
     def withdraw(self, kind: str, sensor_id: str, previous: float | None) -> None:
         """A message the rules took was refused later (an implausible InitialNav): its key's time
@@ -111,6 +169,12 @@ class AcceptanceRules:
             return self.decide_imu(msg.t, msg.dt_s, t_ins)
         key = (kind, sensor_id)
         verdict = self._other(kind, msg.t, self.last_t.get(key), t_ins, initialised)
+        if (verdict.accepted or verdict.reason == "not_initialised") and kind not in _NO_CADENCE:
+            c = self._cadence.get(key)
+            if c is None:
+                c = self._cadence[key] = _Cadence()
+            if not c.judge(msg.t):
+                return Verdict("off_cadence")
         if verdict.accepted or verdict.reason == "not_initialised":
             self.last_t[key] = msg.t
         return verdict

@@ -10,6 +10,9 @@ transition is recorded in ``VehicleLife.history``)::
 
     initialising --start------------> aligned        first InitialNav, coarse alignment, restart
     initialising --hand_over--------> aligned        another service's last state (unverified)
+    initialising --recover----------> aligned        the INS lost for a moment (IMU gap, a run of
+                                                     samples behind it): each pipeline's last
+                                                     verified state carried over the gap
     aligned      --aided------------> aided          first accepted aiding of a verified start
     aligned      --verified---------> aided          an unverified start agreed with own aiding
     aligned      --reset------------> aligned        an unverified start disagreed: own reference
@@ -47,11 +50,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from fednav.service import earth
 from fednav.service.estimation import snapshot
+from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.integrity.ins_bank import MhssInsBank
 from fednav.service.ins import alignment
+from fednav.service.ins import error_model as em
 from fednav.service.ins.alignment import InitStd
-from fednav.service.ins.mechanisation import NavState
-from fednav.service.messages import GnssFix, GnssRaw, InitialNav
+from fednav.service.ins.mechanisation import Ins, NavState
+from fednav.service.messages import Faults, GnssFix, GnssRaw, InitialNav, ObservationFault, SubsystemFaults
 
 if TYPE_CHECKING:  # the engine imports this module
     from fednav.service.engine import VehicleEngine
@@ -68,6 +75,7 @@ TRANSITIONS: dict[tuple[str, str], str] = {
     (INITIALISING, "start"): ALIGNED,
     (INITIALISING, "hand_over"): ALIGNED,
     (INITIALISING, "restart"): ALIGNED,
+    (INITIALISING, "recover"): ALIGNED,
     (ALIGNED, "aided"): AIDED,
     (ALIGNED, "verified"): AIDED,
     (AIDED, "suspect"): SUSPECT,
@@ -78,8 +86,40 @@ TRANSITIONS: dict[tuple[str, str], str] = {
     **{(s, "lost"): INITIALISING for s in STAGES},
 }
 
+#: restarts of a running pipeline that keep its sensors' own states (clock, DVL offsets, ...)
+_KEEPS_SENSOR_STATES = frozenset({"reset", "recover", "init_reset", "hand_over"})
+#: transitions said on the pipeline's Faults (subsystem ``lifecycle``)
+_SAID = frozenset({"suspect", "reset", "recover", "init_reset", "hand_over", "verified"})
 #: consecutive agreeing reference epochs (or clean aiding updates) that verify a state
 VERIFY_EPOCHS = 3
+#: IMU refusals that mean a second publisher under the INS's key: samples slipped between the
+#: genuine ones or replayed (some of them may have been taken: the INS is suspect)
+CONTESTED_IMU = frozenset({"overlap", "time_backwards", "duplicate"})
+#: InitialNav reset requests of a running vehicle taken at most once per this interval (s)
+INIT_RESET_INTERVAL_S = 10.0
+#: InitialNav sigmas kept as the host's history (their median floors a reset request's sigmas)
+INIT_HISTORY = 16
+#: a pipeline's verified estimates kept (at output epochs) for a reset that needs the last good
+#: position: at most this old when used (s)
+CHECKPOINT_MAX_AGE_S = 5.0
+CHECKPOINTS = 8
+#: heading change a carried checkpoint may miss, 1-sigma (deg/s)
+CARRY_TURN_STD_DPS = 3.0
+#: a GNSS fix is this epoch's reference when at most this far from it in time (s): an older one
+#: carried forward says nothing reliable about the velocity of an accelerating vehicle
+REFERENCE_MAX_AGE_S = 0.05
+#: a GNSS stream's fixes confirm each other when at most this far apart (s)
+REFERENCE_CHAIN_MAX_S = 2.0
+#: acceleration change two consecutive fixes may hide (m/s^2): a manoeuvring vehicle's fixes
+#: still confirm each other, a forged one hundreds of metres away does not
+REFERENCE_CHAIN_ACC_MPS2 = 10.0
+#: ... and motion between two position-only fixes (m/s)
+REFERENCE_CHAIN_SPEED_MPS = 100.0
+#: a checkpoint's carried position and a fix disagree beyond this chi-square(3) quantile (1e-6)
+POSITION_CHI2_3DOF = 30.66
+#: acceleration the trapezoid of two velocities may miss when a checkpoint's position is
+#: carried to the reset time (m/s^2): the position sigma grows by 1/2 this x dt^2
+CARRY_ACC_STD_MPS2 = 0.5
 #: an InitialNav or hand-over state never claims less than this (ENU m, ENU m/s, rad)
 ABS_FLOOR_POS_M = 0.1
 ABS_FLOOR_VEL_MPS = 0.01
@@ -96,6 +136,9 @@ class Life:
     reason: str | None = None  # why suspect / unverified
     since: float | None = None  # time of the last transition
     agreeing: int = 0  # consecutive agreeing checks since the last start or suspicion
+    checked_t: float | None = None  # time of the last check (one per aiding epoch)
+    force_reset: bool = False  # its aiding keeps being refused: reset at the next reference
+    started_t: float | None = None  # time of the last start of the pipeline
 
 
 def floored_std(std: InitStd) -> InitStd:
@@ -105,6 +148,103 @@ def floored_std(std: InitStd) -> InitStd:
         np.maximum(np.asarray(std.vel_enu_mps, dtype=float), ABS_FLOOR_VEL_MPS),
         np.maximum(np.asarray(std.att_rad, dtype=float), ABS_FLOOR_ATT_RAD),
     )
+
+
+def shifted(nav: NavState, d_enu_m: np.ndarray, rot_nav: np.ndarray | None = None) -> NavState:
+    """``nav`` moved by an ENU offset (m) and turned by a nav-frame rotation vector (rad)."""
+    out = nav.copy()
+    dllh = earth.enu_m_to_llh_delta(np.asarray(d_enu_m, dtype=float), nav.lat_rad, nav.h_m)
+    out.lat_rad, out.lon_rad, out.h_m = nav.lat_rad + dllh[0], nav.lon_rad + dllh[1], nav.h_m + dllh[2]
+    if rot_nav is not None:
+        c = earth.quat_to_mat(earth.rotvec_to_quat(rot_nav)) @ nav.mat_nb
+        out.q_nb = earth.mat_to_quat(c)
+    return out
+
+
+def attitude_difference(a: NavState, b: NavState) -> np.ndarray:
+    """The nav-frame rotation vector (rad) that turns b's attitude into a's."""
+    return earth.quat_to_rotvec(earth.mat_to_quat(a.mat_nb @ b.mat_nb.T))
+
+
+def fuse(est: NavState, P: np.ndarray, refs: dict, req: NavState, req_std: InitStd):
+    """A reset request weighed against a verified running solution instead of replacing it (no
+    claimed certainty pins the state): one Kalman update of the running filter's whole state
+    (covariance ``P``: 9x9 of the navigation errors, or every state of a one-member bank with
+    its private ``refs``) with the request as a measurement of position, velocity and attitude
+    (independent, diagonal ``req_std``). Returns (corrected state, its sigmas with the updated
+    covariance ``cov``, corrected private references)."""
+    z = np.concatenate([alignment.pos_vel_difference(est, req), attitude_difference(req, est)])
+    R = np.diag(np.square(np.concatenate([req_std.pos_enu_m, req_std.vel_enu_mps, req_std.att_rad])))
+    P = 0.5 * (P + P.T)
+    S = P[:9, :9] + R
+    K = np.linalg.solve(S, P[:9, :]).T  # P H' S^-1, H = [I9 0]
+    x = K @ z  # estimated errors (computed minus true)
+    Pn = P - K @ P[:9, :]
+    Pn = 0.5 * (Pn + Pn.T)
+    ins = Ins(est, 1.0)
+    xi = np.zeros(em.N_STATES)
+    xi[: min(em.N_STATES, len(x))] = x[: em.N_STATES]
+    ins.correct(xi[em.POS], xi[em.VEL], xi[em.ATT], xi[em.GYRO], xi[em.ACC])
+    out_refs = {}
+    k = em.N_STATES
+    for name, ref in refs.items():  # private blocks in column order after the 15 INS states
+        n = np.size(ref)
+        out_refs[name] = np.asarray(ref, dtype=float) - x[k : k + n]
+        k += n
+    sd = np.sqrt(np.clip(np.diagonal(Pn), 0.0, None))
+    return ins.state.copy(), InitStd(sd[0:3], sd[3:6], sd[6:9], cov=Pn), out_refs
+
+
+def full_state(p: Pipeline) -> tuple[np.ndarray, dict, np.ndarray | None] | None:
+    """What a full restart of ``p`` restores besides its navigation state: (covariance of every
+    state: (n, n) of a one-filter bank (loosely coupled, tightly coupled's MHSS main member), or
+    (B, n, n) of each member of a bank (federated locals, IMM models); the private references;
+    the members' private error states (B, n - 15), None for a one-filter bank)."""
+    bank = p.bank
+    if bank is None:
+        return None
+    refs = {name: np.array(r, dtype=float, copy=True) for name, r in bank.reference.items()}
+    if isinstance(bank, MhssInsBank) or (type(bank) is InsFilterBank and bank.B == 1):
+        if np.any(bank.x[0]):  # errors not fed back: not a restartable state
+            return None
+        return bank.P[0].copy(), refs, None
+    if type(bank) is InsFilterBank and p.restores_members:
+        return bank.P.copy(), refs, bank.x[:, em.N_STATES :].copy()
+    return None
+
+
+def consistent_fixes(a: GnssFix, b: GnssFix) -> bool:
+    """Whether fix ``b`` agrees with the earlier fix ``a`` carried to it by the trapezoid of their
+    velocities (``REFERENCE_CHAIN_ACC_MPS2`` of unknown acceleration change; position-only fixes:
+    ``REFERENCE_CHAIN_SPEED_MPS`` of unknown motion), chi-square at 1e-6 with their own sigmas."""
+    dt = b.t - a.t
+    va, vb = a.velocity(), b.velocity()
+    na, _ = alignment.motion_alignment(a, a.t)
+    nb, _ = alignment.motion_alignment(b, b.t)
+    sa, sb = np.square(a.pos_std()), np.square(b.pos_std())
+    if va is None or vb is None:
+        d = alignment.pos_vel_difference(nb, na)[:3]
+        var = sa + sb + (REFERENCE_CHAIN_SPEED_MPS * dt) ** 2
+        return float(np.sum(d * d / var)) <= POSITION_CHI2_3DOF
+    va, vb = np.asarray(va, dtype=float), np.asarray(vb, dtype=float)
+    moved = shifted(na, 0.5 * (va + vb) * dt)
+    d = alignment.pos_vel_difference(nb, moved)
+    d[3:] = vb - va
+    acc = REFERENCE_CHAIN_ACC_MPS2
+    var_p = sa + sb + (0.5 * acc * dt * dt) ** 2
+    var_v = np.square(a.vel_std()) + np.square(b.vel_std()) + (acc * dt) ** 2
+    return float(np.sum(d[:3] ** 2 / var_p) + np.sum(d[3:] ** 2 / var_v)) <= alignment.PLAUSIBILITY_CHI2_6DOF
+
+
+def carried(nav: NavState, std: InitStd, t: float) -> tuple[NavState, InitStd]:
+    """A state moved to time ``t`` with its own velocity, its position sigma grown over the gap."""
+    dt = t - nav.t
+    if dt == 0.0:
+        return nav, std
+    out = shifted(nav, np.asarray(nav.vel_enu_mps, dtype=float) * dt)
+    out.t = t
+    grow = np.square(std.vel_enu_mps * dt) + (0.5 * CARRY_ACC_STD_MPS2 * dt * dt) ** 2
+    return out, InitStd(np.sqrt(np.square(std.pos_enu_m) + grow), std.vel_enu_mps, std.att_rad)
 
 
 def honest_std(std: InitStd, nav: NavState, ref: NavState | None) -> InitStd:
@@ -128,6 +268,7 @@ class VehicleLife:
         self.lost = False  # the INS was lost (IMU gap, time jump): the next start follows a loss
         self.align = alignment.ImuAccumulator()
         self.last_fix: GnssFix | None = None
+        self.prev_fix: GnssFix | None = None  # the fix before ``last_fix`` (GNSS acceleration)
         self.fix_from_raw = False  # last_fix is a snapshot solution of a raw epoch (snapshot.py)
         self.pending_init: InitialNav | None = None  # refused for its time: kept for a time jump
         self.check_first_fix = False  # an InitialNav start not yet confirmed by a GNSS fix
@@ -135,6 +276,12 @@ class VehicleLife:
         self.lives: dict[str, Life] = {p.name: Life() for p in engine.pipelines}
         #: (t, pipeline, from stage, event, to stage) of the latest transitions
         self.history: deque = deque(maxlen=512)
+        #: sigmas (InitStd) the host's InitialNavs claimed when taken: a reset request's floor
+        self.init_sigmas: deque = deque(maxlen=INIT_HISTORY)
+        self._recent: dict[str, deque] = {}  # stream -> its latest fixes (references' confirmation)
+        self.last_init_reset_t: float | None = None
+        #: per pipeline, its latest verified estimates (t, NavState, P9) at output epochs
+        self.checkpoints: dict[str, deque] = {p.name: deque(maxlen=CHECKPOINTS) for p in engine.pipelines}
 
     # --- transitions -------------------------------------------------------------------------------
     def go(self, p: Pipeline, event: str, t: float | None, reason: str | None = None) -> str:
@@ -144,15 +291,57 @@ class VehicleLife:
         if to is None:
             raise ValueError(f"pipeline {p.name}: no transition from {life.stage!r} on {event!r}")
         self.history.append((t, p.name, life.stage, event, to))
+        said = event in _SAID and (event != "suspect" or life.stage != SUSPECT)
         life.stage, life.since = to, t
         if event in ("start", "hand_over", "init_reset", "reset", "restart", "lost", "suspect"):
             life.agreeing = 0
+        if to == ALIGNED and event != "verified":
+            life.started_t = t
         if event == "suspect":
             life.reason = reason
+        if said and t is not None:
+            self._say(
+                p, t, event if reason is None or event == reason else f"{event}:{reason}", event != "verified"
+            )
         return to
 
-    def _start_one(self, p: Pipeline, nav: NavState, std: InitStd, event: str, verified: bool, reason=None):
-        p.start(nav.copy(), std, after_loss=self.lost)
+    def _say(self, p: Pipeline, t: float, label: str, in_doubt: bool) -> None:
+        """The transition on the pipeline's Faults (subsystem ``lifecycle``: isolated while its
+        state is in doubt or was replaced, in use again once verified) for subscribers and the
+        recording's isolation lanes."""
+        row = ObservationFault(label=label, statistic=0.0, threshold=0.0, flagged=in_doubt, isolated=in_doubt)
+        msg = Faults(
+            t=t,
+            pipeline=p.name,
+            subsystems=[SubsystemFaults(name="lifecycle", isolated=in_doubt, observations=[row])],
+        )
+        eng = self.engine
+        eng.sink.on_output(eng.vehicle, msg, eng._errors(p, t) if p.bank is not None else None)
+
+    def _start_one(
+        self, p: Pipeline, nav: NavState, std: InitStd, event: str, verified: bool, reason=None, refs=None
+    ):
+        """Restart ``p`` from ``nav`` (``std``) and move it by ``event``. With ``refs`` (private
+        references, and the members' private error states for a bank of several) and a full
+        ``std.cov`` (every state; per member for a bank of several): the whole filter state."""
+        old = p.bank
+        cov = std.cov
+        members = cov is not None and cov.ndim == 3
+        p.start(
+            nav.copy(),
+            InitStd(std.pos_enu_m, std.vel_enu_mps, std.att_rad, cov[0]) if members else std,
+            after_loss=self.lost,
+        )
+        bank = p.bank
+        if refs is not None and cov is not None and cov.shape[-1] == bank.n:
+            refs, privx = refs if isinstance(refs, tuple) else (refs, None)
+            if members and cov.shape[0] == bank.B:  # each member as it was (after the bank's own start)
+                bank.P = np.array(cov, dtype=float, copy=True)
+                if privx is not None and privx.shape == bank.x[:, em.N_STATES :].shape:
+                    bank.x[:, em.N_STATES :] = privx
+            p.restore_references(refs)
+        elif event in _KEEPS_SENSOR_STATES:
+            p.keep_private_states(old)
         life = self.lives[p.name]
         self.go(p, event, nav.t, reason)
         life.source, life.verified, life.reason = event, verified, (None if verified else reason or event)
@@ -161,10 +350,14 @@ class VehicleLife:
         else:
             p.mark_unverified(life.reason)
 
-    def start_all(self, nav: NavState, std: InitStd, event: str = "start", verified: bool = True) -> None:
-        """Every pipeline starts from ``nav``: the vehicle's clock moves to ``nav.t``."""
+    def start_all(
+        self, nav: NavState, std: InitStd, event: str = "start", verified: bool = True, per_pipeline=None
+    ) -> None:
+        """Every pipeline starts from ``nav`` (or ``per_pipeline(p) -> (nav, std, refs)``): the
+        vehicle's clock moves to ``nav.t``."""
         for p in self.engine.pipelines:
-            self._start_one(p, nav, std, event, verified)
+            p_nav, p_std, refs = (nav, std, None) if per_pipeline is None else per_pipeline(p)
+            self._start_one(p, p_nav, p_std, event, verified, refs=refs)
         self.engine._restart_clock(nav.t)
         self.initialised = True
         self.start_t = nav.t
@@ -172,20 +365,92 @@ class VehicleLife:
 
     # --- InitialNav, hand-over ------------------------------------------------------------------------
     def on_initial_nav(self, msg: InitialNav) -> bool:
-        """Start (or re-start) from an InitialNav. A re-initialisation of a running vehicle must
-        agree with the sensors: with the latest GNSS fix when current, else with the running
-        estimate (``alignment.plausible``); otherwise it is refused ``implausible_init``. A first
-        start is checked against the first GNSS fix instead (:meth:`_confirm_start`)."""
+        """Start from an InitialNav, or on a running vehicle treat it as a reset request
+        (:meth:`_init_reset`). A first start is checked against the first GNSS fix
+        (:meth:`_confirm_start`)."""
         if self.config.init.mode not in ("auto", "message"):
             return True
         nav, std = alignment.from_initial_nav(msg)
         if self.initialised:
-            ref = self.reference_state(nav.t)
-            if ref is not None and not alignment.plausible(nav, ref[0], alignment.std_cov6(std) + ref[1])[0]:
-                self.engine.rejected["implausible_init"] += 1
-                return False
+            return self._init_reset(nav, std)
         self.start_all(nav, std)
+        self.init_sigmas.append(std)
         self.check_first_fix = True
+        return True
+
+    def _init_reset(self, nav: NavState, std: InitStd) -> bool:
+        """An InitialNav on a running vehicle: a reset request, never a pin. Taken at most once
+        per ``INIT_RESET_INTERVAL_S`` (else ``init_rate_limited``); its sigmas raised to the
+        absolute floors and to the median of what the host claimed before (its own history);
+        it must agree with the latest GNSS fix when current and with the running estimate
+        (``alignment.plausible``, else ``implausible_init``); taken, every pipeline restarts
+        from it with sigmas that also cover its difference from the running estimate, unverified
+        (``degraded``) until the vehicle's own aiding agrees (``init_reset`` counted in notes)."""
+        eng = self.engine
+        last = self.last_init_reset_t
+        if last is not None and abs(nav.t - last) < INIT_RESET_INTERVAL_S:
+            eng.rejected["init_rate_limited"] += 1
+            return False
+        std = floored_std(std)
+        if self.init_sigmas:
+            past = self.init_sigmas
+            std = InitStd(
+                np.maximum(std.pos_enu_m, np.median([s.pos_enu_m for s in past], axis=0)),
+                np.maximum(std.vel_enu_mps, np.median([s.vel_enu_mps for s in past], axis=0)),
+                np.maximum(std.att_rad, np.median([s.att_rad for s in past], axis=0)),
+            )
+        if not self._reset_request(nav, std, "init_reset", "implausible_init"):
+            return False
+        self.last_init_reset_t = nav.t
+        self.init_sigmas.append(std)
+        eng.notes["init_reset"] += 1
+        return True
+
+    def _reset_request(self, nav: NavState, std: InitStd, event: str, refusal: str) -> bool:
+        """A state another party asks a running vehicle to take (an InitialNav, a hand-over),
+        carried to the INS time with its own velocity. Refused (``refusal`` counted) unless it
+        agrees with the latest fix when current and with the running verified estimate. Taken:
+        each pipeline whose own state is verified weighs the request against it (:func:`fuse`);
+        any other restarts from the request with sigmas that also cover its difference from the
+        best reference. Every pipeline is then unverified (``degraded``) until its own aiding
+        agrees."""
+        eng = self.engine
+        eng._advance_all()
+        t = eng.last_imu_t
+        nav, std = carried(nav, std, t)
+        refs = self.references(t)
+        for ref_nav, ref_cov in refs:
+            if not alignment.plausible(nav, ref_nav, alignment.std_cov6(std) + ref_cov)[0]:
+                eng.rejected[refusal] += 1
+                return False
+        wide = honest_std(std, nav, refs[-1][0]) if refs else std
+        for p in eng.pipelines:
+            life = self.lives[p.name]
+            refs = None
+            if life.stage == AIDED and life.verified and not (p.failed or p.lost):
+                p.sync()
+                est = p.estimate()
+                full = full_state(p)
+                if full is not None and full[0].ndim == 2:
+                    P, refs = full[0], full[1]
+                else:
+                    P, refs = est.P9, {}
+                p_nav, p_std, refs = fuse(est.nav.copy(), P, refs, nav, std)
+                if not refs:
+                    refs = None
+                moved = np.concatenate(
+                    [alignment.pos_vel_difference(p_nav, est.nav), attitude_difference(p_nav, est.nav)]
+                )
+                if np.all(np.abs(moved) <= np.sqrt(np.clip(np.diagonal(est.P9), 0.0, None))):
+                    # the request agrees with the verified state: nothing to restore, no restart;
+                    # degraded until the vehicle's own aiding agrees again (checked like any reset)
+                    self.go(p, event, t)
+                    life.verified, life.reason = False, event
+                    p.mark_unverified(event)
+                    continue
+            else:
+                p_nav, p_std = nav, wide
+            self._start_one(p, p_nav, p_std, event, verified=False, refs=refs)
         return True
 
     def hand_over(self, nav: NavState, std: InitStd, source: str) -> bool:
@@ -210,19 +475,13 @@ class VehicleLife:
             return False
         std = floored_std(std)
         if self.initialised:
-            t_ins = eng.last_imu_t
-            if t_ins is not None and abs(nav.t - t_ins) > self.config.intake.future_window_s:
+            if abs(nav.t - eng.last_imu_t) > self.config.intake.future_window_s:
                 eng.rejected["stale_handover"] += 1
                 return False
-            ref = self.reference_state(nav.t)
-            if ref is not None:
-                if not alignment.plausible(nav, ref[0], alignment.std_cov6(std) + ref[1])[0]:
-                    eng.rejected["implausible_handover"] += 1
-                    return False
-                std = honest_std(std, nav, ref[0])
-            nav = nav.copy()
-            nav.t = t_ins if t_ins is not None else nav.t
-        self.start_all(nav, std, "hand_over", verified=False)
+            if not self._reset_request(nav, std, "hand_over", "implausible_handover"):
+                return False
+        else:
+            self.start_all(nav, std, "hand_over", verified=False)
         self.check_first_fix = False
         eng.notes["handed_over"] += 1
         log.info(
@@ -233,10 +492,32 @@ class VehicleLife:
         return True
 
     # --- the vehicle's own references -----------------------------------------------------------------
-    def on_fix(self, fix: GnssFix) -> None:
+    def on_fix(self, fix: GnssFix, key: str = "gnss_fix") -> None:
         """The newest in-sequence GNSS fix (also when not applied: alignment uses it)."""
-        self.last_fix = fix
+        self._new_fix(fix)
         self.fix_from_raw = False
+        self._remember(key, fix)
+
+    def _new_fix(self, fix: GnssFix) -> None:
+        last = self.last_fix
+        if last is not None and fix.t > last.t:
+            self.prev_fix = last
+        self.last_fix = fix
+
+    def _confirmed_by_stream(self, key: str, fix: GnssFix) -> bool:
+        """Whether ``fix`` agrees with one of the two fixes before it on its stream (at most
+        ``REFERENCE_CHAIN_MAX_S`` earlier, carried with their velocities: :func:`consistent_fixes`).
+        Only such a fix may reset a pipeline: a forged fix between genuine ones (a hostile storm)
+        never does. Evaluated only when a reference is needed (nothing in a clean run)."""
+        before = [f for f in self._recent.get(key, ()) if 0.0 < fix.t - f.t <= REFERENCE_CHAIN_MAX_S]
+        return any(consistent_fixes(f, fix) for f in before[-2:])
+
+    def _remember(self, key: str, fix: GnssFix) -> None:
+        recent = self._recent.get(key)
+        if recent is None:
+            recent = self._recent[key] = deque(maxlen=4)
+        if not recent or fix.t > recent[-1].t:
+            recent.append(fix)
 
     def on_raw(self, raw: GnssRaw) -> GnssFix | None:
         """The snapshot least-squares fix of a raw epoch (``snapshot.snapshot_fix``) as the latest
@@ -246,8 +527,26 @@ class VehicleLife:
             return None
         fix = snapshot.snapshot_fix(raw)
         if fix is not None:
-            self.last_fix, self.fix_from_raw = fix, True
+            self._new_fix(fix)
+            self.fix_from_raw = True
+            self._remember("snapshot", fix)
         return fix
+
+    def references(self, t: float) -> list[tuple[NavState, np.ndarray]]:
+        """Independent positions/velocities at ``t`` with their 6x6 covariances: the latest GNSS
+        fix when current, then the estimate of the first running pipeline that is verified."""
+        out = []
+        fix = self.last_fix
+        if fix is not None and alignment.fix_is_current(fix, t):
+            nav, std = alignment.motion_alignment(fix, t)
+            out.append((nav, alignment.std_cov6(std)))
+        for p in self.engine.pipelines:
+            if self.lives[p.name].stage == AIDED and p.current_status(t) not in ("initialising", "failed"):
+                p.sync()
+                est = p.estimate()
+                out.append((est.nav, est.P9[:6, :6]))
+                break
+        return out
 
     def reference_state(self, t: float) -> tuple[NavState, np.ndarray] | None:
         """An independent position/velocity at ``t`` and its 6x6 covariance: the latest GNSS fix if
@@ -281,7 +580,12 @@ class VehicleLife:
             return
         speed = alignment.fix_speed(fix)
         if mode in ("auto", "gnss_motion") and speed >= self.config.init.min_speed_mps:
-            self.start_all(*alignment.motion_alignment(fix, t))
+            if self.lost and self.align.n:  # a re-alignment: attitude from gravity, last good position
+                f_b = self.align.mean_specific_force()
+                nav, std = alignment.moving_alignment(fix, t, f_b, self.prev_fix)
+                self.start_all(nav, std, per_pipeline=lambda p: self._from_checkpoint(p, nav, std, t))
+            else:
+                self.start_all(*alignment.motion_alignment(fix, t))
             return
         if (
             mode in ("auto", "static")
@@ -308,13 +612,17 @@ class VehicleLife:
                     self._confirm_start(fix)
                 self._restart_failed(fix)
 
-    def after_aiding(self, kind: str, msg, t: float) -> None:
+    def after_aiding(self, kind: str, msg, t: float, sensor_id: str = "") -> None:
         """After the pipelines took an aiding message at the INS time ``t``: stage moves (first
         aiding, verification of an unverified state against the vehicle's own reference, reset
         when they disagree)."""
         ref = None
         for p in self.engine.pipelines:
             life = self.lives[p.name]
+            for event in p.take_events():  # the pipeline's own screening gave up on its state
+                if life.stage in _RUNNING and not (p.failed or p.lost):
+                    self.suspect(p, t, "aiding_refused")
+                    life.force_reset = event == "aiding_still_refused"
             if life.stage == ALIGNED and life.verified:
                 if p.aided_since_start:
                     self.go(p, "aided", t)
@@ -322,26 +630,34 @@ class VehicleLife:
             if life.stage not in (ALIGNED, SUSPECT) or p.failed or p.lost:
                 continue
             if ref is None:
-                ref = self._epoch_reference(kind, msg, t)
+                ref = self._epoch_reference(kind, sensor_id, msg, t)
             self._check(p, life, ref, t)
 
-    def _epoch_reference(self, kind: str, msg, t: float):
+    def _epoch_reference(self, kind: str, sensor_id: str, msg, t: float):
         """(NavState, 6x6 covariance) of this aiding epoch's own GNSS reference, or False."""
         fix = None
         if kind == "gnss_fix":
-            fix = msg
+            fix = msg if self._confirmed_by_stream(f"gnss_fix/{sensor_id}", msg) else None
         elif kind == "gnss_raw":
-            last = self.last_fix
-            fix = last if self.fix_from_raw and last is not None and last.t == msg.t else self.on_raw(msg)
-            fix = fix or self.last_fix  # a receiver's own current fix
-        if fix is None or not alignment.fix_is_current(fix, t):
+            fix = snapshot.snapshot_fix(msg)
+            if fix is not None:
+                self._remember("snapshot", fix)
+                if not self._confirmed_by_stream("snapshot", fix):
+                    fix = None
+        if fix is None or abs(fix.t - t) > REFERENCE_MAX_AGE_S:
             return False
         nav, std = alignment.motion_alignment(fix, t)
         return nav, alignment.std_cov6(std), fix
 
     def _check(self, p: Pipeline, life: Life, ref, t: float) -> None:
         """An unverified or suspect pipeline against this epoch's reference (``ref`` False: none)."""
-        if ref is False:  # no GNSS here: the pipeline's own screening is the check
+        counted = life.checked_t == t  # a second message of this epoch: agreement counted once
+        life.checked_t = t
+        if ref is False and life.stage == SUSPECT and life.reason == "imu_contested":
+            ref = self._carried_checkpoint(p, t)  # no GNSS: the last good state carried over the gap
+        if ref is False or ref is None:
+            if counted:
+                return  # no reference here: the pipeline's own screening is the check
             if p.last_aiding_t == t and p.last_screened_t != t:
                 life.agreeing += 1
             elif p.last_screened_t == t:
@@ -350,29 +666,168 @@ class VehicleLife:
             p.sync()
             est = p.estimate()
             ok, _ = alignment.plausible(est.nav, ref[0], est.P9[:6, :6] + ref[1])
-            if not ok:
-                self._reset_from_reference(p, ref[2], t)
+            if not ok or life.force_reset:
+                life.force_reset = False
+                if isinstance(ref[2], InitStd):  # the carried checkpoint is the state itself
+                    self.engine.notes[f"reset:{p.name}"] += 1
+                    self._start_one(p, ref[0], ref[2], "reset", verified=False, reason="reset", refs=ref[3])
+                else:
+                    self._reset_from_reference(p, ref[2], t)
                 return
-            if p.last_aiding_t == t:
+            if p.last_aiding_t == t and not counted:
                 life.agreeing += 1
         if life.agreeing >= VERIFY_EPOCHS:
             life.verified, life.reason = True, None
             p.mark_verified()
             self.go(p, "verified", t)
 
-    def _reset_from_reference(self, p: Pipeline, fix: GnssFix, t: float) -> None:
-        """Restart ``p`` from the vehicle's own fix (in-motion alignment; static: attitude kept)."""
-        nav, std = self._fix_state(p, fix, t)
-        self.engine.notes[f"reset:{p.name}"] += 1
-        self._start_one(p, nav, std, "reset", verified=True)
+    def suspect(self, p: Pipeline, t: float | None, reason: str) -> None:
+        """Evidence that ``p``'s state may be wrong: ``degraded`` and checked against the vehicle's
+        own reference at every aiding epoch until it agrees (verified) or is reset from it."""
+        life = self.lives[p.name]
+        if life.stage != SUSPECT:
+            self.engine.notes[f"suspect:{p.name}:{reason}"] += 1
+        self.go(p, "suspect", t, reason)
+        life.verified = False
+        p.mark_unverified(reason)
 
-    def _fix_state(self, p: Pipeline, fix: GnssFix, t: float) -> tuple[NavState, InitStd]:
-        if alignment.fix_speed(fix) >= self.config.init.min_speed_mps:
-            return alignment.motion_alignment(fix, t)
+    def on_imu_contested(self, t: float, reason: str) -> None:
+        """An IMU sample refused as a second publisher's (``CONTESTED_IMU``): samples of that
+        publisher may have been taken, every running pipeline is suspect."""
+        for p in self.engine.pipelines:
+            if self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost):
+                self.suspect(p, t, "imu_contested")
+
+    def _reset_from_reference(self, p: Pipeline, fix: GnssFix, t: float) -> None:
+        """Restart ``p`` from the vehicle's own fix (:meth:`_fix_state`); unverified (``degraded``)
+        until its aiding agrees."""
+        nav, std, refs = self._fix_state(p, fix, t)
+        self.engine.notes[f"reset:{p.name}"] += 1
+        self._start_one(p, nav, std, "reset", verified=False, reason="reset", refs=refs)
+
+    def _fix_state(self, p: Pipeline, fix: GnssFix, t: float):
+        """(NavState, InitStd, private references or None) a reset restarts ``p`` from: velocity
+        from the fix, attitude from gravity and the GNSS track (in motion; static: the attitude
+        kept, its sigmas widened), position from the pipeline's last verified estimate carried to
+        ``t`` (:meth:`_from_checkpoint`), else the fix's; bias estimates kept."""
         est = p.estimate()
-        nav, std = alignment.motion_alignment(fix, t)
-        att_std = np.sqrt(np.clip(np.diagonal(est.P9)[6:9], 0.0, None))
-        return alignment.nav_at_fix(fix, est.nav.rpy_rad, t), InitStd(std.pos_enu_m, std.vel_enu_mps, att_std)
+        if alignment.fix_speed(fix) >= self.config.init.min_speed_mps:
+            ins = p.bank.ins
+            f_b = est.nav.mat_nb.T @ ins.last_fn_mps2
+            nav, std = alignment.moving_alignment(fix, t, f_b, self.prev_fix)
+        else:
+            _, std = alignment.motion_alignment(fix, t)
+            att = np.sqrt(np.clip(np.diagonal(est.P9)[6:9], 0.0, None))
+            att = np.maximum(att, np.radians(alignment.MOTION_ATT_STD_DEG))
+            nav = alignment.nav_at_fix(fix, est.nav.rpy_rad, t)
+            std = InitStd(std.pos_enu_m, std.vel_enu_mps, att)
+        if np.all(np.isfinite(est.nav.gyro_bias_rps)) and np.all(np.isfinite(est.nav.accel_bias_mps2)):
+            nav.gyro_bias_rps = est.nav.gyro_bias_rps.copy()
+            nav.accel_bias_mps2 = est.nav.accel_bias_mps2.copy()
+        return self._from_checkpoint(p, nav, std, t)
+
+    def note_estimate(self, p: Pipeline, est) -> None:
+        """A pipeline's estimate at an output epoch: kept while the pipeline is verified (the last
+        good state a reset may start from)."""
+        life = self.lives[p.name]
+        if life.stage == AIDED and life.verified:
+            self.checkpoints[p.name].append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p)))
+
+    def _checkpoint(self, p: Pipeline, t: float):
+        """``p``'s last verified estimate if at most ``CHECKPOINT_MAX_AGE_S`` from ``t``: (time,
+        NavState, its 9x9 covariance, covariance of the restart (:func:`full_state`'s, else the
+        9x9), (references, members' private states) or None)."""
+        cps = self.checkpoints[p.name]
+        if not cps:
+            return None
+        t_cp, cp, P9, full = cps[-1]
+        if abs(t - t_cp) > CHECKPOINT_MAX_AGE_S:
+            return None
+        bank = p.bank
+        if full is not None and bank is not None and full[0].shape[-1] == bank.n:
+            if full[0].ndim == 2 or full[0].shape[0] == bank.B:
+                return t_cp, cp, P9, full[0].copy(), (full[1], full[2])
+        return t_cp, cp, P9, P9.copy(), None
+
+    def _carried_checkpoint(self, p: Pipeline, t: float, level: bool = True):
+        """(NavState, 6x6 position/velocity covariance, InitStd with the full ``cov``, private
+        references or None) of ``p``'s last verified estimate carried to ``t`` with its own
+        velocity (``CARRY_ACC_STD_MPS2`` of unknown acceleration over the gap); attitude levelled
+        again from the specific force of its INS's last interval, heading kept (``level``), or the
+        checkpoint's, grown by ``CARRY_TURN_STD_DPS``. None without a checkpoint at most
+        ``CHECKPOINT_MAX_AGE_S`` old. The reference of a vehicle without GNSS whose INS input was
+        contested, and the state of a vehicle whose INS was lost for a moment."""
+        c = self._checkpoint(p, t)
+        if c is None:
+            return None
+        t_cp, cp, P9, P, refs = c
+        dt = t - t_cp
+        nav = shifted(cp, np.asarray(cp.vel_enu_mps, dtype=float) * dt)
+        nav.t = t
+        T = np.eye(P.shape[-1])
+        T[:3, 3:6] = dt * np.eye(3)
+        P = T @ P @ T.T
+        T9 = np.eye(9)
+        T9[:3, 3:6] = dt * np.eye(3)
+        P9 = T9 @ P9 @ T9.T
+        dt = abs(dt)
+        acc = CARRY_ACC_STD_MPS2
+        grow = np.diag([(0.5 * acc * dt * dt) ** 2] * 3 + [(acc * dt) ** 2] * 3)
+        P[..., :6, :6] += grow
+        P9[:6, :6] += grow
+        sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
+        turn = math.radians(CARRY_TURN_STD_DPS) * dt
+        att = np.sqrt(np.square(sd[6:9]) + turn * turn)
+        if level and p.bank is not None:
+            est = p.estimate()
+            f_b = est.nav.mat_nb.T @ p.bank.ins.last_fn_mps2
+            g = float(np.linalg.norm(f_b))
+            if g > 1.0:
+                pitch = math.asin(max(-1.0, min(1.0, f_b[1] / g)))
+                roll = math.atan2(-f_b[0], f_b[2])
+                nav.q_nb = earth.mat_to_quat(earth.rpy_to_mat_nb(np.array([roll, pitch, cp.rpy_rad[2]])))
+                tilt = math.atan2(CARRY_ACC_STD_MPS2, 9.8)
+                att[:2] = np.maximum(tilt, sd[6:8])
+                P[..., 6:8, :] = 0.0  # levelled again: the tilts owe nothing to the old state
+                P[..., :, 6:8] = 0.0
+        i = np.arange(6, 9)
+        P[..., i, i] = np.square(att)
+        return nav, P9[:6, :6], InitStd(sd[0:3], sd[3:6], att, cov=P), refs
+
+    def _from_checkpoint(self, p: Pipeline, nav: NavState, std: InitStd, t: float):
+        """(``nav`` with the position of ``p``'s last verified estimate carried to ``t`` by the
+        trapezoid of its velocity and the fix's, its sigmas, private references) when the
+        checkpoint is at most ``CHECKPOINT_MAX_AGE_S`` old and agrees with the fix; else
+        (``nav``, ``std``, None). Only where the moment of the corruption is known (a contested IMU
+        stream, a loss of the INS): a state that went wrong unseen (its aiding refused later) may
+        have been wrong at its last checkpoint already. The position keeps its correlations with
+        the filter's other states (biases, receiver clock); velocity and attitude, replaced, none."""
+        life = self.lives[p.name]
+        if life.stage == SUSPECT and life.reason != "imu_contested":
+            return nav, std, None
+        c = self._checkpoint(p, t)
+        if c is None or t < c[0]:
+            return nav, std, None
+        t_cp, cp, P9, P, refs = c
+        dt = t - t_cp
+        v_mean = 0.5 * (np.asarray(cp.vel_enu_mps) + np.asarray(nav.vel_enu_mps))
+        pos = shifted(cp, v_mean * dt)
+        sd_v = np.sqrt(np.clip(np.diagonal(P9)[3:6], 0.0, None))
+        grow = np.square(0.5 * (sd_v + std.vel_enu_mps) * dt) + (0.5 * CARRY_ACC_STD_MPS2 * dt * dt) ** 2
+        var = np.diagonal(P9)[:3] + grow
+        d = alignment.pos_vel_difference(pos, nav)[:3]
+        if float(np.sum(d * d / (var + np.square(std.pos_enu_m)))) > POSITION_CHI2_3DOF:
+            return nav, std, None  # the checkpoint disagrees with the fix: the fix's position
+        out = nav.copy()
+        out.lat_rad, out.lon_rad, out.h_m = pos.lat_rad, pos.lon_rad, pos.h_m
+        out.gyro_bias_rps, out.accel_bias_mps2 = cp.gyro_bias_rps.copy(), cp.accel_bias_mps2.copy()
+        C = P
+        C[..., 3:9, :] = 0.0
+        C[..., :, 3:9] = 0.0
+        C[..., :3, :3] += np.diag(grow)
+        i = np.arange(3, 9)
+        C[..., i, i] = np.square(np.concatenate([std.vel_enu_mps, std.att_rad]))
+        return out, InitStd(np.sqrt(var), std.vel_enu_mps, std.att_rad, cov=C), refs
 
     def _confirm_start(self, fix: GnssFix) -> None:
         """The first GNSS fix after an InitialNav start: an InitialNav that disagrees with it
@@ -430,10 +885,19 @@ class VehicleLife:
             p.mark_lost()
             self.go(p, "lost", t)
         if reason == "time_jump":  # a new time base: nothing of the old one applies
-            self.last_fix = None
+            self.last_fix = self.prev_fix = None
         init, self.pending_init = self.pending_init, None
         if init is not None and abs(init.t - t) <= self.config.intake.future_window_s:
             self.on_initial_nav(init)
+            return
+        carried = {p.name: self._carried_checkpoint(p, t, level=False) for p in self.engine.pipelines}
+        if all(c is not None for c in carried.values()):  # lost for a moment: the last good states
+            for p in self.engine.pipelines:
+                nav, _, std, refs = carried[p.name]
+                self._start_one(p, nav, std, "recover", verified=False, reason="recover", refs=refs)
+            self.engine._restart_clock(t)
+            self.initialised, self.start_t, self.lost = True, t, False
+            self.engine.notes["recovered_from_checkpoint"] += 1
 
 
 __all__ = [
@@ -446,6 +910,9 @@ __all__ = [
     "STAGES",
     "SUSPECT",
     "TRANSITIONS",
+    "CONTESTED_IMU",
+    "INIT_HISTORY",
+    "INIT_RESET_INTERVAL_S",
     "VERIFY_EPOCHS",
     "Life",
     "VehicleLife",

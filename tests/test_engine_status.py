@@ -191,10 +191,13 @@ def attribute_writers(monkeypatch):
 
 
 def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
-    """A second InitialNav consistent with the GNSS fix counts one re-initialisation (a stale one,
-    the start position 8 s later, is refused ``implausible_init``); an IMU gap gives
-    ``initialising``, the next GNSS fix a start (and one more count); the engine writes none of
-    the pipelines' bookkeeping."""
+    """A second InitialNav consistent with the GNSS fix is a reset request: weighed against the
+    verified solution (here it agrees: no restart), counted (``init_reset``), ``degraded`` until
+    the vehicle's own fixes agree again (a stale one, the start position 8 s later, is refused
+    ``implausible_init``). An
+    IMU gap loses the INS for a moment: every pipeline restarts at once from its last verified
+    state carried over the gap (one more count), ``degraded`` until verified; the engine writes
+    none of the pipelines' bookkeeping."""
     sc = shortened("demo_aircraft.toml", 30.0)
     cfg = service_config(sc)
     eng = VehicleEngine("v1", cfg, CollectingSink(keep_solutions=True))
@@ -222,12 +225,14 @@ def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
         if not seen or seen[-1][1:] != state:
             seen.append((round(t, 2), *state))
     statuses = [s[1:] for s in seen]
-    assert statuses[:3] == [("unaided", 0), ("aided", 0), ("unaided", 1)]  # second InitialNav: +1
-    i_lost = statuses.index(("initialising", 1))
-    assert 16.0 <= seen[i_lost][0] < 16.1  # the first sample after the gap
-    assert eng.rejected["imu_gap"] == 1
-    assert statuses[i_lost + 1] == ("unaided", 2)  # started from the next GNSS fix
-    assert statuses[-1] == ("aided", 2)
+    # the second InitialNav agrees with the verified solution: taken (counted), nothing to
+    # restart; degraded until three fixes agree again
+    assert statuses[:4] == [("unaided", 0), ("aided", 0), ("degraded", 0), ("aided", 0)]
+    assert eng.notes["init_reset"] == 1 and 10.0 <= seen[3][0] <= 11.1
+    i_lost = statuses.index(("degraded", 1))
+    assert 16.0 <= seen[i_lost][0] < 16.1  # the first sample after the gap: restarted at once
+    assert eng.rejected["imu_gap"] == 1 and eng.notes["recovered_from_checkpoint"] == 1
+    assert statuses[-1] == ("aided", 1)
     writers = {m for _, m in attribute_writers}
     assert writers and "fednav.service.engine" not in writers
     assert writers <= {"fednav.service.pipelines.base", "fednav.service.pipelines.loosely_coupled"}

@@ -108,7 +108,7 @@ def test_a_wrong_hand_over_is_reset_by_the_vehicles_own_fix():
 
     _run(sc, eng, sim, on_imu, skip_init=True)
     events = [e for *_, e, _ in eng.life.history]
-    assert events[:3] == ["hand_over", "reset", "aided"], events
+    assert events[:3] == ["hand_over", "reset", "verified"], events  # the reset is verified too
     assert eng.notes["reset:lc"] == 1
     err = np.array(sink.records["lc"].err)
     assert math.hypot(*err[-1, :2]) < 10.0

@@ -48,11 +48,15 @@ STATIC_VEL_STD_MPS = 0.05
 
 @dataclass(frozen=True)
 class InitStd:
-    """1-sigma uncertainties of an initial state: ENU m, ENU m/s, nav-frame rad."""
+    """1-sigma uncertainties of an initial state: ENU m, ENU m/s, nav-frame rad; ``cov``, when
+    given, a full covariance they are part of: 9x9 of (dp, dv, phi), or of every state of the
+    filter it restarts (its columns: the 15 INS error states, then its private blocks), so that a
+    restart keeps what the running filter knew of the correlations."""
 
     pos_enu_m: np.ndarray
     vel_enu_mps: np.ndarray
     att_rad: np.ndarray
+    cov: np.ndarray | None = None
 
 
 @dataclass
@@ -172,6 +176,68 @@ def motion_alignment(fix: GnssFix, t: float) -> tuple[NavState, InitStd]:
     return nav_at_fix(fix, attitude_from_velocity(vel), t), std
 
 
+#: 1-sigma tilt (east, north) of an in-motion alignment whose specific force was matched with a
+#: GNSS acceleration (rad): the acceleration from two fixes' velocities and the timing of the
+#: specific force against it leave about a degree
+TRIAD_TILT_STD_RAD = math.radians(2.0)
+#: ... and without a GNSS acceleration (the vehicle assumed unaccelerated; rad)
+TRIAD_TILT_STD_UNACCELERATED_RAD = math.radians(10.0)
+#: the GNSS acceleration is taken from two fixes at most this far apart (s)
+TRIAD_MAX_FIX_INTERVAL_S = 2.0
+
+
+def gravity_attitude(f_b: np.ndarray, vel_n: np.ndarray, acc_n: np.ndarray, g: float) -> np.ndarray | None:
+    """Attitude matrix C_nb of a moving body from its specific force (body, the accelerometers:
+    ``f_b``) and its velocity and acceleration (nav ENU, GNSS: ``vel_n``, ``acc_n``): the
+    specific force in the nav frame is ``acc_n + [0, 0, g]`` (gravity's reaction), which fixes
+    roll and pitch; the body's forward axis lies in the plane of that force and the velocity,
+    which fixes the heading (TRIAD, the force primary). None when the two directions are too
+    close to tell a heading (moving along the specific force)."""
+    f_n = np.asarray(acc_n, dtype=float) + np.array([0.0, 0.0, g])
+    f_b = np.asarray(f_b, dtype=float)
+    v = np.asarray(vel_n, dtype=float)
+    nf, nb, nv = np.linalg.norm(f_n), np.linalg.norm(f_b), np.linalg.norm(v)
+    if nf < 1e-6 or nb < 1e-6 or nv < 1e-6:
+        return None
+    n1, b1 = f_n / nf, f_b / nb
+    n2, b2 = np.cross(n1, v / nv), np.cross(b1, np.array([0.0, 1.0, 0.0]))
+    if np.linalg.norm(n2) < 0.1 or np.linalg.norm(b2) < 0.1:
+        return None
+    n2, b2 = n2 / np.linalg.norm(n2), b2 / np.linalg.norm(b2)
+    N = np.column_stack([n1, n2, np.cross(n1, n2)])
+    B = np.column_stack([b1, b2, np.cross(b1, b2)])
+    return N @ B.T
+
+
+def moving_alignment(
+    fix: GnssFix, t: float, f_b: np.ndarray | None, previous: GnssFix | None = None
+) -> tuple[NavState, InitStd]:
+    """In-motion alignment at the INS time ``t`` from the vehicle's own sensors: position and
+    velocity from the fix (as :func:`motion_alignment`), attitude from the specific force
+    ``f_b`` (body, m/s^2, e.g. the last major interval of the IMU) and the fix's velocity and
+    acceleration (from the ``previous`` fix's velocity when at most
+    ``TRIAD_MAX_FIX_INTERVAL_S`` before; else assumed zero, with wider tilt sigmas):
+    :func:`gravity_attitude`. Falls back to :func:`motion_alignment` (heading and pitch from
+    the track, roll 0) without a usable specific force. Sigmas: the fix's, tilt
+    ``TRIAD_TILT_STD_RAD`` (``TRIAD_TILT_STD_UNACCELERATED_RAD``), heading that of
+    ``MOTION_ATT_STD_DEG`` (sideslip)."""
+    nav, std = motion_alignment(fix, t)
+    vel = fix.velocity()
+    if f_b is None or vel is None or not np.all(np.isfinite(f_b)):
+        return nav, std
+    acc, tilt = np.zeros(3), TRIAD_TILT_STD_UNACCELERATED_RAD
+    pv = previous.velocity() if previous is not None else None
+    if pv is not None and 0.0 < fix.t - previous.t <= TRIAD_MAX_FIX_INTERVAL_S:
+        acc = (np.asarray(vel) - np.asarray(pv)) / (fix.t - previous.t)
+        tilt = TRIAD_TILT_STD_RAD
+    c_nb = gravity_attitude(f_b, np.asarray(vel), acc, earth.gravity_normal(nav.lat_rad, nav.h_m))
+    if c_nb is None:
+        return nav, std
+    nav.q_nb = earth.mat_to_quat(c_nb)
+    att = np.array([tilt, tilt, math.radians(MOTION_ATT_STD_DEG[2])])
+    return nav, InitStd(std.pos_enu_m, std.vel_enu_mps, att)
+
+
 def nav_at_fix(fix: GnssFix, rpy_rad: np.ndarray, t: float) -> NavState:
     """State at time ``t`` from a fix, carried back/forward with the fix's velocity."""
     v = fix.velocity()
@@ -258,7 +324,12 @@ __all__ = [
     "fix_speed",
     "from_initial_nav",
     "level_and_gyrocompass",
+    "TRIAD_MAX_FIX_INTERVAL_S",
+    "TRIAD_TILT_STD_RAD",
+    "TRIAD_TILT_STD_UNACCELERATED_RAD",
+    "gravity_attitude",
     "motion_alignment",
+    "moving_alignment",
     "nav_at_fix",
     "static_alignment",
     "static_attitude_std",

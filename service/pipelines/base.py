@@ -26,12 +26,15 @@ import math
 from abc import ABC, abstractmethod
 from collections import Counter
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from fednav.service import earth
 from fednav.service.config import ImuModel
 from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.measurements.base import SigmaFloors
+from fednav.service.ins import error_model as em
 from fednav.service.ins.alignment import InitStd
 from fednav.service.ins.mechanisation import NavState
 from fednav.service.messages import Solution, WireModel
@@ -51,7 +54,15 @@ def initial_covariance(std: InitStd, imu: ImuModel, private=()) -> np.ndarray:
             *[np.asarray(b.initial_std, dtype=float) for b in private],
         ]
     )
-    return np.diag(np.square(d))
+    P = np.diag(np.square(d))
+    cov = getattr(std, "cov", None)
+    if cov is not None:  # a restart that keeps the correlations of the state it restores
+        cov = 0.5 * (np.asarray(cov, dtype=float) + np.asarray(cov, dtype=float).T)
+        if cov.shape == P.shape:
+            P = cov
+        else:
+            P[:9, :9] = cov[:9, :9]
+    return P
 
 
 def model_options(cfg) -> dict[str, dict]:
@@ -97,6 +108,13 @@ def sensor_option_errors(cfg, used: set[str]) -> list[tuple[str, str]]:
     return out
 
 
+@lru_cache(maxsize=256)
+def _chi2_quantile(dof: int, p: float) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.isf(p, dof))
+
+
 @dataclass
 class Estimate:
     """What evaluation needs: the navigation state and the 9x9 covariance of (dp, dv, phi)."""
@@ -123,6 +141,13 @@ class Pipeline(ABC):
         #: why the running state is not verified by the vehicle's own aiding (None: verified);
         #: set by the vehicle's lifecycle (:mod:`service.lifecycle`), reported ``degraded``
         self.unverified: str | None = None
+        #: lifecycle events of the pipeline's own screening, for the vehicle's lifecycle (e.g.
+        #: ``aiding_refused``: a trusted sensor refused so long that the state is suspect)
+        self._events: list[str] = []
+        self._refused_from: float | None = None  # first epoch of a run of wholesale refusals
+        self._refused_reports = 0
+        #: sigma floors from each stream's own history (measurements.base.SigmaFloors)
+        self.floors = SigmaFloors()
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
@@ -161,6 +186,84 @@ class Pipeline(ABC):
     def mark_verified(self) -> None:
         """The vehicle's own aiding agrees with the running state again."""
         self.unverified = None
+
+    #: a restart from a checkpoint restores every member of the bank as it was (federated locals:
+    #: each local's covariance with its private blocks); False: the members restart from the
+    #: restored navigation covariance (an IMM's models, whose probabilities restart too)
+    restores_members: bool = False
+
+    #: an epoch's rows refused wholesale (:meth:`refuses_epoch`) for this long (s): the filter,
+    #: not the sensor, is wrong
+    refused_after_s: float = 2.0
+    #: ... at this false-alarm probability per epoch of the trimmed NIS test
+    REFUSED_P_FA = 1e-6
+
+    def note_refusal(self, t: float, refused: bool) -> None:
+        """An aiding epoch whose rows the filter's state refused wholesale (``refused``) or not:
+        refused for ``refused_after_s`` reports ``aiding_refused`` to the vehicle's lifecycle,
+        which checks the state against the vehicle's own reference; ``aiding_still_refused``
+        every ``refused_after_s`` after that while the refusals go on: the state is reset."""
+        if not refused:
+            self._refused_from = None
+            return
+        if self._refused_from is None:
+            self._refused_from, self._refused_reports = t, 0
+        if t - self._refused_from >= self.refused_after_s:
+            self._refused_from = t  # again after as long if the refusals go on
+            self._refused_reports += 1
+            self.report("aiding_refused" if self._refused_reports == 1 else "aiding_still_refused")
+
+    def refuses_epoch(self, meas, x: np.ndarray, P: np.ndarray) -> bool:
+        """Whether the prior (x, P) refuses an epoch's rows as a whole: the NIS of the rows without
+        the worst source (``meas.groups``, e.g. a satellite; else the worst row) above its
+        chi-square quantile at ``REFUSED_P_FA``. One failing source never makes it true; a state
+        that disagrees with most sources does (a jump it took, a corrupted INS)."""
+        z, H = meas.z, meas.H
+        m = len(z)
+        if m < 3 or not (np.all(np.isfinite(z)) and np.all(np.isfinite(H))):
+            return False
+        s = np.einsum("ij,jk,ik->i", H, P, H) + meas.r_var
+        q = np.square(z - H @ x) / np.maximum(s, 1e-30)
+        if meas.groups is not None and len(meas.groups) == m:
+            per = np.bincount(meas.groups, weights=q)
+            worst = int(np.argmax(per))
+            keep = meas.groups != worst
+        else:
+            keep = np.ones(m, bool)
+            keep[int(np.argmax(q))] = False
+        dof = int(np.count_nonzero(keep))
+        return dof >= 2 and float(q[keep].sum()) > _chi2_quantile(dof, self.REFUSED_P_FA)
+
+    #: rows whose innovation is further out than this (standardised) are not the sensor's
+    #: spread but a fault, and stay out of its history
+    HISTORY_MAX_SIGMA = 5.0
+
+    def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None) -> None:
+        """The rows of an update that used them, into the stream's sigma history (innovations
+        ``z - H x`` of the prior and the diagonal of their covariance S = H P H' + R)."""
+        innovation = np.asarray(innovation, dtype=float)
+        S_diag = np.asarray(S_diag, dtype=float)
+        ok = np.abs(innovation) <= self.HISTORY_MAX_SIGMA * np.sqrt(np.maximum(S_diag, 1e-300))
+        if used is not None:
+            ok &= np.asarray(used, dtype=bool)
+        self.floors.record(key, meas, claimed, innovation, S_diag - np.diagonal(meas.R), ok)
+
+    def record_prior_rows(self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None) -> None:
+        """:meth:`record_rows` from the prior (x, P) the rows were tested against."""
+        r = meas.z - meas.H @ x
+        S = np.einsum("ij,jk,ik->i", meas.H, P, meas.H) + np.diagonal(meas.R)
+        self.record_rows(key, meas, claimed, r, S, used)
+
+    def report(self, event: str) -> None:
+        """Tell the vehicle's lifecycle what the pipeline's own screening concluded."""
+        self._events.append(event)
+
+    def take_events(self) -> list[str]:
+        """The events reported since the last call (the lifecycle drains them after an aiding)."""
+        if not self._events:
+            return self._events
+        out, self._events = self._events, []
+        return out
 
     def restarted(self) -> None:
         """The filter was restarted in place (covariance recovery): counts a re-initialisation;
@@ -210,6 +313,36 @@ class Pipeline(ABC):
         self.aided_since_start = False
         self.failed = self.lost = False
         self.last_aiding_t = self.last_screened_t = None
+        self._refused_from = None
+
+    def restore_references(self, refs: dict[str, np.ndarray]) -> None:
+        """After a restart from a full state (``InitStd.cov`` of every state), the linearisation
+        points of its private blocks (receiver clock, ...) as they were."""
+        for name, ref in refs.items():
+            if name in self.bank.reference and np.shape(self.bank.reference[name]) == np.shape(ref):
+                self.bank.reference[name] = np.array(ref, dtype=float, copy=True)
+
+    def keep_private_states(self, old: InsFilterBank | None) -> None:
+        """After a restart of the navigation states, the sensors' own states of the bank it
+        replaced (receiver clock, DVL offset and scale, correlated GNSS error, ...: estimates,
+        references and their covariance block): what corrupted the INS did not touch them. Banks
+        of another layout (or an MHSS bank, whose members and cross blocks restart) keep the
+        model's prior."""
+        new = self.bank
+        if old is None or new is None or type(old) is not InsFilterBank or type(new) is not InsFilterBank:
+            return
+        if old.n != new.n or old.B != new.B or new.n == em.N_STATES:
+            return
+        k = em.N_STATES
+        Pp = old.P[:, k:, k:]
+        if not np.all(np.isfinite(Pp)) or not np.all(np.isfinite(old.x[:, k:])):
+            return
+        for name, ref in old.reference.items():
+            new.reference[name] = np.array(ref, dtype=float, copy=True)
+        new.x[:, k:] = old.x[:, k:]
+        new.P[:, k:, k:] = Pp
+        new.P[:, :k, k:] = 0.0
+        new.P[:, k:, :k] = 0.0
 
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:

@@ -65,6 +65,8 @@ class _Channel:
 class _CorePipeline(Pipeline):
     """Shared machinery of Federated and Centralized (one core, two configurations)."""
 
+    restores_members = True  # a restart from a checkpoint: each local as it was
+
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
         """Every registered model without private states (the locals share the 15 INS states;
@@ -223,10 +225,14 @@ class _CorePipeline(Pipeline):
         meas = ch.model(bank.nav(), msg, bank.context(dt_late_s))
         if meas is None:
             return []
+        key = f"{kind}/{sensor_id}"
+        meas, claimed = self.floors.apply(key, meas)  # no claim below what the stream's history supports
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
+        x0, P0 = bank.x[ch.owner].copy(), bank.P[ch.owner].copy()
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
+        self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.used)
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
             self.mark_aided(bank.t)

@@ -66,6 +66,15 @@ class ImmTightlyCoupled(Pipeline):
         self.clock_initialised = False
         self.last = None
 
+    def restore_references(self, refs) -> None:
+        super().restore_references(refs)
+        self.clock_initialised = "clock" in refs  # the clock as it was: not set again from residuals
+
+    def keep_private_states(self, old) -> None:
+        super().keep_private_states(old)
+        if old is not None and self.bank.n == old.n and "clock" in old.reference:
+            self.clock_initialised = True  # the clock as it was: not set again from residuals
+
     def recover_covariance(self) -> None:
         """Lost positive definiteness: keep the INS and the clock reference; restart every member
         from the initial covariance (states zero) and the probabilities from mu0."""
@@ -102,7 +111,13 @@ class ImmTightlyCoupled(Pipeline):
         m = meas.z.shape[0]
         if m == 0 or not (np.all(np.isfinite(meas.z)) and np.all(np.isfinite(meas.H))):
             return []
+        key = f"{kind}/{sensor_id}"
+        meas, claimed = self.floors.apply(key, meas)  # no claim below what the stream's history supports
+        if meas.floored:
+            self.screened["sigma_floor"] += meas.floored
         r_var = meas.r_var
+        x0, P0 = bank.x[0].copy(), bank.P[0].copy()
+        self.note_refusal(nav.t, self.refuses_epoch(meas, x0, P0))  # a suspect state?
         mask = None
         rejected: list[str] = []
         if self.cfg.gate_p_fa is not None:
@@ -136,6 +151,7 @@ class ImmTightlyCoupled(Pipeline):
         bank.x, bank.P, self.mu, self.last = st.x, st.P, st.mu, st
         bank.feedback(self.combined()[0])
         self.mark_aided(nav.t)
+        self.record_prior_rows(key, meas, claimed, x0, P0, mask)
         xc_prior = self.mu_prior_residual(st)
         return [
             ImmModels(

@@ -66,6 +66,7 @@ class LooselyCoupled(Pipeline):
         self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
         self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
         self._gate_reported: set[str] = set()  # kinds whose last published Faults refused rows
+        self._recovered_at: dict[str, float] = {}  # kind -> time of its last gate recovery
 
     def consumed_kinds(self) -> frozenset[str]:
         return frozenset(self.models)
@@ -87,9 +88,12 @@ class LooselyCoupled(Pipeline):
         meas = model(nav, msg, bank.context(dt_late_s))
         if meas is None:
             return []
+        key = f"{kind}/{sensor_id}"
+        meas, claimed = self.floors.apply(key, meas)  # no claim below what the stream's history supports
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
+        prior = res
         gate = self.cfg.innovation_gate_sigma
         refused = np.abs(res.standardised[0]) > gate if gate is not None else np.zeros(len(meas.z), bool)
         outputs: list[WireModel] = []
@@ -105,6 +109,12 @@ class LooselyCoupled(Pipeline):
                 # not the sensor, is wrong
                 self.screened["gate_recovery"] += 1
                 self.recover_covariance()
+                # and its state is suspect (service/lifecycle.py); refused again soon after the
+                # covariance restart: the restart did not help, the whole state is reset
+                last = self._recovered_at.get(kind)
+                again = last is not None and nav.t - last <= 3.0 * self.cfg.gate_recovery_s
+                self._recovered_at[kind] = nav.t
+                self.report("aiding_still_refused" if again else "aiding_refused")
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
             else:
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R, mask=~refused[None, :])
@@ -113,6 +123,7 @@ class LooselyCoupled(Pipeline):
             outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], refused))
         self._refused_since.pop(kind, None)
         self._trusted.add(kind)
+        self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~refused)
         if not kalman.is_positive_definite(P)[0]:
             # numerical health: never continue on a broken P; keep the INS, re-initialise the
             # covariance to the initial one and flag it

@@ -103,6 +103,10 @@ class TightlyCoupled(Pipeline):
         self.clock_initialised = False
         self.last = None
 
+    def restore_references(self, refs) -> None:
+        super().restore_references(refs)
+        self.clock_initialised = "clock" in refs  # the clock as it was: not set again from residuals
+
     def recover_covariance(self) -> None:
         """Lost positive definiteness: keep the INS, the clock reference and the exclusions; restart
         every member and cross block from the initial covariance (all states zero)."""
@@ -130,6 +134,12 @@ class TightlyCoupled(Pipeline):
                     bank.reference["isb"] = isb
                 self.clock_initialised = True
         meas = self.model(nav, msg, bank.context(dt_late_s))
+        key = f"{kind}/{sensor_id}"
+        meas, claimed = self.floors.apply(key, meas)  # no claim below what the stream's history supports
+        if meas.floored:
+            self.screened["sigma_floor"] += meas.floored
+        x0, P0 = bank.x[0].copy(), bank.P[0].copy()
+        self.note_refusal(nav.t, self.refuses_epoch(meas, x0, P0))  # a suspect state?
         try:
             res = self.last = self.monitor.epoch(bank, meas, msg.t)
         except NotPositiveDefinite:
@@ -138,6 +148,7 @@ class TightlyCoupled(Pipeline):
             return []
         if res.update is not None:
             self.mark_aided(nav.t)
+            self.record_prior_rows(key, meas, claimed, x0, P0)
         if res.excluded:
             self.mark_screened(nav.t, "excluded_satellite", len(res.excluded))
         if res.tests is None:

@@ -21,8 +21,10 @@ fault isolation. Registering a model: one line in ``service/estimation/measureme
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -127,6 +129,9 @@ def private_transition(blocks: tuple[PrivateStates, ...]):
 
 
 __all__ = [
+    "CLAIM_FRACTION",
+    "SPREAD_FRACTION",
+    "SigmaFloors",
     "Measurement",
     "MeasurementModel",
     "ModelContext",
@@ -143,3 +148,87 @@ def floored_variances(std: np.ndarray, minimum: np.ndarray | float) -> tuple[np.
     std = np.asarray(std, dtype=float)
     lo = np.broadcast_to(np.asarray(minimum, dtype=float), std.shape)
     return np.square(np.maximum(std, lo)), int(np.count_nonzero(std < lo))
+
+
+#: a claimed sigma is raised to at least this fraction of the median of what the same stream (and
+#: row) claimed before: a sensor that claimed 10 m for minutes does not become a 1 m sensor in
+#: one message (what its own history supports)
+CLAIM_FRACTION = 0.5
+#: ... and to at least this fraction of the sensor noise its innovations show (their robust
+#: spread less the filter's own share H P H'): a stream claiming 1 m whose fixes scatter by 10 m
+SPREAD_FRACTION = 0.1
+#: messages of a stream remembered per row (its recent history)
+HISTORY_WINDOW = 120
+#: rows of history before the history floors apply (before: the model's absolute floor only)
+HISTORY_MIN_SAMPLES = 20
+#: median of chi-square(1): median(r^2) / this estimates the variance of r
+_MEDIAN_CHI2_1 = 0.45493642311957184
+
+
+class _RowHistory:
+    __slots__ = ("claimed", "r2", "hph", "floor", "stale")
+
+    def __init__(self) -> None:
+        self.claimed: deque = deque(maxlen=HISTORY_WINDOW)
+        self.r2: deque = deque(maxlen=HISTORY_WINDOW)
+        self.hph: deque = deque(maxlen=HISTORY_WINDOW)
+        self.floor = 0.0
+        self.stale = 0
+
+    def update_floor(self) -> None:
+        if len(self.claimed) < HISTORY_MIN_SAMPLES:
+            self.floor = 0.0
+            return
+        f = CLAIM_FRACTION * float(np.median(self.claimed))
+        if len(self.r2) >= HISTORY_MIN_SAMPLES:
+            var = float(np.median(self.r2)) / _MEDIAN_CHI2_1 - float(np.median(self.hph))
+            f = max(f, SPREAD_FRACTION * math.sqrt(max(var, 0.0)))
+        self.floor = f
+        self.stale = 0
+
+
+class SigmaFloors:
+    """Sigma floors from each stream's own history (per ``kind/sensor`` key and row label): a new
+    claim is raised to at least :data:`CLAIM_FRACTION` x the median of the stream's recent claims
+    and :data:`SPREAD_FRACTION` x the sensor noise its recent innovations show. The model's
+    absolute floor (:func:`floored_variances`) still applies before any history exists. A
+    pipeline calls :meth:`apply` before an update and :meth:`record` after an update that used
+    the rows (refused rows teach nothing)."""
+
+    def __init__(self) -> None:
+        self._rows: dict[tuple[str, str], _RowHistory] = {}
+
+    def apply(self, key: str, meas: Measurement) -> tuple[Measurement, np.ndarray]:
+        """(meas with its R raised where the history says so, the claimed sigmas before)."""
+        sd = np.sqrt(np.clip(np.diagonal(meas.R), 0.0, None))
+        floor = np.array([self._row(key, lab).floor for lab in meas.labels])
+        low = sd < floor
+        if not low.any():
+            return meas, sd
+        scale = np.where(low, floor / np.maximum(sd, 1e-300), 1.0)
+        R = meas.R * np.outer(scale, scale)
+        return replace(meas, R=R, floored=max(meas.floored, int(low.sum()))), sd
+
+    def record(self, key: str, meas: Measurement, claimed: np.ndarray, innovation, hph, used=None) -> None:
+        """Rows of an update that used them: the claimed sigmas, the innovations (z - H x) and
+        the filter's share of their variance (diagonal of H P H')."""
+        for j, lab in enumerate(meas.labels):
+            if used is not None and not used[j]:
+                continue
+            h = self._row(key, lab)
+            h.claimed.append(float(claimed[j]))
+            h.r2.append(float(innovation[j]) ** 2)
+            h.hph.append(float(hph[j]))
+            h.stale += 1
+            if h.stale >= 10 or len(h.claimed) == HISTORY_MIN_SAMPLES:
+                h.update_floor()
+
+    def _row(self, key: str, label: str) -> _RowHistory:
+        h = self._rows.get((key, label))
+        if h is None:
+            h = self._rows[(key, label)] = _RowHistory()
+        return h
+
+    def floor(self, key: str, label: str) -> float:
+        """The current history floor of a row (0 before enough history)."""
+        return self._row(key, label).floor
