@@ -399,14 +399,14 @@ def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
             procs.insert(0, svc)
             assert svc.wait_for("fednav-service ready", timeout=60), svc.output()
         sim = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "6", "--duration", "40"]
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "6", "--duration", "80"]
             + ["--speed", "4", "--zenoh-config", str(SECURE / "simulator.json5"), "--connect", ep],
             "fednav-sim fleet",
             cwd=certs,
         )
         procs.insert(0, sim)
         assert sim.wait_for("publishing", timeout=60), sim.output()
-        snap, deadline = None, time.monotonic() + 9  # while the simulator publishes (10 s)
+        snap, deadline = None, time.monotonic() + 18  # while the simulator publishes (20 s: room for a loaded machine)
         while time.monotonic() < deadline:
             r = subprocess.run(
                 [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
