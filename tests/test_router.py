@@ -406,7 +406,7 @@ def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
         )
         procs.insert(0, sim)
         assert sim.wait_for("publishing", timeout=60), sim.output()
-        snap, deadline = None, time.monotonic() + 18  # while the simulator publishes (20 s: room for a loaded machine)
+        snap, deadline = None, time.monotonic() + 18  # while the simulator publishes (20 s)
         while time.monotonic() < deadline:
             r = subprocess.run(
                 [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
