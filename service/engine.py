@@ -17,8 +17,10 @@ Time handling (docs/DESIGN.md "The service's inner loop"):
   the window) or a time jump marks the INS lost: pipelines restart from a current InitialNav (also
   one refused earlier for its time) or the next alignment (status ``initialising``, then
   ``unaided`` until aided).
-- An InitialNav re-initialising a running vehicle must agree with the latest GNSS fix (or the
-  estimate): otherwise ``implausible_init``; a first start is checked against the first fix.
+- An InitialNav on a running vehicle is a reset request (rate-limited, floored, checked against the
+  latest fix and the verified estimate: otherwise ``implausible_init``, weighed against the
+  verified state); a first start is checked against the first fix. Starting, verifying,
+  suspecting and resetting pipelines is :mod:`service.lifecycle`'s (``self.life``).
 - An estimate a Solution cannot carry (non-finite, outside the wire limits) fails its pipeline
   (``pipeline_failed``, status ``failed``); it restarts from a running sibling or the next fix.
 - These acceptance rules are :class:`service.intake_rules.AcceptanceRules` (one verdict per event).

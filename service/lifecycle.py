@@ -34,7 +34,27 @@ raw epoch) at which the estimate and the reference agree (chi-square of position
 :func:`service.ins.alignment.plausible`) and the pipeline's own aiding was accepted; without a
 reference (no GNSS), :data:`VERIFY_EPOCHS` accepted aiding updates in a row without screening.
 A reference that disagrees with an unverified state resets the pipeline from the reference (the
-vehicle's own aiding wins over what it was told).
+vehicle's own aiding wins over what it was told). A reference is a fix its stream confirms (it
+agrees with one of the two fixes before it) with its sigmas floored by what the stream claimed
+before: a forged fix between genuine ones, or one claiming 1e-9 m, never resets anything.
+
+Suspicion (evidence that a running state may be wrong): a contested IMU key
+(:data:`CONTESTED_IMU` refusals: a second publisher's samples may have been taken), aiding the
+pipeline refuses wholesale (its own screening: ``Pipeline.report("aiding_refused")``; refused
+again, ``aiding_still_refused``: reset at the next reference whatever the check says). A suspect
+pipeline is ``degraded`` and checked like an unverified one.
+
+Reset: the whole state, with an honest covariance (:meth:`VehicleLife._fix_state`): velocity from
+the reference, attitude from gravity and the GNSS track, position from the pipeline's last
+verified estimate (a checkpoint kept at output epochs) carried to now when the moment of the
+corruption is known, else the reference's; the biases and the sensors' own states (receiver
+clock, DVL offset and scale, ...) kept. Without GNSS the checkpoint carried with its own velocity
+is the reference. Every transition is said on the pipeline's Faults (subsystem ``lifecycle``) and
+counted in Health notes.
+
+Reset requests (an InitialNav on a running vehicle, a hand-over): rate-limited, floored, checked
+against the latest fix and the verified estimate, then weighed against each verified pipeline's
+state (:func:`fuse`) instead of replacing it.
 
 Hand-over (fleet scale-out): :meth:`VehicleLife.hand_over` starts every pipeline from another
 service's last state, or, on a running vehicle, is a reset request checked like an InitialNav.
@@ -103,6 +123,8 @@ INIT_HISTORY = 16
 #: position: at most this old when used (s)
 CHECKPOINT_MAX_AGE_S = 5.0
 CHECKPOINTS = 8
+#: ... one kept at most every this often (s; the cost of a copy of the filter at output epochs)
+CHECKPOINT_PERIOD_S = 0.5
 #: heading change a carried checkpoint may miss, 1-sigma (deg/s)
 CARRY_TURN_STD_DPS = 3.0
 #: a GNSS fix is this epoch's reference when at most this far from it in time (s): an older one
@@ -512,6 +534,27 @@ class VehicleLife:
         before = [f for f in self._recent.get(key, ()) if 0.0 < fix.t - f.t <= REFERENCE_CHAIN_MAX_S]
         return any(consistent_fixes(f, fix) for f in before[-2:])
 
+    def _floored(self, key: str, fix: GnssFix) -> GnssFix:
+        """``fix`` with its sigmas raised to the absolute floors and to half the median of what
+        its stream's recent fixes claimed (a reference claiming 1e-9 m must not pin a reset)."""
+        recent = [f for f in self._recent.get(key, ()) if f is not fix] or [fix]
+        pos = np.maximum(
+            np.maximum(np.asarray(fix.pos_std(), dtype=float), ABS_FLOOR_POS_M),
+            0.5 * np.median([f.pos_std() for f in recent], axis=0),
+        )
+        update = {"pos_std_enu_m": tuple(float(v) for v in pos)}
+        if fix.velocity() is not None:
+            vel = np.maximum(
+                np.maximum(np.asarray(fix.vel_std(), dtype=float), ABS_FLOOR_VEL_MPS),
+                0.5
+                * np.median(
+                    [f.vel_std() for f in recent if f.vel_std() is not None] or [fix.vel_std()], axis=0
+                ),
+            )
+            update["vel_enu_mps"] = tuple(float(v) for v in fix.velocity())
+            update["vel_std_enu_mps"] = tuple(float(v) for v in vel)
+        return fix.model_copy(update=update)
+
     def _remember(self, key: str, fix: GnssFix) -> None:
         recent = self._recent.get(key)
         if recent is None:
@@ -635,17 +678,19 @@ class VehicleLife:
 
     def _epoch_reference(self, kind: str, sensor_id: str, msg, t: float):
         """(NavState, 6x6 covariance) of this aiding epoch's own GNSS reference, or False."""
-        fix = None
+        fix, key = None, f"gnss_fix/{sensor_id}"
         if kind == "gnss_fix":
-            fix = msg if self._confirmed_by_stream(f"gnss_fix/{sensor_id}", msg) else None
+            fix = msg if self._confirmed_by_stream(key, msg) else None
         elif kind == "gnss_raw":
+            key = "snapshot"
             fix = snapshot.snapshot_fix(msg)
             if fix is not None:
-                self._remember("snapshot", fix)
-                if not self._confirmed_by_stream("snapshot", fix):
+                self._remember(key, fix)
+                if not self._confirmed_by_stream(key, fix):
                     fix = None
         if fix is None or abs(fix.t - t) > REFERENCE_MAX_AGE_S:
             return False
+        fix = self._floored(key, fix)
         nav, std = alignment.motion_alignment(fix, t)
         return nav, alignment.std_cov6(std), fix
 
@@ -730,8 +775,12 @@ class VehicleLife:
         """A pipeline's estimate at an output epoch: kept while the pipeline is verified (the last
         good state a reset may start from)."""
         life = self.lives[p.name]
-        if life.stage == AIDED and life.verified:
-            self.checkpoints[p.name].append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p)))
+        if life.stage != AIDED or not life.verified:
+            return
+        cps = self.checkpoints[p.name]
+        if cps and 0.0 <= est.nav.t - cps[-1][0] < CHECKPOINT_PERIOD_S:
+            return
+        cps.append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p)))
 
     def _checkpoint(self, p: Pipeline, t: float):
         """``p``'s last verified estimate if at most ``CHECKPOINT_MAX_AGE_S`` from ``t``: (time,

@@ -284,3 +284,29 @@ def test_a_reset_request_is_weighed_not_taken():
         d = (out.lat_rad - est.lat_rad) * (earth.radii(0.7)[0] + 100.0)
         assert abs(d - moved) < 0.05, (sd, d)
         assert s.pos_enu_m[1] < min(sd, 5.0) and s.cov.shape == (9, 9)
+
+
+def test_an_imu_burst_without_gnss_is_recovered_from_the_last_verified_state():
+    """An underwater vehicle (USBL and DVL, no GNSS to align from): the contested IMU key makes it
+    suspect, its last verified state carried over the gap (attitude levelled again, heading kept)
+    is the reference that finds the corrupted state and the state it restarts from; the DVL's
+    offset and scale estimates are kept. Before, nothing could restart it."""
+    import tomllib
+
+    from fednav.simulators.scenario import parse_scenario
+
+    from .scenario_utils import SCENARIOS
+
+    d = tomllib.loads((SCENARIOS / "seed004_nominal.toml").read_text())
+    d["duration_s"] = 90.0
+    d["service"]["pipelines"] = [
+        {**p, "name": "uw", "usbl_fault_handling": "chi2_reconfig"}
+        for p in d["service"]["pipelines"]
+        if p["name"] == "centralized"
+    ]
+    sc = parse_scenario(d, "seed004 90 s")
+    _, clean = _run(sc)
+    eng, rec = _run(sc, _burst(0.010))
+    assert eng.notes["reset:uw"] >= 1 and eng.notes["suspect:uw:imu_contested"] >= 1, eng.notes
+    worst, p95 = _judge(rec["uw"], clean["uw"], AT_S + 0.5, 10.0)
+    assert worst < p95 * 1.5, (worst, p95)
