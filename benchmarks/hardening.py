@@ -1,15 +1,40 @@
-"""Hardening figures: accuracy under single hostile messages versus the clean run, and the cost of
-screening (real-time factor with and without the innovation gate), in-process on the demo.
+"""Hardening figures: single hostile messages (issue 9) and transient corruption (issue 22),
+in-process through the service's engine (the same code as the service).
 
-    .venv/bin/python benchmarks/hardening.py [--runs 3] [--seed 7]
+    .venv/bin/python benchmarks/hardening.py                 # both parts, seed 7
+    .venv/bin/python benchmarks/hardening.py --part transient --runs 3 --markdown docs/hardening.md
+    .venv/bin/python benchmarks/hardening.py --part single --runs 3
 
-For each run (seeds S, S+1, ...) the demo stream goes through the service's engine (the same code
-as the service) once clean and once with every attack of tests/test_hostile.py injected at 100 s
-(one IMU sample 1e6 s ahead, an InitialNav 1000 s ahead, a current InitialNav 11 km off, a fix at
-lat 0 / lon 0 / h -12 km, a fix claiming 1e-9 m, 50 IMU samples slipped between genuine ones, 5
-star-tracker messages under new ids). Printed: horizontal RMS and max error against truth, clean
-vs attacked, with the gate (default) and without it; and the real-time factor of the clean run
-with and without the gate, measured in the same process, alternating.
+Single messages (``--part single``): the demo stream once clean and once with every attack of
+tests/test_hostile.py injected at 100 s (one IMU sample 1e6 s ahead, an InitialNav 1000 s ahead,
+a current InitialNav 11 km off, the receiver's next fix at lat 0 / lon 0 / h -12 km and the one
+after claiming 1e-9 m, 50 IMU samples slipped between genuine ones, 5 star-tracker messages under
+new ids): horizontal RMS and max error, with the innovation gate (default) and without it, and
+the real-time factor of the clean run with and without the gate.
+
+Transient corruption (``--part transient``), per pipeline family, each class of corruption once
+into a clean stream (seeds S, S+1, ...), against the same stream clean:
+
+- ``imu_burst``: 50 forged IMU samples (20 rad/s about x) slipped between the genuine ones, as a
+  second publisher under the IMU's key delivers them at the demo's pace ``1x`` (each lands between
+  two genuine samples), ``10x`` (arrival jitter +-10 ms of stream time: some arrive before the
+  genuine sample they follow) and ``max`` (all at once, as fast as possible);
+- ``init_burst``: 500 InitialNav in 2.5 s, the true state moved 5, 20 or 100 m north, claiming
+  1 cm / 0.01 m/s / 0.01 deg;
+- ``drift``: a forged fix stream under the receiver's own key (between its fixes) drifting 0.1 to
+  2 m/s for 30 s, claiming 1 m (the genuine receiver 10 m) and a velocity with the drift
+  (underwater: the same with the USBL);
+- ``outage``: no GNSS for 60 s (fixes and raw epochs), then 5 s of fixes 50 m off: the
+  receiver's solution jumps on return, its pseudoranges return as they are (underwater: the
+  USBL, its relative vector 50 m off).
+
+Per case and pipeline: the peak horizontal error from the corruption's start; the time from its
+end until the error is back under the clean run's 95th percentile (``recovered``: the first epoch
+after the end at which the error is under that percentile and from which on, to the end of the
+run, the 95th percentile of the error is within 5 % of it, i.e. the run is as good as the clean
+one again; ``never``: not before the last 10 s of the run); the RMS over the last 60 s (clean in
+brackets); the epochs reported ``aided`` while the horizontal error exceeded 3x the reported
+horizontal sigma (clean in brackets, same span); the status timeline from the start (s after it).
 """
 
 from __future__ import annotations
@@ -18,19 +43,32 @@ import argparse
 import math
 import sys
 import time
+import tomllib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-from fednav.service import keys  # noqa: E402
+from fednav.service import earth, keys  # noqa: E402
 from fednav.service.engine import VehicleEngine  # noqa: E402
-from fednav.service.messages import GnssFix, ImuSample, InitialNav, StarAttitude  # noqa: E402
+from fednav.service.messages import (  # noqa: E402
+    GnssFix,
+    GnssRaw,
+    ImuSample,
+    InitialNav,
+    StarAttitude,
+    UsblFix,
+)
 from fednav.simulators.evaluate import CollectingSink, service_config  # noqa: E402
-from fednav.simulators.scenario import load_scenario  # noqa: E402
+from fednav.simulators.scenario import load_scenario, parse_scenario  # noqa: E402
 from fednav.simulators.stream import Simulation  # noqa: E402
 
+SCENARIOS = ROOT / "simulators" / "scenarios"
+
+# --- part 1: single hostile messages (issue 9) ----------------------------------------------------
 ATTACK_AT_S = 100.0
 
 
@@ -40,23 +78,24 @@ def attacks(imu: ImuSample, fix: GnssFix, init: InitialNav) -> list[tuple[str, o
         ("imu", imu.model_copy(update={"t": t + 1e6})),
         ("init", init.model_copy(update={"t": t + 1000.0})),
         ("init", init.model_copy(update={"t": t, "lat_deg": init.lat_deg + 0.1})),
-        (
-            "gnss_fix",
-            fix.model_copy(update={"t": t + 0.05, "lat_deg": 0.0, "lon_deg": 0.0, "height_m": -11999.0}),
-        ),
-        (
-            "gnss_fix",
-            fix.model_copy(
-                update={"t": t + 0.07, "pos_std_enu_m": (1e-9,) * 3, "vel_std_enu_mps": (1e-9,) * 3}
-            ),
-        ),
     ] + [
         ("star", StarAttitude(t=t + 0.01 * i, rpy_deg=(20.0, -15.0, 55.0), rpy_std_deg=(0.001,) * 3))
         for i in range(5)
     ]
 
 
-def run(sc, seed: int, gate: bool, attack: bool) -> tuple[float, float, float]:
+def replaced_fix(fix: GnssFix, n: int) -> GnssFix:
+    """The receiver's n-th fix from the attack on, as the fix attacks send it in its place (a fix
+    between the receiver's own is refused off_cadence before any filter sees it): the first at
+    lat 0 / lon 0 / h -12 km, the second claiming 1e-9 m."""
+    if n == 0:
+        return fix.model_copy(update={"lat_deg": 0.0, "lon_deg": 0.0, "height_m": -11999.0})
+    if n == 1:
+        return fix.model_copy(update={"pos_std_enu_m": (1e-9,) * 3, "vel_std_enu_mps": (1e-9,) * 3})
+    return fix
+
+
+def run_single(sc, seed: int, gate: bool, attack: bool) -> tuple[float, float, float]:
     cfg = service_config(sc)
     if not gate:
         cfg = cfg.model_copy(
@@ -68,10 +107,13 @@ def run(sc, seed: int, gate: bool, attack: bool) -> tuple[float, float, float]:
     eng = VehicleEngine("v1", cfg, sink)
     init = fix = None
     done = False
-    extra = 0
+    extra = replaced = 0
     t0 = time.perf_counter()
     for key, msg in Simulation(sc, seed=seed):
         pk = keys.parse_input(key)
+        if attack and isinstance(msg, GnssFix) and msg.t - sc.t0_gps_s > ATTACK_AT_S:
+            msg = replaced_fix(msg, replaced)
+            replaced += 1
         eng.handle(pk.kind, pk.sensor_id, msg)
         init = msg if isinstance(msg, InitialNav) else init
         fix = msg if isinstance(msg, GnssFix) else fix
@@ -92,28 +134,448 @@ def run(sc, seed: int, gate: bool, attack: bool) -> tuple[float, float, float]:
     return float(math.sqrt(np.mean(h * h))), float(h.max()), sc.duration_s / wall
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--seed", type=int, default=7)
-    a = ap.parse_args()
+def single_part(runs: int, seed: int) -> None:
     sc = load_scenario("demo_aircraft")
     rows = {}
     for gate in (True, False):
         for attack in (False, True):
-            res = [run(sc, a.seed + i, gate, attack) for i in range(a.runs)]
+            res = [run_single(sc, seed + i, gate, attack) for i in range(runs)]
             rows[(gate, attack)] = (
                 float(np.sqrt(np.mean([r[0] ** 2 for r in res]))),
                 max(r[1] for r in res),
                 float(np.median([r[2] for r in res])),
             )
-    print(f"demo, {a.runs} run(s) from seed {a.seed}, {sc.duration_s:.0f} s, attacks at {ATTACK_AT_S:.0f} s")
+    print(f"demo, {runs} run(s) from seed {seed}, {sc.duration_s:.0f} s, attacks at {ATTACK_AT_S:.0f} s")
     print(f"{'gate':>6}{'input':>10}{'h RMS m':>10}{'h max m':>10}{'x real time':>13}")
     for (gate, attack), (rms, mx, rtf) in rows.items():
         label = f"{'on' if gate else 'off':>6}{'attacked' if attack else 'clean':>10}"
         print(f"{label}{rms:10.2f}{mx:10.2f}{rtf:13.0f}")
     on, off = rows[(True, False)][2], rows[(False, False)][2]
     print(f"cost of screening (clean run): {on:.0f}x real time with the gate, {off:.0f}x without")
+
+
+# --- part 2: transient corruption (issue 22) ------------------------------------------------------
+#: (family label, scenario builder, pipelines reported, corruption start s)
+CASES = [
+    ("imu_burst", "1x"),
+    ("imu_burst", "10x"),
+    ("imu_burst", "max"),
+    ("init_burst", 5.0),
+    ("init_burst", 20.0),
+    ("init_burst", 100.0),
+    ("drift", 0.1),
+    ("drift", 0.5),
+    ("drift", 2.0),
+    ("outage", 60.0),
+]
+#: the pace of a second publisher's samples: arrival jitter in stream seconds (None: all at once)
+PACE_JITTER_S = {"1x": 0.001, "10x": 0.010, "max": None}
+RECOVERY_HOLD_S = 10.0
+RECOVERY_MARGIN = 1.05
+#: the outage's jump also on the raw pseudoranges (a consistent 50 m shift of every range: a
+#: displacement, or every satellite spoofed, not a receiver's transient; off by default)
+RAW_JUMP = False
+
+
+def _toml(name: str) -> dict:
+    return tomllib.loads((SCENARIOS / f"{name}.toml").read_text())
+
+
+def gnss_scenario(duration_s: float = 300.0):
+    """The demo aircraft with its fixes plus raw GNSS and a star tracker (demo_product's), and one
+    pipeline of each GNSS family."""
+    d = _toml("demo_aircraft")
+    p = _toml("demo_product")
+    d["gnss_raw"], d["star"], d["duration_s"] = p["gnss_raw"], p["star"], duration_s
+    d["service"]["pipelines"] = [
+        {"name": "lc", "kind": "loosely_coupled"},
+        {
+            "name": "fed",
+            "kind": "federated",
+            "sharing": "vector_eigen",
+            "fault_handling": "per_observation",
+            "subsystems": [
+                {"name": "INS/GNSS", "sensors": ["gnss_fix"]},
+                {"name": "INS/CNS", "sensors": ["star"]},
+            ],
+        },
+        {"name": "central", "kind": "centralized", "fault_handling": "per_observation"},
+        {"name": "tc", "kind": "tightly_coupled", "integrity": True, "phase": "npa"},
+        {"name": "imm", "kind": "imm_tightly_coupled"},
+    ]
+    return parse_scenario(d, "hardening: demo aircraft with raw GNSS and a star tracker")
+
+
+def ta_scenario():
+    d = _toml("seed002_wing")
+    d["service"]["pipelines"] = [p for p in d["service"]["pipelines"] if p["name"] == "ta_akf"]
+    return parse_scenario(d, "hardening: seed002_wing, ta_akf")
+
+
+def underwater_scenario(duration_s: float = 400.0):
+    d = _toml("seed004_nominal")
+    d["duration_s"] = duration_s
+    keep = ("fed_edop", "centralized")
+    d["service"]["pipelines"] = [p for p in d["service"]["pipelines"] if p["name"] in keep]
+    for p in d["service"]["pipelines"]:
+        if p["name"] == "centralized":
+            p["name"], p["usbl_fault_handling"] = "centralized_chi2", "chi2_reconfig"
+    return parse_scenario(d, "hardening: seed004_nominal, 400 s")
+
+
+#: family -> (scenario builder, {pipeline: family label}, corruption start s, position aiding kind)
+FAMILIES = {
+    "gnss": (
+        gnss_scenario,
+        {
+            "lc": "loosely_coupled",
+            "fed": "federated",
+            "central": "centralized",
+            "tc": "tightly_coupled",
+            "imm": "imm_tightly_coupled",
+        },
+        100.0,
+        "gnss_fix",
+    ),
+    "ta": (ta_scenario, {"ta_akf": "transfer_alignment"}, 100.0, "gnss_fix"),
+    "underwater": (
+        underwater_scenario,
+        {"fed_edop": "underwater (federated)", "centralized_chi2": "underwater (centralised)"},
+        150.0,
+        "usbl",
+    ),
+}
+
+
+class StatusSink:
+    """Per pipeline: time, errors, sigmas and status at every output epoch."""
+
+    def __init__(self):
+        self.rec: dict[str, tuple[list, list, list, list]] = {}
+
+    def on_estimate(self, vehicle, out) -> None:
+        if out.err9 is None:
+            return
+        r = self.rec.setdefault(out.name, ([], [], [], []))
+        r[0].append(out.t)
+        r[1].append(out.err9)
+        r[2].append(np.sqrt(np.clip(np.diagonal(out.P9), 0.0, None)))
+        r[3].append(out.pipeline.current_status(out.t))
+
+    def on_output(self, vehicle, msg, err9=None) -> None:
+        pass
+
+    def on_truth(self, vehicle, truth) -> None:
+        pass
+
+
+def _moved(lat_rad: float, lon_rad: float, h: float, north_m: float, east_m: float = 0.0):
+    r_m, r_n = earth.radii(lat_rad)
+    return lat_rad + north_m / (r_m + h), lon_rad + east_m / ((r_n + h) * math.cos(lat_rad))
+
+
+def _shift_fix(msg: GnssFix, north_m: float) -> GnssFix:
+    lat, lon = _moved(math.radians(msg.lat_deg), math.radians(msg.lon_deg), msg.height_m, north_m)
+    return msg.model_copy(update={"lat_deg": math.degrees(lat), "lon_deg": math.degrees(lon)})
+
+
+def _shift_raw(msg: GnssRaw, traj, north_m: float) -> GnssRaw:
+    """Pseudoranges of a receiver ``north_m`` further north (line-of-sight projection)."""
+    s = traj.state_at(msg.t)
+    llh = np.asarray(s.llh, dtype=float)
+    r = earth.llh_to_ecef(llh)
+    d = earth.enu_to_ecef(np.array([0.0, north_m, 0.0]), llh) - r
+    sats = []
+    for o in msg.sats:
+        u = np.asarray(o.sat_pos_ecef_m) - r
+        u /= np.linalg.norm(u)
+        sats.append(o.model_copy(update={"pseudorange_m": o.pseudorange_m - float(u @ d)}))
+    return msg.model_copy(update={"sats": sats})
+
+
+@dataclass
+class Injector:
+    """One corruption injected into a scenario's stream (module docstring)."""
+
+    kind: str | None
+    arg: object
+    start_s: float
+    aiding: str
+    rng: np.random.Generator
+    end_s: float = 0.0
+    queue: list = field(default_factory=list)
+    drift_last: float = -1.0
+
+    def __post_init__(self):
+        self.end_s = self.start_s
+        if self.kind == "init_burst":
+            self.end_s = self.start_s + 2.5
+        elif self.kind == "drift":
+            self.end_s = self.start_s + 30.0
+        elif self.kind == "outage":
+            self.end_s = self.start_s + float(self.arg) + 5.0
+        elif self.kind == "imu_burst":
+            self.end_s = self.start_s + 0.5
+
+    def filter(self, pk, msg, t_rel: float, traj):
+        """The genuine message as delivered (None: dropped)."""
+        if self.kind != "outage" or pk.kind not in ("gnss_fix", "gnss_raw", "usbl"):
+            return msg
+        if pk.kind != self.aiding and not (self.aiding == "gnss_fix" and pk.kind == "gnss_raw"):
+            return msg
+        t_back = self.start_s + float(self.arg)
+        if self.start_s <= t_rel < t_back:
+            return None
+        if t_back <= t_rel < t_back + 5.0:  # the jump on return (of the receiver's solution: the
+            if isinstance(msg, GnssFix):  # pseudoranges themselves return as they are)
+                return _shift_fix(msg, 50.0)
+            if isinstance(msg, GnssRaw) and RAW_JUMP:
+                return _shift_raw(msg, traj, 50.0)
+            if isinstance(msg, UsblFix):
+                rel = list(msg.rel_b_m)
+                rel[1] += 50.0
+                return msg.model_copy(update={"rel_b_m": tuple(rel)})
+        return msg
+
+    def after(self, pk, msg, t_rel: float, traj, last: dict) -> list[tuple[str, str, object]]:
+        """Forged messages delivered after the genuine ``msg`` (kind, sensor id, message)."""
+        out = []
+        if self.kind == "imu_burst" and pk.kind == "imu":
+            if abs(t_rel - self.start_s) < 0.5 * msg.dt_s and not self.queue and not last.get("burst"):
+                last["burst"] = True
+                jitter = PACE_JITTER_S[self.arg]
+                items = []
+                for k in range(50):
+                    f = msg.model_copy(
+                        update={"t": msg.t + 0.5 * msg.dt_s + k * msg.dt_s, "dtheta_rad": (0.2, 0.0, 0.0)}
+                    )
+                    arrival = msg.t + 1e-7 * k if jitter is None else f.t + self.rng.uniform(-jitter, jitter)
+                    items.append((arrival, k, f))
+                self.queue = sorted(items)
+                while self.queue and self.queue[0][0] <= msg.t + 1e-9:
+                    _, _, m = self.queue.pop(0)
+                    out.append(("imu", pk.sensor_id, m))
+        if self.kind == "init_burst" and pk.kind == "imu" and self.start_s <= t_rel < self.start_s + 2.5:
+            for j in range(2):  # two per 10 ms sample: 500 in 2.5 s at 100 Hz
+                ti = msg.t + 0.5 * msg.dt_s * j
+                s = traj.state_at(ti)
+                lat, lon = _moved(s.llh[0], s.llh[1], s.llh[2], float(self.arg))
+                out.append(
+                    (
+                        "init",
+                        "",
+                        InitialNav(
+                            t=ti,
+                            lat_deg=math.degrees(lat),
+                            lon_deg=math.degrees(lon),
+                            height_m=float(s.llh[2]),
+                            vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps),
+                            rpy_deg=tuple(earth.rpy_msg_deg(s.rpy_rad)),
+                            pos_std_enu_m=(0.01,) * 3,
+                            vel_std_enu_mps=(0.01,) * 3,
+                            rpy_std_deg=(0.01,) * 3,
+                        ),
+                    )
+                )
+        if self.kind == "drift" and pk.kind == self.aiding and self.start_s <= t_rel < self.end_s:
+            last["forge"] = (msg, t_rel)
+        forge = last.get("forge")
+        if self.kind == "drift" and pk.kind == "imu" and forge is not None:
+            g, t_g = forge
+            if t_rel >= t_g + 0.5 - 0.5 * msg.dt_s:  # half-way to the next genuine message
+                last["forge"] = None
+                out.append((self.aiding, "main", self._forged(g, msg.t, t_rel, traj)))
+        return out
+
+    def before(self, pk, msg) -> list[tuple[str, str, object]]:
+        """Forged IMU samples that arrive before the genuine sample ``msg``."""
+        out = []
+        if self.kind == "imu_burst" and pk.kind == "imu":
+            while self.queue and self.queue[0][0] < msg.t:
+                _, _, m = self.queue.pop(0)
+                out.append(("imu", pk.sensor_id, m))
+        return out
+
+    def _forged(self, genuine, t: float, t_rel: float, traj):
+        rate = float(self.arg)
+        drift = rate * (t_rel - self.start_s)
+        s = traj.state_at(t)
+        if isinstance(genuine, GnssFix):
+            lat, lon = _moved(s.llh[0], s.llh[1], s.llh[2], drift / math.sqrt(2), drift / math.sqrt(2))
+            v = np.asarray(s.vel_enu_mps) + np.array([rate, rate, 0.0]) / math.sqrt(2)
+            return GnssFix(
+                t=t,
+                lat_deg=math.degrees(lat),
+                lon_deg=math.degrees(lon),
+                height_m=float(s.llh[2]),
+                vel_enu_mps=tuple(float(x) for x in v),
+                pos_std_enu_m=(1.0, 1.0, 1.0),
+                vel_std_enu_mps=(0.1, 0.1, 0.1),
+            )
+        rel = list(genuine.rel_b_m)
+        rel[1] += drift
+        return genuine.model_copy(update={"t": t, "rel_b_m": tuple(rel), "rel_std_m": (0.5, 0.5, 0.5)})
+
+
+def run_case(sc, seed: int, kind, arg, start_s: float, aiding: str):
+    cfg = service_config(sc)
+    sink = StatusSink()
+    eng = VehicleEngine("v1", cfg, sink)
+    sim = Simulation(sc, seed=seed)
+    traj = sim.truth.trajectory
+    inj = Injector(kind, arg, start_s, aiding, np.random.default_rng(seed + 1000))
+    last: dict = {}
+    for key, msg in sim:
+        pk = keys.parse_input(key)
+        t_rel = msg.t - sc.t0_gps_s
+        for k, sid, fm in inj.before(pk, msg):
+            eng.handle(k, sid, fm)
+        m = inj.filter(pk, msg, t_rel, traj)
+        if m is not None:
+            eng.handle(pk.kind, pk.sensor_id, m)
+        for k, sid, fm in inj.after(pk, msg, t_rel, traj, last):
+            eng.handle(k, sid, fm)
+    out = {}
+    for name, (t, err, sd, st) in sink.rec.items():
+        out[name] = (np.array(t) - sc.t0_gps_s, np.array(err), np.array(sd), st)
+    return out, eng, inj
+
+
+@dataclass
+class Row:
+    peak: float
+    recovered: float | None
+    rms_end: float
+    rms_end_clean: float
+    lies: int
+    lies_clean: int
+    timeline: list
+
+
+def _h(err, sd):
+    return np.hypot(err[:, 0], err[:, 1]), np.hypot(sd[:, 0], sd[:, 1])
+
+
+def assess(rec, clean, start: float, end: float) -> Row:
+    t, err, sd, st = rec
+    tc, errc, sdc, stc = clean
+    h, hs = _h(err, sd)
+    hc, hsc = _h(errc, sdc)
+    p95 = float(np.percentile(hc, 95))
+    after = t >= start
+    recovered = None
+    idx = np.nonzero(t >= end)[0]
+    for i in idx[:: max(1, len(idx) // 400)]:
+        if t[-1] - t[i] < RECOVERY_HOLD_S:
+            break
+        if h[i] <= p95 and np.percentile(h[i:], 95) <= p95 * RECOVERY_MARGIN:
+            recovered = max(0.0, float(t[i] - end))
+            break
+    st = np.array(st)
+    lies = int(np.sum(after & (st == "aided") & (h > 3.0 * hs)))
+    lies_clean = int(np.sum((tc >= start) & (np.array(stc) == "aided") & (hc > 3.0 * hsc)))
+    last = t > t[-1] - 60.0
+    lastc = tc > tc[-1] - 60.0
+    timeline, prev = [], None
+    for ti, s in zip(t[after], st[after], strict=True):
+        if s != prev:
+            timeline.append((round(float(ti - start), 1), str(s)))
+            prev = s
+    return Row(
+        peak=float(h[after].max()),
+        recovered=recovered,
+        rms_end=float(np.sqrt(np.mean(h[last] ** 2))),
+        rms_end_clean=float(np.sqrt(np.mean(hc[lastc] ** 2))),
+        lies=lies,
+        lies_clean=lies_clean,
+        timeline=timeline,
+    )
+
+
+def transient_part(runs: int, seed: int, families: list[str], markdown: Path | None) -> None:
+    lines = []
+    for fam in families:
+        build, labels, start, aiding = FAMILIES[fam]
+        sc = build()
+        table: dict[tuple[str, object, str], list[Row]] = {}
+        notes: dict[tuple[str, object], dict] = {}
+        p95s: dict[str, list[float]] = {}
+        for r in range(runs):
+            clean, _, _ = run_case(sc, seed + r, None, None, start, aiding)
+            for name in labels:
+                p95s.setdefault(name, []).append(
+                    float(np.percentile(_h(clean[name][1], clean[name][2])[0], 95))
+                )
+            for kind, arg in CASES:
+                t0 = time.perf_counter()
+                rec, eng, inj = run_case(sc, seed + r, kind, arg, start, aiding)
+                for name in labels:
+                    table.setdefault((kind, arg, name), []).append(
+                        assess(rec[name], clean[name], start, inj.end_s)
+                    )
+                counted = {k: v for k, v in eng.rejected.items()}
+                counted |= {k: v for k, v in eng.notes.items() if not k.startswith("unused")}
+                notes[(kind, arg)] = counted
+                print(
+                    f"{fam} seed {seed + r} {kind} {arg}: {time.perf_counter() - t0:.1f} s {counted}",
+                    file=sys.stderr,
+                )
+        lines.append(f"\n### {fam}: {sc.name}, corruption at {start:.0f} s, {runs} run(s) from seed {seed}\n")
+        for name, label in labels.items():
+            lines.append(
+                f"\n**{label}** (`{name}`): clean 95th percentile of the horizontal error "
+                f"{' / '.join(f'{v:.2f}' for v in p95s[name])} m (per run)\n"
+            )
+            lines.append(
+                "| case | peak m | recovered s | last 60 s RMS m (clean) | aided > 3 sigma (clean) "
+                "| status from the start (s) |"
+            )
+            lines.append("|---|---|---|---|---|---|")
+            for kind, arg in CASES:
+                rows = table[(kind, arg, name)]
+                recs = [x.recovered for x in rows]
+                rec_txt = "never" if any(x is None for x in recs) else f"{max(recs):.1f}"
+                tl = rows[0].timeline
+                tl_txt = ", ".join(f"{a:g} {s}" for a, s in tl[:6]) + (" ..." if len(tl) > 6 else "")
+                lines.append(
+                    f"| {kind} {arg} | {max(x.peak for x in rows):.1f} | {rec_txt} | "
+                    f"{max(x.rms_end for x in rows):.2f} ({max(x.rms_end_clean for x in rows):.2f}) | "
+                    f"{sum(x.lies for x in rows)} ({sum(x.lies_clean for x in rows)}) | {tl_txt} |"
+                )
+        lines.append(
+            "\nCounted (first run): "
+            + "; ".join(
+                f"{k} {a}: " + ", ".join(f"{n} {v}" for n, v in sorted(c.items()))
+                for (k, a), c in notes.items()
+            )
+        )
+    text = "\n".join(lines)
+    print(text)
+    if markdown is not None:
+        intro = __doc__.split("Transient corruption (``--part transient``), ")[1]
+        head = (
+            "# Hardening: transient corruption (issue 22)\n\n"
+            "Written by `.venv/bin/python benchmarks/hardening.py --part transient "
+            f"--runs {runs} --seed {seed} --markdown {markdown}` (in-process, the service's engine). "
+            'Measurements and what they mean: docs/DESIGN-NOTES.md, "Recovery".\n\n'
+            + "Per "
+            + intro.replace("``", "`").removeprefix("per ")
+        )
+        markdown.write_text(head + "\n" + text + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", choices=("single", "transient", "both"), default="both")
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--families", default=",".join(FAMILIES), help=f"of {', '.join(FAMILIES)}")
+    ap.add_argument("--markdown", type=Path, help="also write the transient tables to this file")
+    a = ap.parse_args()
+    if a.part in ("single", "both"):
+        single_part(a.runs, a.seed)
+    if a.part in ("transient", "both"):
+        transient_part(a.runs, a.seed, a.families.split(","), a.markdown)
 
 
 if __name__ == "__main__":
