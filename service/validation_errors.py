@@ -57,3 +57,21 @@ def format_errors(err: ValidationError, model: type[BaseModel], heading: str) ->
             msg = f"{msg}; got {e.get('input')!r}"
         lines.append(f"  {loc}: {msg}")
     return "\n".join(lines)
+
+
+_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
+
+
+def classify(err) -> str:
+    """Rejection reason of a pydantic validation error, as Health counts it (the service's worker
+    and the ROS 2 bridge both use it)."""
+    types = {e["type"] for e in err.errors()}
+    if "json_invalid" in types or "json_type" in types:
+        return "malformed_json"
+    if "finite_number" in types:
+        return "non_finite"
+    if "value_error" in types:
+        return "absurd_value"
+    if types & _RANGE_ERRORS:
+        return "out_of_range"
+    return "schema"

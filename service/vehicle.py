@@ -32,21 +32,7 @@ log = logging.getLogger("fednav.service")
 MAX_PAYLOAD_BYTES = 1 << 20
 #: wall seconds without a message from a stream after which Health calls it stale
 STALE_WALL_S = 2.0
-_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
-
-
-def classify(err: ValidationError) -> str:
-    """Rejection reason of a pydantic validation error (counted in Health)."""
-    types = {e["type"] for e in err.errors()}
-    if "json_invalid" in types or "json_type" in types:
-        return "malformed_json"
-    if "finite_number" in types:
-        return "non_finite"
-    if "value_error" in types:
-        return "absurd_value"
-    if types & _RANGE_ERRORS:
-        return "out_of_range"
-    return "schema"
+from fednav.service.validation_errors import classify  # noqa: E402  (one set of rules)
 
 
 class RateLimitedLog:

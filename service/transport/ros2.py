@@ -82,22 +82,7 @@ class RosDecodeError(ValueError):
         self.reason = reason
 
 
-_RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
-
-
-def classify(err: ValidationError) -> str:
-    """Rejection reason of a pydantic validation error, as the service counts it (the same rules as
-    the service's own ``classify``, repeated here: the bridge imports nothing from the app)."""
-    types = {e["type"] for e in err.errors()}
-    if "json_invalid" in types or "json_type" in types:
-        return "malformed_json"
-    if "finite_number" in types:
-        return "non_finite"
-    if "value_error" in types:
-        return "absurd_value"
-    if types & _RANGE_ERRORS:
-        return "out_of_range"
-    return "schema"
+from fednav.service.validation_errors import classify  # noqa: E402  (one set of rules)
 
 
 def _wire(model: type[WireModel], data: dict, what: str) -> WireModel:
