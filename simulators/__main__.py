@@ -35,6 +35,13 @@ def _seed_list(text: str) -> list[int]:
     return seeds
 
 
+def _name_list(text: str) -> list[str]:
+    names = [x.strip() for x in text.split(",") if x.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError("give one or more pipeline names, e.g. tc,tc_imm_sel")
+    return names
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     from fednav.service.__main__ import version
 
@@ -83,6 +90,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "mean over the sets with its min-max spread (and each set's own result with --json)",
     )
     e.add_argument("--json", action="store_true", help="print the result as JSON instead of the table")
+    e.add_argument(
+        "--pipelines",
+        type=_name_list,
+        metavar="A,B",
+        help="run only these of the scenario's pipelines (its [service] table's names), e.g. tc,tc_imm_sel",
+    )
     e.add_argument(
         "--window",
         type=float,
@@ -150,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
         print("--seed and --seeds: give one of them", file=sys.stderr)
         return 2
     if scenario.wing is not None:  # transfer alignment (seed 002): per-node alignment metrics
+        if args.pipelines:
+            print("--pipelines: not for transfer-alignment scenarios", file=sys.stderr)
+            return 2
         from fednav.simulators import transfer_eval
 
         if args.seeds:
@@ -162,7 +178,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds:
         try:
             sets = [
-                evaluate(scenario, runs=args.runs, seed=s, window=tuple(args.window) if args.window else None)
+                evaluate(
+                    scenario,
+                    runs=args.runs,
+                    seed=s,
+                    window=tuple(args.window) if args.window else None,
+                    pipelines=args.pipelines,
+                )
                 for s in args.seeds
             ]
         except ConfigError as exc:
@@ -180,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
             window=tuple(args.window) if args.window else None,
             progress=bar.run_done,
             on_time=bar.at,
+            pipelines=args.pipelines,
         )
     except ConfigError as exc:
         print(exc, file=sys.stderr)

@@ -79,9 +79,18 @@ class CollectingSink:
         pass
 
 
-def service_config(scenario: Scenario) -> config_mod.ServiceConfig:
-    """The service configuration a scenario asks for (its ``[service]`` table)."""
-    return config_mod.from_dict(dict(scenario.service), f"scenario {scenario.name} [service]")
+def service_config(scenario: Scenario, pipelines: list[str] | None = None) -> config_mod.ServiceConfig:
+    """The service configuration a scenario asks for (its ``[service]`` table); ``pipelines``:
+    only the pipelines of these names (in the scenario's order; an unknown name is an error)."""
+    service = dict(scenario.service)
+    if pipelines is not None:
+        listed = [p.get("name") for p in service.get("pipelines", [])]
+        unknown = sorted(set(pipelines) - set(listed))
+        if unknown:
+            have, missing = ", ".join(map(str, listed)), ", ".join(unknown)
+            raise config_mod.ConfigError(f"scenario {scenario.name}: no pipeline {missing} (it has {have})")
+        service["pipelines"] = [p for p in service["pipelines"] if p.get("name") in pipelines]
+    return config_mod.from_dict(service, f"scenario {scenario.name} [service]")
 
 
 def run_once(
@@ -117,12 +126,13 @@ def evaluate(
     window: tuple[float, float] | None = None,
     progress=None,
     on_time=None,
+    pipelines: list[str] | None = None,
 ) -> dict:
     """Monte Carlo evaluation; returns the JSON-ready result dict. ``progress(i, runs, wall_s)``
     is called after each run; ``on_time(run_index, t_s)`` about once a second of scenario time
-    (the command line's progress bar)."""
+    (the command line's progress bar); ``pipelines``: run only these of the scenario's pipelines."""
     seed = scenario.seed if seed is None else seed
-    cfg = service_config(scenario)
+    cfg = service_config(scenario, pipelines)
     traj = scenario.build_trajectory()
     t0 = float(traj.t_s[0])
     pooled: dict[str, dict[str, list]] = {}
