@@ -118,6 +118,28 @@ class LooselyCoupledConfig(Model):
     sensor_options: SensorOptions
     gnss_lever_arm_b_m: GnssLeverArm = (0.0, 0.0, 0.0)
     gnss_correlated_error: GnssCorrelatedErrorOption = None
+    estimate_gnss_lever_arm: bool = Field(
+        False,
+        description="Estimate the GNSS antenna lever arm as filter states (gnss_lever_arm_b_m is then its "
+        "prior mean); observed in turns (docs/own_data.md 'Unknown antenna offset / IMU scale factors')",
+    )
+    gnss_lever_arm_std_m: float = Field(
+        1.0, gt=0, le=100.0, description="Prior 1-sigma of the estimated lever arm per body axis, m"
+    )
+    gnss_lever_arm_rw_m_per_sqrt_h: float = Field(
+        0.0, ge=0, le=10.0, description="Random walk of the estimated lever arm, m/sqrt(h) (0: constant)"
+    )
+    estimate_imu_scale_factors: bool = Field(
+        False,
+        description="Estimate the gyro and accelerometer scale-factor errors (3 + 3 states); observed in "
+        "turns (gyro) and speed changes (accelerometer)",
+    )
+    gyro_scale_factor_std_ppm: float = Field(
+        5000.0, gt=0, le=1e5, description="Prior 1-sigma of each gyro scale-factor error, ppm"
+    )
+    accel_scale_factor_std_ppm: float = Field(
+        5000.0, gt=0, le=1e5, description="Prior 1-sigma of each accelerometer scale-factor error, ppm"
+    )
     use_star: bool = Field(True, description="Use star-tracker attitude when present")
     innovation_gate_sigma: float | None = Field(
         5.0,

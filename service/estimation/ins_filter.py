@@ -9,6 +9,13 @@ Private states (declared by measurement models, :class:`~service.estimation.meas
 PrivateStates`) follow the 15 INS states, block diagonal in the process model. They are closed
 loop too: each block has a linearisation point ``reference[name]`` that propagates with the
 block's transition and absorbs the block's part of every feedback, like the INS.
+
+IMU scale factors (:func:`imu_scale_block`, the private block ``em.SCALE_BLOCK``) are the one
+private block that is not block diagonal: they drive the attitude and velocity errors
+(:func:`~service.ins.error_model.scale_coupling`), so the bank discretises the 15 INS states and
+that block together; and their reference (the scale estimate) is what the INS divides the
+bias-corrected increments by at every major update (:class:`_ScaledIncrements`), its own minor
+loop's and a shared preintegrator's alike.
 """
 
 from __future__ import annotations
@@ -23,7 +30,59 @@ from fednav.service.estimation.measurements.base import (
     private_transition,
 )
 from fednav.service.ins import error_model as em
-from fednav.service.ins.mechanisation import Ins, NavState
+from fednav.service.ins.mechanisation import Ins, NavState, Preintegrator
+
+
+def imu_scale_block(gyro_std: float, accel_std: float) -> PrivateStates:
+    """The IMU scale-factor errors (dimensionless; 3 gyro then 3 accelerometer axes) as random
+    constants with prior sigmas ``gyro_std`` and ``accel_std`` (e.g. 5e-3 for 5000 ppm)."""
+
+    def transition(T: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.eye(6), np.zeros((6, 6))
+
+    std = (float(gyro_std),) * 3 + (float(accel_std),) * 3
+    return PrivateStates(em.SCALE_BLOCK, em.SCALE_NAMES, transition, std)
+
+
+def remove_scale(increments, scale: np.ndarray):
+    """(alpha, beta, nu, scul) of bias-corrected increments divided by (1 + s) per axis (s: gyro
+    then accelerometer scale estimate). Coning (a cross product of two scaled rotation increments)
+    exactly: (D a) x (D b) = det(D) D^-1 (a x b); sculling by the accelerometer scale (its error: a
+    scale error times the sculling term)."""
+    alpha, beta, nu, scul = increments
+    dg = 1.0 / (1.0 + scale[0:3])
+    da = 1.0 / (1.0 + scale[3:6])
+    return alpha * dg, beta * (dg[0] * dg[1] * dg[2] / dg), nu * da, scul * da
+
+
+class _ScaledIncrements:
+    """A shared :class:`Preintegrator`'s increments seen through a bank's scale estimate (what
+    ``Ins.major_update`` reads of a preintegrator: ``T``, ``t_end``, ``corrected``)."""
+
+    __slots__ = ("pre", "scale")
+
+    def __init__(self, pre, scale):
+        self.pre, self.scale = pre, scale
+
+    @property
+    def T(self) -> float:
+        return self.pre.T
+
+    @property
+    def t_end(self) -> float:
+        return self.pre.t_end
+
+    def corrected(self, gyro_bias_rps, accel_bias_mps2):
+        return remove_scale(self.pre.corrected(gyro_bias_rps, accel_bias_mps2), self.scale())
+
+
+class _ScaledPreintegrator(Preintegrator):
+    """The INS's own minor loop with the bank's scale estimate removed at its major updates."""
+
+    __slots__ = ("scale",)
+
+    def corrected(self, gyro_bias_rps, accel_bias_mps2):
+        return remove_scale(super().corrected(gyro_bias_rps, accel_bias_mps2), self.scale())
 
 
 class InsFilterBank:
@@ -61,6 +120,15 @@ class InsFilterBank:
             raise ValueError(f"P0 is {self.n} states; the INS and private blocks need a different size")
         self.private_model = private_transition(self.private)
         self.reference = {b.name: np.zeros(b.size) for b in self.private}
+        #: columns of the 15 INS states and the scale-factor block (None: not estimated)
+        self._scaled = None
+        if em.SCALE_BLOCK in self.columns:
+            cols = self.columns[em.SCALE_BLOCK]
+            self._scaled = np.r_[0 : em.N_STATES, cols.start : cols.stop]
+            own = _ScaledPreintegrator()
+            own.scale = self.scale_estimate
+            own.reset(self.ins.state.t)
+            self.ins._pre = own
         self.B = bank_size
         self.P = np.broadcast_to(P0, (bank_size, self.n, self.n)).copy()
         self.x = np.zeros((bank_size, self.n))
@@ -86,8 +154,14 @@ class InsFilterBank:
         if T > 0.0:
             if self.ins.pending_s > 0.0:
                 self.sync()
+            if self._scaled is not None:
+                pre = _ScaledIncrements(pre, self.scale_estimate)
             self.ins.major_update(pre)
             self.propagate(T)
+
+    def scale_estimate(self) -> np.ndarray:
+        """The IMU scale-factor estimate (6,) the INS applies (the block's reference)."""
+        return self.reference[em.SCALE_BLOCK]
 
     def sync(self) -> None:
         """Bring the state to the INS time (apply pending minor-loop increments and propagate)."""
@@ -102,6 +176,8 @@ class InsFilterBank:
         s = self.ins.state
         c_nb = s.mat_nb
         F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
+        if self._scaled is not None:
+            return self._scaled_transition(F, c_nb, T)
         Phi15, Qd15 = em.discretise(F, em.continuous_Q(self.noise), T)
         if self.n == em.N_STATES:
             return Phi15, Qd15
@@ -109,6 +185,26 @@ class InsFilterBank:
         Qd = np.zeros((self.n, self.n))
         Phi[:15, :15], Qd[:15, :15] = Phi15, Qd15
         Phi[15:, 15:], Qd[15:, 15:] = self.private_model(T)
+        return Phi, Qd
+
+    def _scaled_transition(self, F15: np.ndarray, c_nb: np.ndarray, T: float):
+        """(Phi, Qd) with the scale-factor block: it and the 15 INS states discretised together
+        (F with the scale coupling), the other private blocks block diagonal as usual."""
+        Phi = np.eye(self.n)
+        Qd = np.zeros((self.n, self.n))
+        Phi[15:, 15:], Qd[15:, 15:] = self.private_model(T)
+        k = em.N_STATES
+        F = np.zeros((k + 6, k + 6))
+        F[:k, :k] = F15
+        f_b = c_nb.T @ self.ins.last_fn_mps2
+        F[:k, k:] = em.scale_coupling(c_nb, f_b, self.ins.last_wib_b_rps)
+        Qc = np.zeros((k + 6, k + 6))
+        Qc[:k, :k] = em.continuous_Q(self.noise)
+        Phi_a, Qd_a = em.discretise(F, Qc, T)
+        idx = self._scaled
+        Qd_a[k:, k:] += Qd[np.ix_(idx[k:], idx[k:])]  # the block's own process noise
+        Phi[np.ix_(idx, idx)] = Phi_a
+        Qd[np.ix_(idx, idx)] = Qd_a
         return Phi, Qd
 
     def propagate(self, T: float) -> None:

@@ -18,6 +18,14 @@ Continuous dynamics (Yan Gongmin's PSINS ``etm``; Groves 2nd ed. 14.2):
     dh'   = dv_u
 Biases: random constants plus an optional random walk (bias instability as its long-term drift).
 
+Optional IMU scale factors (a filter's private block :data:`SCALE_BLOCK`, 3 gyro + 3 accel,
+dimensionless; ``service/estimation/ins_filter.py`` builds and feeds it back). The IMU measures
+w~ = (I + diag(s_g)) w + b_g and f~ = (I + diag(s_a)) f + b_a; the INS uses
+w = (w~ - b_g^) / (1 + s_g^) (per axis, likewise f). With the private blocks' closed-loop
+convention the states are ds = s^ - s (computed minus true), so the computed rate's error is
+eps - diag(w_b) ds_g and the specific force's nab - diag(f_b) ds_a (first order):
+    phi' += C_nb diag(w_b) ds_g,    dv' -= C_nb diag(f_b) ds_a          (:func:`scale_coupling`)
+
 Discretisation over T (accurate for ||F|| T << 1, i.e. any T up to a few seconds here, so IMU
 rates of 1-200 Hz or covariance steps of 0.005-1 s all qualify):
     Phi = I + F T + (F T)^2/2 + (F T)^3/6 + (F T)^4/24
@@ -74,6 +82,11 @@ class NavErrorName:
     recording: str
     std: str
     per_si: float
+
+
+#: the private block of IMU scale-factor errors (module docstring): its name and state names
+SCALE_BLOCK = "imu_scale"
+SCALE_NAMES = tuple(f"{s}_scale_{a}" for s in ("gyro", "accel") for a in "xyz")
 
 
 _ARCSEC_PER_RAD = 180.0 * 3600.0 / math.pi
@@ -161,6 +174,15 @@ def continuous_F(
     F[8, 6], F[8, 7] = w1, -w0
     F[6:9, 9:12] = -mat_nb
     return F
+
+
+def scale_coupling(mat_nb: np.ndarray, f_b_mps2: np.ndarray, w_b_rps: np.ndarray) -> np.ndarray:
+    """Columns of F (15 x 6) for the scale-factor errors [ds_g, ds_a] (computed minus true):
+    attitude <- gyro scale C_nb diag(w_b), velocity <- accel scale -C_nb diag(f_b)."""
+    G = np.zeros((N_STATES, 6))
+    G[ATT, 0:3] = mat_nb * np.asarray(w_b_rps, dtype=float)[None, :]
+    G[VEL, 3:6] = -mat_nb * np.asarray(f_b_mps2, dtype=float)[None, :]
+    return G
 
 
 def continuous_Q(noise: ImuNoise, mat_nb: np.ndarray | None = None) -> np.ndarray:

@@ -1,5 +1,21 @@
 """Loosely coupled INS/GNSS: 15-state closed-loop error-state EKF, position + velocity aiding
-(and star-tracker attitude when configured and present)."""
+(and star-tracker attitude when configured and present).
+
+Optional states beyond the 15 (each a private block after them; docs/own_data.md "Unknown antenna
+offset / IMU scale factors"):
+
+* the sensors' own (correlated GNSS error, barometer offset, ...), declared by their models;
+* ``estimate_gnss_lever_arm``: the GNSS antenna lever arm (block ``gnss_lever_arm``, body axes,
+  prior ``gnss_lever_arm_b_m`` +- ``gnss_lever_arm_std_m``), observed in turns;
+* ``estimate_imu_scale_factors``: the gyro and accelerometer scale-factor errors (block
+  ``imu_scale``, coupled into the INS error dynamics by the filter bank), observed in turns and
+  speed changes.
+
+The estimated lever arm and scale factors are published (at most once per
+``STATES_PERIOD_S`` of fix updates) as ``Faults.states`` of subsystem ``gnss_fix`` with their
+1-sigma: names ``gnss_lever_arm_{x,y,z}_m`` (the whole lever arm, configured plus estimated) and
+``{gyro,accel}_scale_{x,y,z}_ppm``.
+"""
 
 from __future__ import annotations
 
@@ -9,11 +25,12 @@ import numpy as np
 
 from fednav.service.config import ImuModel, LooselyCoupledConfig
 from fednav.service.estimation import kalman, measurements
-from fednav.service.estimation.ins_filter import InsFilterBank
+from fednav.service.estimation.ins_filter import InsFilterBank, imu_scale_block
 from fednav.service.estimation.measurements import MeasurementModel
+from fednav.service.estimation.measurements.gnss_fix import LEVER_BLOCK
 from fednav.service.ins import error_model as em
 from fednav.service.ins.mechanisation import NavState
-from fednav.service.messages import Faults, ObservationFault, SubsystemFaults, WireModel
+from fednav.service.messages import Faults, ObservationFault, StateEstimate, SubsystemFaults, WireModel
 from fednav.service.pipelines.base import (
     Estimate,
     InitStd,
@@ -30,6 +47,10 @@ def configured_kinds(cfg: LooselyCoupledConfig) -> list[str]:
     if cfg.sensors is not None:
         return list(dict.fromkeys(cfg.sensors))
     return ["gnss_fix"] + (["star"] if cfg.use_star else [])
+
+
+#: the estimated lever arm / scale factors are published at most this often (s of sensor time)
+STATES_PERIOD_S = 1.0
 
 
 class LooselyCoupled(Pipeline):
@@ -50,6 +71,8 @@ class LooselyCoupled(Pipeline):
             for i, k in enumerate(kinds)
             if k not in cls.sensor_kinds()
         ]
+        if cfg.estimate_gnss_lever_arm and "gnss_fix" not in kinds:
+            out.append(("estimate_gnss_lever_arm", f"needs gnss_fix among the pipeline's sensors {kinds}"))
         return out + sensor_option_errors(cfg, set(kinds))
 
     def __init__(self, cfg: LooselyCoupledConfig, imu: ImuModel, major_interval_s: float):
@@ -60,6 +83,13 @@ class LooselyCoupled(Pipeline):
             k: measurements.make(k, **options.get(k, {})) for k in configured_kinds(cfg)
         }
         self.private = tuple(b for m in self.models.values() for b in m.private_states)
+        if cfg.estimate_imu_scale_factors:
+            self.private += (
+                imu_scale_block(cfg.gyro_scale_factor_std_ppm * 1e-6, cfg.accel_scale_factor_std_ppm * 1e-6),
+            )
+        #: private blocks published as Faults.states (the lever arm, the scale factors)
+        self._reported = tuple(b.name for b in self.private if b.name in (LEVER_BLOCK, em.SCALE_BLOCK))
+        self._states_t: float | None = None  # time of the last published states
         self.last_nis: float | None = None
         #: (t, kind, NIS, dof) of the latest updates, for consistency checks
         self.nis_history: deque = deque(maxlen=2048)
@@ -134,7 +164,42 @@ class LooselyCoupled(Pipeline):
         self.last_nis = float(res.nis[0])
         self.nis_history.append((nav.t, kind, self.last_nis, int(res.dof[0])))
         self.mark_aided(nav.t)
+        if self._reported and kind == "gnss_fix":
+            self._add_states(nav.t, outputs)
         return outputs
+
+    def _add_states(self, t: float, outputs: list[WireModel]) -> None:
+        """The estimated lever arm / scale factors onto this update's Faults (a new one when the
+        gate refused nothing), at most once per ``STATES_PERIOD_S``."""
+        if self._states_t is not None and 0.0 <= t - self._states_t < STATES_PERIOD_S:
+            return
+        self._states_t = t
+        states = self.private_state_estimates()
+        for i, msg in enumerate(outputs):
+            if isinstance(msg, Faults) and msg.subsystems and msg.subsystems[0].name == "gnss_fix":
+                outputs[i] = msg.model_copy(update={"states": states})
+                return
+        sub = SubsystemFaults(name="gnss_fix", isolated=False, observations=[])
+        outputs.append(Faults(t=t, pipeline=self.name, subsystems=[sub], states=states))
+
+    def private_state_estimates(self) -> list[StateEstimate]:
+        """The estimated lever arm (configured plus estimated, m) and scale factors (ppm) with
+        their 1-sigma."""
+        bank = self.bank
+        out = []
+        for name in self._reported:
+            cols = bank.columns[name]
+            est = bank.reference[name] - bank.x[0, cols]
+            sd = np.sqrt(np.clip(np.diagonal(bank.P[0])[cols], 0.0, None))
+            if name == LEVER_BLOCK:
+                est = est + self.models["gnss_fix"].lever_arm_b_m
+                names = [n for b in self.private if b.name == name for n in b.names]
+            else:
+                est, sd = est * 1e6, sd * 1e6
+                names = [f"{n}_ppm" for n in em.SCALE_NAMES]
+            rows = zip(names, est, sd, strict=True)
+            out += [StateEstimate(name=n, value=float(v), std=float(s)) for n, v, s in rows]
+        return out
 
     def _gate_faults(self, t: float, kind: str, labels, standardised, refused) -> Faults:
         """The gate's decision on Faults (published when it refuses a row, and once more at the

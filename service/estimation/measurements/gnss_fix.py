@@ -31,6 +31,17 @@ Qd = sigma^2 (1 - e^(-2T/tau)). Closed loop like the INS: the model predicts p_a
 H_pos,b = I (error db = b_ref - b). The fix's sigma is read as its TOTAL error: the white part
 used in R is sqrt(sigma_fix^2 - sigma_gm^2), at least ``MIN_WHITE_FRACTION`` of sigma_fix.
 
+Estimated lever arm (``estimate_lever_arm``; docs/own_data.md "Unknown antenna offset / IMU
+scale factors"): the lever arm as the private block ``gnss_lever_arm`` (3 states, body RFU axes,
+m; a random constant with an optional random walk ``lever_arm_rw_m_per_sqrt_h``, prior sigma
+``lever_arm_std_m`` per axis about the configured ``lever_arm_b_m``). Closed loop like the INS:
+the model uses l_ref = lever_arm_b_m + reference (the reference absorbs the block's feedback)
+and the error state is dl = l_ref - l (computed minus true), so H_pos,l = C_nb and
+H_vel,l = C_nb [w x] (from p_a = p + C_nb l and v_a = v + C_nb (w x l)). The horizontal
+components are observed when the heading changes (turns: C_nb l rotates against a position
+error that does not; w x l is non-zero only while turning); the vertical one only through
+roll/pitch (on a level road it stays near its prior, indistinguishable from a height error).
+
 Sigmas: each at least ``MIN_POS_STD_M`` / ``MIN_VEL_STD_MPS`` (below any receiver's real
 precision). Late aiding (``ctx.dt_late_s`` > 0): the fix position is carried forward with its
 own velocity (none for a position-only fix).
@@ -61,6 +72,8 @@ MIN_VEL_STD_MPS = 0.001
 MIN_WHITE_FRACTION = 0.2
 BLOCK = "gnss_error"
 BLOCK_NAMES = ("gnss_err_e_m", "gnss_err_n_m", "gnss_err_u_m")
+LEVER_BLOCK = "gnss_lever_arm"
+LEVER_NAMES = ("gnss_lever_arm_x_m", "gnss_lever_arm_y_m", "gnss_lever_arm_z_m")
 
 
 def gauss_markov_block(tau_s: float, sigma_enu_m) -> PrivateStates:
@@ -75,21 +88,40 @@ def gauss_markov_block(tau_s: float, sigma_enu_m) -> PrivateStates:
     return PrivateStates(BLOCK, BLOCK_NAMES, transition, tuple(float(s) for s in sigma_enu_m))
 
 
+def lever_arm_block(std_m, rw_m_per_sqrt_h: float = 0.0) -> PrivateStates:
+    """The antenna lever arm (body axes, m) as a random constant with an optional random walk:
+    Phi = I, Qd = (rw^2 / 3600) T I; prior sigma ``std_m`` per axis (a number or three)."""
+    std = np.broadcast_to(np.asarray(std_m, dtype=float), (3,))
+    q = float(rw_m_per_sqrt_h) ** 2 / 3600.0
+
+    def transition(T: float) -> tuple[np.ndarray, np.ndarray]:
+        return np.eye(3), np.eye(3) * (q * T)
+
+    return PrivateStates(LEVER_BLOCK, LEVER_NAMES, transition, tuple(float(s) for s in std))
+
+
 def gnss_fix_options(cfg) -> dict:
     """The model's options from a pipeline configuration with ``gnss_lever_arm_b_m`` and
-    ``gnss_correlated_error`` (loosely coupled, federated, centralised)."""
+    ``gnss_correlated_error`` (loosely coupled, federated, centralised), and the lever-arm
+    estimation options where the configuration has them (loosely coupled)."""
     gm = cfg.gnss_correlated_error
-    return {
+    out = {
         "lever_arm_b_m": cfg.gnss_lever_arm_b_m,
         "correlated_sigma_enu_m": None if gm is None else gm.sigma_enu_m,
         "correlation_time_s": 60.0 if gm is None else gm.correlation_time_s,
     }
+    if getattr(cfg, "estimate_gnss_lever_arm", False):
+        out["estimate_lever_arm"] = True
+        out["lever_arm_std_m"] = cfg.gnss_lever_arm_std_m
+        out["lever_arm_rw_m_per_sqrt_h"] = cfg.gnss_lever_arm_rw_m_per_sqrt_h
+    return out
 
 
 class GnssFixModel:
     kind = "gnss_fix"
     # the class has no private states (usable by every 15-state filter); an instance with a
-    # correlated-error block declares it (the loosely coupled family builds its bank with it)
+    # correlated-error or lever-arm block declares it (the loosely coupled family builds its
+    # bank with it)
     private_states: tuple[PrivateStates, ...] = ()
 
     def __init__(
@@ -97,16 +129,35 @@ class GnssFixModel:
         lever_arm_b_m=(0.0, 0.0, 0.0),
         correlated_sigma_enu_m=None,
         correlation_time_s: float = 60.0,
+        estimate_lever_arm: bool = False,
+        lever_arm_std_m=1.0,
+        lever_arm_rw_m_per_sqrt_h: float = 0.0,
     ):
         self.lever_arm_b_m = np.asarray(lever_arm_b_m, dtype=float)
         self.gm_sigma = None if correlated_sigma_enu_m is None else np.asarray(correlated_sigma_enu_m, float)
+        self.estimate_lever_arm = bool(estimate_lever_arm)
+        blocks = []
         if self.gm_sigma is not None:
-            self.private_states = (gauss_markov_block(correlation_time_s, self.gm_sigma),)
+            blocks.append(gauss_markov_block(correlation_time_s, self.gm_sigma))
+        if self.estimate_lever_arm:
+            blocks.append(lever_arm_block(lever_arm_std_m, lever_arm_rw_m_per_sqrt_h))
+        if blocks:
+            self.private_states = tuple(blocks)
 
     # --- the antenna ------------------------------------------------------------------------------
-    def antenna_offsets(self, nav: NavState, wib_b_rps) -> tuple[np.ndarray, np.ndarray]:
+    def lever_arm(self, ctx: ModelContext | None = None) -> np.ndarray:
+        """The lever arm the model uses: the configured one, plus the estimated block's reference
+        when the lever arm is estimated."""
+        if not self.estimate_lever_arm or ctx is None:
+            return self.lever_arm_b_m
+        ref = ctx.reference.get(LEVER_BLOCK)
+        if ref is None:
+            raise ValueError("the estimated lever arm needs a filter with the 'gnss_lever_arm' block")
+        return self.lever_arm_b_m + np.asarray(ref, dtype=float)
+
+    def antenna_offsets(self, nav: NavState, wib_b_rps, lever_b_m=None) -> tuple[np.ndarray, np.ndarray]:
         """(C_nb l, C_nb (w x l)): the antenna's position and velocity offsets from the IMU, ENU."""
-        l_b = self.lever_arm_b_m
+        l_b = self.lever_arm_b_m if lever_b_m is None else lever_b_m
         if not l_b.any():  # the antenna at the IMU: no offsets (the same zeros, without the algebra)
             return np.zeros(3), np.zeros(3)
         c_nb = nav.mat_nb
@@ -115,7 +166,7 @@ class GnssFixModel:
     def __call__(self, nav: NavState, msg: GnssFix, ctx: ModelContext) -> Measurement | None:
         lat, lon = math.radians(msg.lat_deg), math.radians(msg.lon_deg)
         r_m, r_n = earth.radii(nav.lat_rad)
-        dl_pos, dl_vel = self.antenna_offsets(nav, ctx.wib_b_rps)
+        dl_pos, dl_vel = self.antenna_offsets(nav, ctx.wib_b_rps, self.lever_arm(ctx))
         vel_fix = msg.velocity()
         carry = np.zeros(3) if vel_fix is None else np.asarray(vel_fix, dtype=float) * ctx.dt_late_s
         dp = (
@@ -144,6 +195,11 @@ class GnssFixModel:
         H_vel = np.zeros((3, ctx.n_states))
         H_vel[:, em.VEL] = np.eye(3)
         H_vel[:, em.ATT] = earth.skew(dl_vel)
+        if self.estimate_lever_arm:
+            cols = ctx.columns[LEVER_BLOCK]
+            c_nb = nav.mat_nb
+            H_pos[:, cols] = c_nb
+            H_vel[:, cols] = c_nb @ earth.skew(np.asarray(ctx.wib_b_rps, dtype=float))
         zs, Hs, stds, mins, labels = [dp], [H_pos], [pos_std], [np.full(3, MIN_POS_STD_M)], list(LABELS[:3])
         variant = msg.variant
         if variant == "velocity":
