@@ -43,8 +43,12 @@ def pipelines_of(scenario) -> list[TransferAlignmentConfig]:
     return [TransferAlignmentConfig.model_validate(c) for c in cfgs if c.get("kind") == "transfer_alignment"]
 
 
-def run_once(scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None) -> dict:
-    """One seeded run; returns per pipeline arrays over filter epochs (E) and nodes (B)."""
+def run_once(
+    scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None, sigmas: bool = False
+) -> dict:
+    """One seeded run; returns per pipeline arrays over filter epochs (E) and nodes (B).
+    ``sigmas``: also the filter's 1-sigma of the lever arm (ENU, ``lever_sig`` (E, B, 3)) and of
+    the heading (``head_sig`` (E, B), rad), for errors against time with their bounds."""
     sim = WingSimulation(scenario, seed, trajectory=traj)  # the same samples the live stream carries
     traj = sim.master.trajectory
     dth_m, dv_m = sim.master._dth, sim.master._dv
@@ -58,10 +62,9 @@ def run_once(scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None
     dv_s = np.stack([n.dvel_mps for n in nodes], axis=1)
     dt = 1.0 / scenario.imu.rate_hz
     C_nm = mat_nb_vec(traj.rpy_rad)
-    out = {
-        cfg.name: {k: [] for k in ("t", "head", "lever", "phi", "theta", "nees", "R", "s", "trig")}
-        for cfg in cfgs
-    }
+    keys = ("t", "head", "lever", "phi", "theta", "nees", "R", "s", "trig")
+    keys += ("lever_sig", "head_sig") if sigmas else ()
+    out = {cfg.name: {k: [] for k in keys} for cfg in cfgs}
     t_rel = np.arange(traj.t_s.size) * dt
     for k in range(1, traj.t_s.size):
         for cfg, bank, order in banks:
@@ -85,6 +88,11 @@ def run_once(scenario, cfgs: list[TransferAlignmentConfig], seed: int, traj=None
             o["R"].append(info.R_diag)
             o["s"].append(info.fading_s.max(axis=1))
             o["trig"].append(info.fading_triggered)
+            if sigmas:  # ENU lever-arm covariance C P_dr C'; heading: the up row of C_nm on phi
+                C = C_nm[k]
+                Pdr = C @ bank.P[:, ta.DR, ta.DR] @ C.T
+                o["lever_sig"].append(np.sqrt(np.diagonal(Pdr, axis1=1, axis2=2)))
+                o["head_sig"].append(np.sqrt(np.einsum("i,bij,j->b", C[2], bank.P[:, ta.PHI, ta.PHI], C[2])))
     return {
         name: {k: np.asarray(v) for k, v in d.items()} | {"nodes": [n.id for n in cfgs[i].nodes]}
         for i, (name, d) in enumerate(out.items())
