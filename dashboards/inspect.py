@@ -556,7 +556,69 @@ def _screening(v: str, p: str, data: dict[str, Series], n_fixes: int) -> dict[st
     return rows
 
 
-def _verdict(fixres: dict | None, screening: dict, correlated: bool | None) -> tuple[str, list[dict]]:
+#: the rows of a sensor's innovations as the verdict names them
+ROW_AXES = {
+    "pos_e": "east",
+    "pos_n": "north",
+    "pos_u": "up",
+    "vel_e": "east velocity",
+    "vel_n": "north velocity",
+    "vel_u": "up velocity",
+    "vel_along": "along-track velocity",
+    "vel_cross": "cross-track velocity",
+}
+NIS_MIN_EPOCHS = 20  # fewer used rows than this: no figure
+
+
+def _innovation_consistency(v: str, p: str, data: dict[str, Series], t_from: float | None) -> dict | None:
+    """Per sensor stream and row, the recorded innovation windows (``RerunSink.log_innovations``)
+    pooled: the NIS per row, mean of r^2 = nu^2 / S over the rows used after ``t_from``, against
+    chi-square(1) (mean 1 for a consistent filter, whatever the states behind S: correlated
+    receiver error, lever arm, ...), with the 95 % interval of the mean of that many independent
+    chi-square(1) values (chi2(N) / N: a consistent filter's innovations are white);
+    factor = sqrt(NIS), the real over the claimed innovation spread; the gate's refusals."""
+    from scipy.stats import chi2
+
+    root = paths.innovations(v, p) + "/"
+    out: dict[str, Any] = {}
+    for ent, m in data.items():
+        if not ent.startswith(root) or not ent.endswith("/r2_mean") or len(m) == 0:
+            continue
+        parts = ent[len(root) :].split("/")
+        if len(parts) != 4:
+            continue
+        sensor, label = f"{parts[0]}/{parts[1]}", parts[2]
+        n = _align(m, data.get(paths.innovations(v, p, sensor, label, "count")))
+        x = np.asarray(m.values, dtype=np.float64)
+        keep = np.isfinite(n) & np.isfinite(x) & (n > 0)
+        if t_from is not None:
+            keep &= m.t_ns / 1e9 >= t_from
+        epochs = int(n[keep].sum())
+        if epochs < NIS_MIN_EPOCHS:
+            continue
+        nis = float((x[keep] * n[keep]).sum() / epochs)
+        lo, hi = float(chi2.ppf(0.025, epochs) / epochs), float(chi2.ppf(0.975, epochs) / epochs)
+        entry = out.setdefault(sensor, {"rows": {}})
+        entry["rows"][label] = {
+            "epochs": epochs,
+            "windows": int(keep.sum()),
+            "nis": nis,
+            "interval95": [lo, hi],
+            "factor": math.sqrt(max(nis, 0.0)),
+        }
+    for sensor, entry in out.items():
+        ref = data.get(paths.innovations(v, p, sensor, paths.INNOVATIONS_REFUSED))
+        if ref is not None and len(ref):
+            keep = np.ones(len(ref), bool) if t_from is None else ref.t_ns / 1e9 >= t_from
+            entry["refused"] = int(np.asarray(ref.values)[keep].sum())
+        order = {lab: i for i, lab in enumerate(ROW_AXES)}
+        entry["rows"] = dict(sorted(entry["rows"].items(), key=lambda kv: (order.get(kv[0], 99), kv[0])))
+    return out or None
+
+
+def _verdict(
+    fixres: dict | None, screening: dict, correlated: bool | None, innov: dict | None = None
+) -> tuple[str, list[dict]]:
     """One line from the evidence: the largest significant over- or underconfidence, else
     consistent, else not decidable."""
     ev: list[dict] = []
@@ -577,6 +639,19 @@ def _verdict(fixres: dict | None, screening: dict, correlated: bool | None) -> t
                         "under": a["factor"] < 1 / CONSISTENT_FACTOR and hi < 1.0,
                     }
                 )
+    for sensor, r in (innov or {}).items():
+        for label, a in r["rows"].items():
+            lo, hi = a["interval95"]
+            ev.append(
+                {
+                    "source": f"innovations ({sensor}: NIS {a['nis']:.2f} over {a['epochs']} epochs, "
+                    f"chi-square(1) 95 % interval {lo:.2f}-{hi:.2f})",
+                    "axis": ROW_AXES.get(label, label),
+                    "factor": a["factor"],
+                    "over": a["nis"] > hi and a["factor"] > CONSISTENT_FACTOR,
+                    "under": a["nis"] < lo and a["factor"] < 1 / CONSISTENT_FACTOR,
+                }
+            )
     for label, r in screening.items():
         k = r.get("implied_factor")
         if k is None:
@@ -585,7 +660,7 @@ def _verdict(fixres: dict | None, screening: dict, correlated: bool | None) -> t
         ev.append(
             {
                 "source": f"{'gate refusals' if gate else 'fault-test statistics'} ({label})",
-                "axis": label.split("/")[-1],
+                "axis": ROW_AXES.get(label.split("/")[-1], label.split("/")[-1]),
                 "factor": k,
                 "over": k > CONSISTENT_FACTOR,
                 # refusals cannot show underconfidence: a gate that refuses nothing says nothing
@@ -615,15 +690,21 @@ def _verdict(fixres: dict | None, screening: dict, correlated: bool | None) -> t
         )
     if under:
         worst = min(under, key=lambda e: e["factor"])
+        tail = caveat if worst["source"].startswith("fix residuals") else ""
         return (
-            f"underconfident in {worst['axis']} by {1 / worst['factor']:.1f}x ({worst['source']}){caveat}",
+            f"underconfident in {worst['axis']} by {1 / worst['factor']:.1f}x ({worst['source']}){tail}",
             ev,
         )
+    nis = [e for e in ev if e["source"].startswith("innovations")]
+    if nis:  # the innovations' NIS: the evidence that holds whatever states the filter carries
+        figures = ", ".join(f"{e['axis']} {e['factor']:.2f}" for e in nis)
+        return f"consistent (innovations: real / claimed spread within {CONSISTENT_FACTOR}x: {figures})", ev
     if any(e["source"].startswith(("fix residuals", "fault-test")) for e in ev):
         figures = ", ".join(f"{e['axis']} {e['factor']:.2f}" for e in ev if "factor" in e)
         return f"consistent (real / claimed error within {CONSISTENT_FACTOR}x: {figures}){caveat}", ev
     why = (
-        "gnss_correlated_error holds part of the fix error as states the recording does not hold"
+        "gnss_correlated_error holds part of the fix error as states the recording does not hold, "
+        "and it holds no innovation windows"
         if correlated
         else "no fix residuals or innovation tests in the recording"
     )
@@ -674,7 +755,8 @@ def real_run_summary(
     lever = None if pipeline_cfg is None else getattr(pipeline_cfg, "gnss_lever_arm_b_m", None)
     fixres = _fix_residual_consistency(v, p, data, t_from, lever)
     screening = _screening(v, p, data, n_fixes)
-    verdict, evidence = _verdict(fixres, screening, correlated)
+    innov = _innovation_consistency(v, p, data, t_from)
+    verdict, evidence = _verdict(fixres, screening, correlated, innov)
     return {
         "status": timeline,
         "solution_gaps": _gaps(lat.t_ns) if lat is not None else [],
@@ -682,6 +764,7 @@ def real_run_summary(
         "fix_residuals": fixres,
         "fix_residuals_apply": correlated is not True,
         "screening": screening,
+        "innovations": innov,
         "evidence": evidence,
         "verdict": verdict,
     }
@@ -876,6 +959,18 @@ def _render_real_run(p: dict[str, Any], t0: float) -> list[str]:
                 f"fixes): {ax}; fix residual RMS E/N {_fmt(r['residual_rms_m'][0], '.2f')}/"
                 f"{_fmt(r['residual_rms_m'][1], '.2f')} m{note}"
             )
+    for sensor, r in (p.get("innovations") or {}).items():
+        rows = ", ".join(
+            f"{ROW_AXES.get(label, label)} {a['nis']:.2f} "
+            f"({a['interval95'][0]:.2f}-{a['interval95'][1]:.2f}, x{a['factor']:.2f})"
+            for label, a in r["rows"].items()
+        )
+        n = max((a["epochs"] for a in r["rows"].values()), default=0)
+        ref = f"; {r['refused']} rows refused by the gate" if r.get("refused") else ""
+        out.append(
+            f"    innovations {sensor} ({n} epochs): NIS per row against chi-square(1) (95 % interval, "
+            f"real/claimed spread): {rows}{ref}"
+        )
     for label, r in (p.get("screening") or {}).items():
         tests = r.get("tests")
         rate = (

@@ -21,6 +21,8 @@ share one definition. Paths mirror the Zenoh keys of ``service/keys.py`` without
     /{vehicle}/{pipeline}/faults/{subsystem}/{label}/flagged                  StateChange ok|flagged|isolated
     /{vehicle}/{pipeline}/faults/{subsystem}/subsystem_isolated               StateChange in use|isolated
     /{vehicle}/{pipeline}/sharing/{local_filter}/{state_index}                Scalars
+    /{vehicle}/{pipeline}/innovations/{kind}/{sensor_id}/{label}/{r2_mean, count}   Scalars (windows)
+    /{vehicle}/{pipeline}/innovations/{kind}/{sensor_id}/refused                    Scalars (windows)
     /{vehicle}/{pipeline}/integrity/{hpl_m, ...}            Scalars (INTEGRITY_SCALARS; flags as 0/1)
     /{vehicle}/{pipeline}/integrity/excluded_count          Scalars
     /{vehicle}/{pipeline}/integrity/sat/{id}/{statistic_m, threshold_m}       Scalars
@@ -232,6 +234,36 @@ def faults(
     return p
 
 
+#: leaves of an innovation window (``RerunSink.log_innovations``): the mean of the squared
+#: standardised innovations r^2 = nu^2 / S (chi-square(1) per row, mean 1 for a consistent filter)
+#: over the rows used since the last recorded window, and their number; per sensor, the rows the
+#: gate refused in the window
+INNOVATION_LEAVES = ("r2_mean", "count")
+INNOVATIONS_REFUSED = "refused"
+
+
+def innovations(
+    vehicle: str,
+    pipeline: str,
+    sensor: str | None = None,
+    label: str | None = None,
+    leaf: str | None = None,
+) -> str:
+    """``.../innovations[/{kind}/{sensor_id}[/{label}[/{leaf}]]]``; ``sensor`` is the stream key
+    ``kind/sensor_id`` (e.g. ``gnss_fix/rx``, two path parts), label a row (pos_e, vel_u, ...),
+    leaf r2_mean or count; ``label`` ``refused`` (no leaf): the rows refused in the window."""
+    p = f"{pipeline_root(vehicle, pipeline)}/innovations"
+    if sensor is None:
+        return p
+    kind, _, sid = sensor.partition("/")
+    p = f"{p}/{part(kind)}/{part(sid or '_')}"
+    for x in (label, leaf):
+        if x is None:
+            break
+        p = f"{p}/{part(x)}"
+    return p
+
+
 def reconfiguration(vehicle: str, pipeline: str) -> str:
     """``.../faults/reconfiguration``: text events "excluded: <subsystem>" / "rejoined: <subsystem>"."""
     return f"{pipeline_root(vehicle, pipeline)}/faults/reconfiguration"
@@ -336,13 +368,14 @@ def input_fix(vehicle: str, sensor_id: str) -> str:
 
 
 _SLOW = re.compile(
-    r"/(faults|fault_tests|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat"
+    r"/(faults|fault_tests|innovations|sharing|std|health|states|imm|alignment\w*|underwater)/|/integrity/sat"
 )
 
 
 def is_slow_stream(entity_path: str) -> bool:
     """Diagnostic streams the sink may send less often (``slow_flush_interval_s``): fault tests,
-    sharing coefficients, 1-sigma, health, private states, family groups, per-satellite tests."""
+    innovation windows, sharing coefficients, 1-sigma, health, private states, family groups,
+    per-satellite tests."""
     return _SLOW.search(entity_path) is not None
 
 

@@ -304,6 +304,8 @@ class RerunSink:
         self._enu_ref: dict[str, tuple[float, float, float]] = {}  # vehicle -> (lat_rad, lon_rad, h_m)
         self._enu_last: dict[tuple[str, str], tuple[float, float]] = {}  # (vehicle, source) -> (e, n)
         self._state_last: dict[str, str] = {}
+        #: (vehicle, pipeline, sensor) -> the innovation window being accumulated (log_innovations)
+        self._innov: dict[tuple[str, str, str], dict] = {}
         self._marker_last: dict[tuple[str, str], int] = {}
         self._vehicles: list[str] = []
         self._bp_more = 0  # vehicles beyond BLUEPRINT_VEHICLES (recorded, without tabs of their own)
@@ -581,6 +583,69 @@ class RerunSink:
                 self._add(paths.filter_state(vehicle, p, st.name, "std"), "scalar", tn, st.std)
             self._maybe_flush()
 
+    def log_innovations(
+        self,
+        vehicle: str,
+        pipeline: str,
+        t: float,
+        sensor: str,
+        labels: Sequence[str],
+        standardised: Sequence[float],
+        used: Sequence[bool] | None = None,
+    ) -> None:
+        """One aiding epoch's standardised innovations r_j = nu_j / sqrt(S_jj) of a pipeline's
+        sensor stream (``sensor``: ``kind/sensor_id``; the prior innovation per row and the diagonal
+        of its covariance S = H P- H' + R, private states such as the correlated receiver error
+        included), ``used``: the rows the update used (the gate's refusals are counted apart).
+
+        Cheap by construction (a fleet records many vehicles): the rows are accumulated per row
+        label and recorded as windows, at most one per ``faults`` decimation interval (every epoch
+        when not decimated): the mean of r^2 over the window's used rows and their count (two
+        scalars per row label) and the rows refused in it. ``fednav-inspect`` pools the windows into
+        the NIS per row against chi-square(1) (dashboards/inspect.py)."""
+        if self._closed:
+            return
+        r = np.asarray(standardised, dtype=float)
+        ok = np.isfinite(r) if used is None else np.isfinite(r) & np.asarray(used, dtype=bool)
+        with self._lock:
+            if self._closed:
+                return
+            key = (vehicle, pipeline, sensor)
+            acc = self._innov.get(key)
+            if acc is None:
+                acc = self._innov[key] = {"rows": {}, "refused": 0, "t": t}
+            rows = acc["rows"]
+            for lab, x, good in zip(labels, r.tolist(), ok.tolist(), strict=True):
+                if good:
+                    cell = rows.get(lab)
+                    if cell is None:
+                        rows[lab] = [x * x, 1]
+                    else:
+                        cell[0] += x * x
+                        cell[1] += 1
+            acc["refused"] += int(len(r) - int(ok.sum()))
+            acc["t"] = t
+            if self._due("faults", vehicle, f"{pipeline}#innovations#{sensor}", t):
+                self._innovation_window(key, acc)
+            self._maybe_flush()
+
+    def _innovation_window(self, key: tuple[str, str, str], acc: dict) -> None:
+        """Record and reset one accumulated innovation window (lock held)."""
+        vehicle, pipeline, sensor = key
+        if not acc["rows"] and not acc["refused"]:
+            return
+        tn = self._time(vehicle, acc["t"])
+        for lab, (s2, n) in acc["rows"].items():
+            self._add(paths.innovations(vehicle, pipeline, sensor, lab, "r2_mean"), "scalar", tn, s2 / n)
+            self._add(paths.innovations(vehicle, pipeline, sensor, lab, "count"), "scalar", tn, float(n))
+        self._add(
+            paths.innovations(vehicle, pipeline, sensor, paths.INNOVATIONS_REFUSED),
+            "scalar",
+            tn,
+            float(acc["refused"]),
+        )
+        acc["rows"], acc["refused"] = {}, 0
+
     def log_integrity(
         self, vehicle: str, integ: Integrity, h_error_m: float | None = None, v_error_m: float | None = None
     ) -> None:
@@ -769,6 +834,8 @@ class RerunSink:
                     self._send_vehicle_blueprint()
                 for track in self._tracks.values():
                     self._send_track(track)
+                for key, acc in self._innov.items():  # the last (partial) innovation windows
+                    self._innovation_window(key, acc)
                 self._flush_locked()
                 self._sdk_flush()
             finally:
