@@ -456,6 +456,12 @@ class ImmTightlyCoupledConfig(Model):
         "combined",
         description="'combined': eq (12)-(13) fed back and published; 'map': the most probable model's",
     )
+    learn_transition_s: float | Literal["auto"] | None = Field(
+        "auto",
+        description="Learn the Markov matrix online (EM with forgetting of this time constant, s; the "
+        "resolved transition as prior; not in the paper; docs/seed003.md). None: the fixed matrix; 'auto': "
+        "60 s with the selection correction (the recommended IMM), else fixed (the paper's IMM)",
+    )
 
     @model_validator(mode="after")
     def _markov(self):
@@ -473,6 +479,9 @@ class ImmTightlyCoupledConfig(Model):
         mu0 = self.resolved_mu0()
         if len(mu0) != M or abs(sum(mu0) - 1.0) > 1e-9:
             raise ValueError(f"initial_probabilities: need {M} values summing to 1")
+        tau = self.learn_transition_s
+        if tau is not None and tau != "auto" and not 0 < tau < float("inf"):
+            raise ValueError(f"learn_transition_s: {tau} (a time constant > 0 s, 'auto' or None)")
         return self
 
     def resolved_transition(self) -> list[list[float]] | None:
@@ -483,6 +492,11 @@ class ImmTightlyCoupledConfig(Model):
         if len(self.models) == 1:
             return [[1.0]]
         return None
+
+    def resolved_learn_transition_s(self) -> float | None:
+        if self.learn_transition_s == "auto":
+            return 60.0 if self.selection_correction else None
+        return self.learn_transition_s
 
     def resolved_mu0(self) -> list[float]:
         if self.initial_probabilities is not None:
