@@ -280,3 +280,46 @@ def test_selection_correction_keeps_the_normal_model_on_clean_data_and_still_cat
     assert 0.35 < wins[False] / 400 < 0.6  # measured 0.46 (1 - 0.969^20 = 0.47 expected)
     assert wins[True] / 400 < 0.06  # measured 0.0125 (max |v| > 3.27: about 2 %)
     assert caught == 400
+
+
+def test_transition_learner_follows_the_outlier_rate_the_data_show():
+    """Online EM of the Markov matrix: epochs where the normal model explains the data, with
+    i.i.d. 15 % where the one-outlier model does (log-likelihood +8 nats), raise P(normal ->
+    largest) from the paper's 0.02 towards the rate; all-normal epochs lower it below the prior;
+    rows stay stochastic; with no data the prior matrix is returned."""
+    rng = np.random.default_rng(5)
+    learner = core.TransitionLearner(PI, tau_s=60.0, prior_epochs=50.0)
+    np.testing.assert_allclose(learner.Pi, PI)
+    mu, Pi = MU0.copy(), PI.copy()
+    for k in range(3000):
+        ll = np.array([0.0, -8.0, -9.0, -12.0]) if rng.random() > 0.15 else np.array([-8.0, 0.0, -1.0, -5.0])
+        Pi_used = Pi
+        Pi = learner.update(0.1 * k, mu, Pi_used, ll)
+        mu = core.probabilities(ll, mu @ Pi_used)
+    np.testing.assert_allclose(Pi.sum(axis=1), 1.0)
+    assert 0.1 < Pi[0, 1] < 0.2  # the rate, not the prior's 0.02
+    assert Pi[1, 1] < 0.6  # i.i.d. outliers: less persistence than the prior 0.9 (n0 keeps some)
+    clean = core.TransitionLearner(PI, tau_s=60.0, prior_epochs=50.0)
+    mu, Pi = MU0.copy(), PI.copy()
+    for k in range(3000):
+        ll = np.array([0.0, -3.0, -6.0, -10.0])
+        Pi_used = Pi
+        Pi = clean.update(0.1 * k, mu, Pi_used, ll)
+        mu = core.probabilities(ll, mu @ Pi_used)
+    assert Pi[0, 1] < 0.005 and Pi[0, 0] > 0.99
+
+
+def test_learned_transition_is_the_recommended_imm_default_only():
+    """'auto': learned (60 s) with the selection correction, the paper's fixed matrix otherwise;
+    None always fixed; a non-positive time constant is a configuration error."""
+
+    def imm(**kw):
+        return from_dict({"pipelines": [{"name": "imm", "kind": "imm_tightly_coupled", **kw}]}).pipelines[0]
+
+    assert imm(likelihood="gaussian", selection_correction=True).resolved_learn_transition_s() == 60.0
+    assert imm(likelihood="gaussian").resolved_learn_transition_s() is None
+    assert imm().resolved_learn_transition_s() is None
+    assert imm(selection_correction=True, learn_transition_s=None).resolved_learn_transition_s() is None
+    assert imm(learn_transition_s=20.0).resolved_learn_transition_s() == 20.0
+    with pytest.raises(ConfigError, match="learn_transition_s"):
+        imm(learn_transition_s=0.0)

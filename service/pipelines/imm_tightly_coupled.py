@@ -56,6 +56,13 @@ class ImmTightlyCoupled(Pipeline):
         self.clock_initialised = False
         self.last: core.ImmStep | None = None
         self.rejected_rows = 0
+        self.learner = self._new_learner()
+
+    def _new_learner(self) -> core.TransitionLearner | None:
+        tau = self.cfg.resolved_learn_transition_s()
+        if tau is None or len(self.models) < 2:
+            return None
+        return core.TransitionLearner(np.array(self.cfg.resolved_transition(), dtype=float), tau)
 
     # --- pipeline interface ------------------------------------------------------------------------
     def initialise(self, nav: NavState, std: InitStd) -> None:
@@ -65,6 +72,9 @@ class ImmTightlyCoupled(Pipeline):
         self.mu = self.mu0.copy()
         self.clock_initialised = False
         self.last = None
+        self.learner = self._new_learner()
+        if self.learner is not None:
+            self.Pi = self.learner.Pi
 
     def restore_references(self, refs) -> None:
         super().restore_references(refs)
@@ -148,6 +158,8 @@ class ImmTightlyCoupled(Pipeline):
         except NotPositiveDefinite:
             self.recover_covariance()
             return []
+        if self.learner is not None:
+            self.Pi = self.learner.update(float(nav.t), self.mu, self.Pi, st.log_lik)
         bank.x, bank.P, self.mu, self.last = st.x, st.P, st.mu, st
         bank.feedback(self.combined()[0])
         self.mark_aided(nav.t)
