@@ -458,7 +458,7 @@ class VehicleEngine:
             and np.isfinite(est.P9).all()
             and abs(nav.lat_rad) <= math.pi / 2
             and MIN_HEIGHT_M <= nav.h_m <= MAX_HEIGHT_M
-            and float(np.linalg.norm(nav.vel_enu_mps)) <= MAX_SPEED_MPS
+            and math.hypot(*nav.vel_enu_mps) <= MAX_SPEED_MPS
         )
 
     # --- outputs --------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ innovations r_j / sqrt(S_jj) and NIS = r' S^-1 r = |w|^2, which fault tests cons
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,14 @@ class UpdateResult:
 
 class NotPositiveDefinite(np.linalg.LinAlgError):
     """A covariance (or innovation covariance) lost positive definiteness."""
+
+
+@functools.lru_cache(maxsize=64)
+def _eye(n: int) -> np.ndarray:
+    """The (n, n) identity, made once per size (read-only: the hot path asks for it per update)."""
+    eye = np.eye(n)
+    eye.setflags(write=False)
+    return eye
 
 
 def symmetrise(P: np.ndarray) -> np.ndarray:
@@ -109,7 +118,7 @@ def gain(
     shared_H = H.ndim == 2
     R = np.asarray(R, dtype=float)
     if R.ndim == 1:
-        R = R[:, None] * np.eye(m)
+        R = R[:, None] * _eye(m)
     R = np.broadcast_to(R, (B, m, m))
     z = np.broadcast_to(z, (B, m))
     if mask is not None:
@@ -117,7 +126,7 @@ def gain(
         keep = keep_b.astype(float)
         PHt = (P @ np.swapaxes(H, -1, -2)) * keep[:, None, :]  # P H_b' (masked rows' columns zero)
         HPHt = H @ PHt * keep[:, :, None]
-        R = R * (keep[:, :, None] * keep[:, None, :]) + np.eye(m) * (1.0 - keep)[:, :, None]
+        R = R * (keep[:, :, None] * keep[:, None, :]) + _eye(m) * (1.0 - keep)[:, :, None]
         r = (z - np.einsum("...ij,...j->...i", H, x) if not shared_H else z - x @ H.T) * keep
         dof = keep_b.sum(axis=1)
     else:
@@ -137,7 +146,7 @@ def gain(
     w = W[:, :, n]  # whitened innovation L^-1 r
     K = np.swapaxes(Kt, 1, 2)  # (B, n, m)
     x_new = x + np.einsum("bij,bj->bi", K, r)
-    IKH = np.eye(n) - K @ H
+    IKH = _eye(n) - K @ H
     std = r / np.sqrt(np.diagonal(S, axis1=1, axis2=2))
     res = UpdateResult(r, S, w, std, np.einsum("bi,bi->b", w, w), dof, K)
     return Gain(x_new, K, IKH, R, res)
