@@ -124,8 +124,16 @@ INIT_HISTORY = 16
 CHECKPOINT_MAX_AGE_S = 5.0
 CHECKPOINTS = 8
 #: ... one kept at most every this often (s; the cost of a copy of the filter at output epochs)
-CHECKPOINT_PERIOD_S = 0.5
-#: heading change a carried checkpoint may miss, 1-sigma (deg/s)
+CHECKPOINT_PERIOD_S = 0.1
+#: a carried checkpoint moves on with the acceleration and turn rate its INS had then; what the
+#: vehicle may have changed of them over the gap is the largest change between consecutive
+#: checkpoints seen in the last ``CARRY_HISTORY_S`` of verified navigation (its own dynamics, with
+#: its IMU's noise), never less than these floors (1-sigma; m/s^2 and deg/s)
+CARRY_ACC_FLOOR_MPS2 = 0.02
+CARRY_TURN_FLOOR_DPS = 0.02
+CARRY_HISTORY_S = 60.0
+#: ... and before any history: (m/s^2, deg/s)
+CARRY_ACC_DEFAULT_MPS2 = 0.5
 CARRY_TURN_STD_DPS = 3.0
 #: a GNSS fix is this epoch's reference when at most this far from it in time (s): an older one
 #: carried forward says nothing reliable about the velocity of an accelerating vehicle
@@ -258,6 +266,21 @@ def consistent_fixes(a: GnssFix, b: GnssFix) -> bool:
     return float(np.sum(d[:3] ** 2 / var_p) + np.sum(d[3:] ** 2 / var_v)) <= alignment.PLAUSIBILITY_CHI2_6DOF
 
 
+def _dynamics(p: Pipeline, nav: NavState) -> tuple[np.ndarray, np.ndarray] | None:
+    """(acceleration ENU m/s^2, body turn rate relative to the navigation frame rad/s) of ``p``'s
+    INS over its last interval, or None without one."""
+    ins = getattr(p.bank, "ins", None) if p.bank is not None else None
+    if ins is None:
+        return None
+    f_n = np.asarray(ins.last_fn_mps2, dtype=float)
+    w_ib = np.asarray(ins.last_wib_b_rps, dtype=float)
+    if not (np.all(np.isfinite(f_n)) and np.all(np.isfinite(w_ib))):
+        return None
+    g = earth.gravity_normal(nav.lat_rad, nav.h_m)
+    w_nb = w_ib - nav.mat_nb.T @ earth.earth_rate_n(nav.lat_rad)
+    return f_n - np.array([0.0, 0.0, g]), w_nb
+
+
 def carried(nav: NavState, std: InitStd, t: float) -> tuple[NavState, InitStd]:
     """A state moved to time ``t`` with its own velocity, its position sigma grown over the gap."""
     dt = t - nav.t
@@ -302,8 +325,11 @@ class VehicleLife:
         self.init_sigmas: deque = deque(maxlen=INIT_HISTORY)
         self._recent: dict[str, deque] = {}  # stream -> its latest fixes (references' confirmation)
         self.last_init_reset_t: float | None = None
-        #: per pipeline, its latest verified estimates (t, NavState, P9) at output epochs
+        #: per pipeline, its latest verified estimates (t, NavState, P9, full state, dynamics) at
+        #: output epochs; dynamics: (acceleration ENU m/s^2, body turn rate w_nb rad/s) of its INS
         self.checkpoints: dict[str, deque] = {p.name: deque(maxlen=CHECKPOINTS) for p in engine.pipelines}
+        #: per pipeline, (t, |acceleration change|, |turn rate change|) between its checkpoints
+        self.dyn_changes: dict[str, deque] = {p.name: deque() for p in engine.pipelines}
 
     # --- transitions -------------------------------------------------------------------------------
     def go(self, p: Pipeline, event: str, t: float | None, reason: str | None = None) -> str:
@@ -780,7 +806,27 @@ class VehicleLife:
         cps = self.checkpoints[p.name]
         if cps and 0.0 <= est.nav.t - cps[-1][0] < CHECKPOINT_PERIOD_S:
             return
-        cps.append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p)))
+        dyn = _dynamics(p, est.nav)
+        recent = cps and est.nav.t - cps[-1][0] <= 2 * CHECKPOINT_PERIOD_S
+        if recent and dyn is not None and cps[-1][4] is not None:
+            a0, w0 = cps[-1][4]
+            changes = self.dyn_changes[p.name]
+            changes.append((est.nav.t, math.hypot(*(dyn[0] - a0)), math.hypot(*(dyn[1] - w0))))
+            while changes and changes[0][0] < est.nav.t - CARRY_HISTORY_S:
+                changes.popleft()
+        cps.append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), dyn))
+
+    def carry_sigmas(self, p: Pipeline) -> tuple[float, float]:
+        """(acceleration m/s^2, turn rate rad/s) a carried checkpoint of ``p`` may miss, 1-sigma:
+        the largest change between its consecutive checkpoints lately (floored), or the defaults
+        before there is a history."""
+        changes = self.dyn_changes[p.name]
+        if len(changes) < 4:
+            return CARRY_ACC_DEFAULT_MPS2, math.radians(CARRY_TURN_STD_DPS)
+        n = len(changes)
+        acc = max(CARRY_ACC_FLOOR_MPS2, math.sqrt(sum(c[1] ** 2 for c in changes) / n))
+        turn = max(math.radians(CARRY_TURN_FLOOR_DPS), math.sqrt(sum(c[2] ** 2 for c in changes) / n))
+        return acc, turn
 
     def _checkpoint(self, p: Pipeline, t: float):
         """``p``'s last verified estimate if at most ``CHECKPOINT_MAX_AGE_S`` from ``t``: (time,
@@ -789,14 +835,14 @@ class VehicleLife:
         cps = self.checkpoints[p.name]
         if not cps:
             return None
-        t_cp, cp, P9, full = cps[-1]
+        t_cp, cp, P9, full, dyn = cps[-1]
         if abs(t - t_cp) > CHECKPOINT_MAX_AGE_S:
             return None
         bank = p.bank
         if full is not None and bank is not None and full[0].shape[-1] == bank.n:
             if full[0].ndim == 2 or full[0].shape[0] == bank.B:
-                return t_cp, cp, P9, full[0].copy(), (full[1], full[2])
-        return t_cp, cp, P9, P9.copy(), None
+                return t_cp, cp, P9, full[0].copy(), (full[1], full[2]), dyn
+        return t_cp, cp, P9, P9.copy(), None, dyn
 
     def _carried_checkpoint(self, p: Pipeline, t: float, level: bool = True):
         """(NavState, 6x6 position/velocity covariance, InitStd with the full ``cov``, private
@@ -809,9 +855,18 @@ class VehicleLife:
         c = self._checkpoint(p, t)
         if c is None:
             return None
-        t_cp, cp, P9, P, refs = c
+        t_cp, cp, P9, P, refs, dyn = c
+        P_old = P.copy()
         dt = t - t_cp
-        nav = shifted(cp, np.asarray(cp.vel_enu_mps, dtype=float) * dt)
+        v0 = np.asarray(cp.vel_enu_mps, dtype=float)
+        acc_std, turn_std = self.carry_sigmas(p)
+        if dyn is None:
+            nav = shifted(cp, v0 * dt)
+        else:  # on with its acceleration and turn rate of then
+            a, w = dyn
+            nav = shifted(cp, v0 * dt + 0.5 * a * dt * dt)
+            nav.vel_enu_mps = v0 + a * dt
+            nav.q_nb = earth.quat_mul(np.asarray(cp.q_nb, dtype=float), earth.rotvec_to_quat(w * dt))
         nav.t = t
         T = np.eye(P.shape[-1])
         T[:3, 3:6] = dt * np.eye(3)
@@ -820,14 +875,15 @@ class VehicleLife:
         T9[:3, 3:6] = dt * np.eye(3)
         P9 = T9 @ P9 @ T9.T
         dt = abs(dt)
-        acc = CARRY_ACC_STD_MPS2
+        acc = acc_std
         grow = np.diag([(0.5 * acc * dt * dt) ** 2] * 3 + [(acc * dt) ** 2] * 3)
         P[..., :6, :6] += grow
         P9[:6, :6] += grow
         sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
-        turn = math.radians(CARRY_TURN_STD_DPS) * dt
+        turn = turn_std * dt
         att = np.sqrt(np.square(sd[6:9]) + turn * turn)
-        if level and p.bank is not None:
+        levelled = False
+        if level and p.bank is not None and math.atan2(acc, 9.8) < float(np.max(att[:2])):
             est = p.estimate()
             f_b = est.nav.mat_nb.T @ p.bank.ins.last_fn_mps2
             g = float(np.linalg.norm(f_b))
@@ -835,12 +891,21 @@ class VehicleLife:
                 pitch = math.asin(max(-1.0, min(1.0, f_b[1] / g)))
                 roll = math.atan2(-f_b[0], f_b[2])
                 nav.q_nb = earth.mat_to_quat(earth.rpy_to_mat_nb(np.array([roll, pitch, cp.rpy_rad[2]])))
-                tilt = math.atan2(CARRY_ACC_STD_MPS2, 9.8)
-                att[:2] = np.maximum(tilt, sd[6:8])
+                att[:2] = math.atan2(acc, 9.8)
                 P[..., 6:8, :] = 0.0  # levelled again: the tilts owe nothing to the old state
                 P[..., :, 6:8] = 0.0
-        i = np.arange(6, 9)
-        P[..., i, i] = np.square(att)
+                levelled = True
+        # what the gap adds to each member's attitude variance (a member of a federated bank keeps
+        # its own share of the information: added, never set to the fused value)
+        i = np.arange(8, 9) if levelled else np.arange(6, 9)
+        P[..., i, i] += turn * turn
+        if levelled:
+            P[..., [6, 7], [6, 7]] = np.square(att[:2])
+        core = getattr(p, "core", None)
+        if core is not None and P.ndim == 3:  # federated members: their private states' conditionals
+            keep = np.ones(em.N_STATES, dtype=bool)
+            keep[6:8] = not levelled
+            core.carry_private(P_old, P, T[: em.N_STATES, : em.N_STATES], keep)
         return nav, P9[:6, :6], InitStd(sd[0:3], sd[3:6], att, cov=P), refs
 
     def _from_checkpoint(self, p: Pipeline, nav: NavState, std: InitStd, t: float):
@@ -857,7 +922,7 @@ class VehicleLife:
         c = self._checkpoint(p, t)
         if c is None or t < c[0]:
             return nav, std, None
-        t_cp, cp, P9, P, refs = c
+        t_cp, cp, P9, P, refs, _ = c
         dt = t - t_cp
         v_mean = 0.5 * (np.asarray(cp.vel_enu_mps) + np.asarray(nav.vel_enu_mps))
         pos = shifted(cp, v_mean * dt)

@@ -281,6 +281,51 @@ class FederatedCore:
                 return self.master_share * self.bank.P[self.master, :c, :c]
         return self.fuse()[1]
 
+    def fused_covariance_of(self, P: np.ndarray) -> np.ndarray:
+        """P_g (c, c) of a bank whose members' covariances are ``P`` (B, n, n) right after a
+        fusion-reset (a checkpoint): the output-only master's own, the master's times its share,
+        else the information fusion of the fused members' common blocks."""
+        c = self.c
+        if self.B == 1:
+            return P[0, :c, :c].copy()
+        if self.master is not None and self.reset_mode == "fusion_reset":
+            m = self.master_share if self.master_share > 0.0 else 1.0
+            return m * P[self.master, :c, :c]
+        info = sum(np.linalg.inv(P[i, :c, :c]) for i in range(self.n_fused))
+        return kalman.symmetrise(np.linalg.inv(info))
+
+    def carry_private(self, P_old: np.ndarray, P_new: np.ndarray, T: np.ndarray, keep: np.ndarray) -> None:
+        """Re-condition every member's private states (``P_new`` (B, n, n), in place) after the
+        common states were carried over a gap: c' = T c + w, w independent of everything, added to
+        the members' common blocks (``P_new[:, :c, :c]``), ``keep`` (c,) False for common states
+        replaced outright (no correlation with anything before).
+
+        A member keeps its private states as a conditional on the common ones (p | c, module
+        docstring); kept as they are, a carry that widens the fused common covariance would widen
+        the private marginals with it (A P_g A') although nothing happened to them: a DVL offset
+        known to 1 cm would be 'known' only as well as the carried velocity, and its local would
+        re-learn it like a new start. The true marginal and cross-covariance survive the carry
+        (Cov(p, c') = Cov(p, c) T'), so each member's conditional is rebuilt from them against
+        the new fused covariance."""
+        c = self.c
+        if P_new.shape[-1] <= c or self.B == 1:
+            return
+        Pg_old = self.fused_covariance_of(P_old)
+        Pg_new = self.fused_covariance_of(P_new)
+        for m in range(P_new.shape[0]):
+            Pcc, Pcp, Ppp = P_old[m, :c, :c], P_old[m, :c, c:], P_old[m, c:, c:]
+            if not np.any(Pcp):
+                continue
+            At = np.linalg.solve(Pcc, Pcp)  # P_cc^-1 P_cp = A'
+            marg = Ppp - Pcp.T @ At + At.T @ Pg_old @ At  # p's marginal given the fused commons
+            cross = (At.T @ Pg_old @ T.T) * keep[None, :]  # Cov(p, c')
+            A_new = np.linalg.solve(Pg_new, cross.T).T  # Cov(p, c') P_g'^-1
+            cond = kalman.symmetrise(marg - A_new @ Pg_new @ A_new.T)
+            Pcc_m = P_new[m, :c, :c]
+            P_new[m, c:, :c] = A_new @ Pcc_m
+            P_new[m, :c, c:] = P_new[m, c:, :c].T
+            P_new[m, c:, c:] = kalman.symmetrise(cond + A_new @ Pcc_m @ A_new.T)
+
     def fuse_and_reset(
         self, fused: tuple[np.ndarray, np.ndarray] | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
