@@ -147,6 +147,11 @@ class OutputSink:
         sol = out.solution()
         self.pubs.publish(keys.nav(vehicle, sol.pipeline, "solution", self.prefix), sol)
         self.last_solution[(vehicle, sol.pipeline)] = sol
+        innovations = out.pipeline.innovations
+        if self.rr is not None and innovations:
+            while innovations:
+                t, sensor, labels, r, used = innovations.popleft()
+                self.rr.log_innovations(vehicle, sol.pipeline, t, sensor, labels, r, used)
         if self.rr is not None and self.record_due(vehicle, sol.pipeline, sol.t, sol.status):
             self.rr.log_solution(vehicle, sol)
             if out.err9 is not None:

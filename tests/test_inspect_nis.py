@@ -9,10 +9,9 @@ The recordings: the consumer-grade car drive starting in motion, fixes 0.15 m wh
 Gauss-Markov (30 s, vertical 2x), replayed from an NMEA + IMU CSV log through the service's
 per-vehicle loop and Rerun sink, the pipeline with the correlated-error states; the fix error
 model (the sigmas the fixes declare and the configured correlated sigma) as simulated, 5x too
-small, 5x too large and 2x too small. The service's loosely coupled pipeline publishes no per-epoch
-innovation message yet: :func:`record_with_innovations` hands the rows each update used
-(``Pipeline.record_rows``: the prior innovation and the diagonal of S) to the sink, which is the
-wiring the service needs (docs/own_data.md, "Not done").
+small, 5x too large and 2x too small. The rows each update used (``Pipeline.record_rows``: the prior
+innovation and the diagonal of S) reach the sink through the service's own ``OutputSink``, which
+drains each pipeline's ``innovations`` at its output epochs.
 """
 
 from __future__ import annotations
@@ -52,8 +51,8 @@ def _cfg(scale: float) -> dict:
 
 
 def record_with_innovations(mapping_path, cfg, out, health_period_s: float = 1.0) -> None:
-    """``tests/replay_files.record_replay`` with each pipeline's per-update innovations handed to
-    the Rerun sink (``RerunSink.log_innovations``)."""
+    """A replay recorded through the service's per-vehicle loop, ``OutputSink`` and Rerun sink (the
+    innovations reach ``RerunSink.log_innovations`` by the service's own wiring)."""
     from fednav.dashboards.blueprints import blueprint_factory
     from fednav.replay.mapping import load_mapping
     from fednav.replay.sources import all_events
@@ -79,15 +78,6 @@ def record_with_innovations(mapping_path, cfg, out, health_period_s: float = 1.0
     )
     outputs = OutputSink(cfg.prefix, _NoPublish(), sink, vehicle_interval_s=cfg.rrd_vehicle_interval_s)
     loop = VehicleLoop(m.vehicle, cfg, outputs, on_fix=outputs.log_fix)
-    for pipe in loop.engine.pipelines:
-        original = pipe.record_rows
-
-        def record_rows(key, meas, claimed, innovation, S_diag, used=None, _orig=original, _pipe=pipe):
-            _orig(key, meas, claimed, innovation, S_diag, used)
-            r = np.asarray(innovation, float) / np.sqrt(np.maximum(np.asarray(S_diag, float), 1e-300))
-            sink.log_innovations(m.vehicle, _pipe.name, _pipe.bank.t, key, meas.labels, r, used)
-
-        pipe.record_rows = record_rows
     next_health = -np.inf
     for ev in all_events(m, base):
         clock[0] = ev.t_gps_s

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -144,6 +144,9 @@ class Pipeline(ABC):
         #: lifecycle events of the pipeline's own screening, for the vehicle's lifecycle (e.g.
         #: ``aiding_refused``: a trusted sensor refused so long that the state is suspect)
         self._events: list[str] = []
+        #: (t, stream key, row labels, standardised innovations, rows used) of the latest updates
+        #: (the service's recording drains them at output epochs)
+        self.innovations: deque = deque(maxlen=64)
         self._refused_from: float | None = None  # first epoch of a run of wholesale refusals
         self._refused_reports = 0
         #: sigma floors from each stream's own history (measurements.base.SigmaFloors)
@@ -247,6 +250,11 @@ class Pipeline(ABC):
         if used is not None:
             ok &= np.asarray(used, dtype=bool)
         self.floors.record(key, meas, claimed, innovation, S_diag - np.diagonal(meas.R), ok)
+        ins = getattr(self.bank, "ins", None)
+        if ins is not None:  # for the recording's innovation windows (fednav-inspect's NIS per row)
+            used_rows = np.ones(len(innovation), bool) if used is None else np.asarray(used, dtype=bool)
+            r = innovation / np.sqrt(np.maximum(S_diag, 1e-300))
+            self.innovations.append((ins.state.t, key, meas.labels, r, used_rows))
 
     def record_prior_rows(self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None) -> None:
         """:meth:`record_rows` from the prior (x, P) the rows were tested against."""
