@@ -492,7 +492,10 @@ def assess(rec, clean, start: float, end: float) -> Row:
     )
 
 
-def transient_part(runs: int, seed: int, families: list[str], markdown: Path | None) -> None:
+def transient_part(
+    runs: int, seed: int, families: list[str], markdown: Path | None, cases: list[str] | None = None
+) -> None:
+    chosen = [c for c in CASES if cases is None or c[0] in cases or f"{c[0]}:{c[1]}" in cases]
     lines = []
     for fam in families:
         build, labels, start, aiding = FAMILIES[fam]
@@ -506,7 +509,7 @@ def transient_part(runs: int, seed: int, families: list[str], markdown: Path | N
                 p95s.setdefault(name, []).append(
                     float(np.percentile(_h(clean[name][1], clean[name][2])[0], 95))
                 )
-            for kind, arg in CASES:
+            for kind, arg in chosen:
                 t0 = time.perf_counter()
                 rec, eng, inj = run_case(sc, seed + r, kind, arg, start, aiding)
                 for name in labels:
@@ -531,7 +534,7 @@ def transient_part(runs: int, seed: int, families: list[str], markdown: Path | N
                 "| status from the start (s) |"
             )
             lines.append("|---|---|---|---|---|---|")
-            for kind, arg in CASES:
+            for kind, arg in chosen:
                 rows = table[(kind, arg, name)]
                 recs = [x.recovered for x in rows]
                 rec_txt = "never" if any(x is None for x in recs) else f"{max(recs):.1f}"
@@ -571,11 +574,16 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--families", default=",".join(FAMILIES), help=f"of {', '.join(FAMILIES)}")
     ap.add_argument("--markdown", type=Path, help="also write the transient tables to this file")
+    ap.add_argument(
+        "--cases",
+        help="only these transient cases, comma-separated kinds or kind:arg (e.g. imu_burst:max,outage)",
+    )
     a = ap.parse_args()
     if a.part in ("single", "both"):
         single_part(a.runs, a.seed)
     if a.part in ("transient", "both"):
-        transient_part(a.runs, a.seed, a.families.split(","), a.markdown)
+        cases = a.cases.split(",") if a.cases else None
+        transient_part(a.runs, a.seed, a.families.split(","), a.markdown, cases)
 
 
 if __name__ == "__main__":
