@@ -370,7 +370,38 @@ def _summary(path: Path) -> dict:
                 "heading_deg": float(_rms(head[:, sel], axis=(0, 1)).mean().round(5)),
                 "nees_mean": float(np.nanmean(nees[:, sel]).round(2)),
             }
+        # observability: the filter's lever-arm information 1/sigma^2 gained per second in each
+        # phase (horizontal: 1/(sig_E^2 + sig_N^2), invariant to heading; up: 1/sig_U^2), over the
+        # run, mean over seeds and nodes; a phase's share of the total gain
+        info_h = 1.0 / (lsig[..., 0] ** 2 + lsig[..., 1] ** 2)  # (S, E, B)
+        info_u = 1.0 / lsig[..., 2] ** 2
+        gain = {}
+        ph_step = ph[1:].copy()
+        # a turn's roll-in and roll-out (the segments' 5 s ramps) apart from its steady part
+        tms = np.mod(t[1:] - 1e-6, PATTERN_S)
+        ramp = np.zeros(tms.shape, bool)
+        for s0, s1 in ((40, 80), (160, 200), (260, 300)):
+            ramp |= ((tms >= s0) & (tms < s0 + 5)) | ((tms >= s1 - 5) & (tms < s1))
+        ph_step[ramp] = "turn_ramps"
+        ph_step[(ph_step == "turn") & ~ramp] = "turn_steady"
+        for k in ("straight", "turn_ramps", "turn_steady", "climb", "accelerate"):
+            sel = ph_step == k
+            gh = np.diff(info_h, axis=1)[:, sel].sum(axis=1).mean()
+            gu = np.diff(info_u, axis=1)[:, sel].sum(axis=1).mean()
+            gain[k] = {
+                "seconds": int(sel.sum()),
+                "horizontal_per_s": float(gh / max(sel.sum(), 1)),
+                "up_per_s": float(gu / max(sel.sum(), 1)),
+                "horizontal": float(gh),
+                "up": float(gu),
+            }
+        th = sum(g["horizontal"] for g in gain.values())
+        tu = sum(g["up"] for g in gain.values())
+        for g in gain.values():
+            g["horizontal_share"] = round(g["horizontal"] / th, 3) if th else None
+            g["up_share"] = round(g["up"] / tu, 3) if tu else None
         res["pipelines"][p] = {
+            "lever_information_gain_by_phase_1_per_m2": gain,
             "checkpoints": cps,
             "lever_3d_m_per_pattern": [round(v, 5) for v in per_pat],
             "second_half_by_phase": by_phase,
@@ -428,7 +459,9 @@ def plot(paths: list[Path], png: Path, node: int = 1) -> None:
             lev3 = np.sqrt(np.sum(_rms(a2[f"{p}/lever"], axis=0) ** 2, axis=-1)).mean(axis=-1) * 1e3
             w = 60  # 60 s running RMS
             k = np.ones(w) / w
-            sm = np.sqrt(np.convolve(lev3**2, k, mode="same"))
+            sm = np.sqrt(
+                np.convolve(lev3**2, k, mode="same") / np.convolve(np.ones_like(lev3), k, mode="same")
+            )
             ax.loglog(t2[t2 > 1], sm[t2 > 1], style, label=f"3-D RMS, {m2['scenario']}")
         ref = t[t > 1]
         i5 = np.searchsorted(t, 5.0)

@@ -287,6 +287,8 @@ class TransferAlignmentBank:
     uncertainty; default) or "scaled" (eq 8 literally, S J S' + Q, which shrinks P along
     combinations of faded and unfaded correlated states and made the filter overconfident:
     :func:`service.estimation.adaptive.faded_covariance`, docs/seed002.md).
+    ``lever_follows_flexure`` (with "added", default on): the uncertainty fading adds to the
+    flexure angle moves the lever arm's flexure part M theta with it (:meth:`_faded`).
     ``fusion``: "none" (local filters only; the honest reading, docs/seed002.md) or "paper"
     (eq 18-21 applied to all 27 states as if they were common).
     """
@@ -305,6 +307,7 @@ class TransferAlignmentBank:
         fading: bool = True,
         order: str = "r_then_p",
         fading_form: str = "added",
+        lever_follows_flexure: bool = True,
         t0: float = 0.0,
     ):
         if mode not in ("kf", "akf"):
@@ -320,6 +323,7 @@ class TransferAlignmentBank:
         if fading_form not in ("scaled", "added"):
             raise ValueError(f"fading_form {fading_form!r}: use 'scaled' or 'added'")
         self.fading_form = fading_form
+        self.lever_follows_flexure = bool(lever_follows_flexure)
         self.T = float(filter_period_s)
         B = p.B
         self.x = np.zeros((B, N_STATES))
@@ -418,7 +422,7 @@ class TransferAlignmentBank:
             fad = fading_factors(r, H, J, H @ Qd @ Ht + self.sh.R, self.thr, self.row_thr, FADING_STATES)
             if not self.fading:  # Sage-Husa R only: the statistic is still reported
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
-            P_pred = faded_covariance(J, fad.s, Qd, self.fading_form)
+            P_pred = self._faded(J, fad.s, Qd)
             R = self.sh.update(r, H @ P_pred @ Ht).copy()
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         elif self.mode == "akf":  # R first (section 1.2 order): the chi2 test sees the adapted R
@@ -428,7 +432,7 @@ class TransferAlignmentBank:
             fad = fading_factors(r, H, J, HQHt + R, self.thr, self.row_thr, FADING_STATES, HJHt=HJHt)
             if not self.fading:
                 fad = replace(fad, s=np.ones_like(fad.s), triggered=np.zeros_like(fad.triggered))
-            P_pred = faded_covariance(J, fad.s, Qd, self.fading_form)
+            P_pred = self._faded(J, fad.s, Qd)
             s, gamma, trig = fad.s, fad.gamma, fad.triggered
         else:
             P_pred = kalman.symmetrise(J + Qd)
@@ -443,6 +447,28 @@ class TransferAlignmentBank:
         self.epochs += 1
         self.last = StepInfo(self.t, res.nis, gamma, s, trig, np.diagonal(R, axis1=1, axis2=2).copy(), alpha)
         return self.last
+
+    def _faded(self, J: np.ndarray, s: np.ndarray, Qd: np.ndarray) -> np.ndarray:
+        """Faded prediction covariance. ``"added"`` with ``lever_follows_flexure`` (default): the
+        uncertainty added to the flexure angle theta also moves the lever arm by M times it (the
+        lever arm is r_nom + dr0 + M theta: T = diag(t) plus the block T[dr, theta] = M diag(t_theta)),
+        so fading keeps dr = dr0 + M theta; without it, each trigger made the flexure more uncertain
+        than the lever arm's flexure part and the lever arm stopped converging (docs/seed002.md,
+        issue 25: over 60 min the adaptive filter's lever arm stalled at 5-6 mm)."""
+        P = faded_covariance(J, s, Qd, self.fading_form)
+        if self.fading_form != "added" or not self.lever_follows_flexure:
+            return P
+        t_th = np.sqrt(np.maximum(s[:, TH] ** 2 - 1.0, 0.0))  # (B, 3)
+        b = np.flatnonzero(np.any(t_th > 0.0, axis=1))
+        if b.size == 0:
+            return P
+        t = np.sqrt(np.maximum(s[b] ** 2 - 1.0, 0.0))
+        T = t[:, :, None] * np.eye(N_STATES)
+        T[:, DR, TH] = self.p.M[b] * t_th[b][:, None, :]
+        P = P.copy()
+        # the coherent term T J T' replaces the diagonal one diag(t) J diag(t) of the "added" form
+        P[b] += T @ J[b] @ np.swapaxes(T, 1, 2) - t[:, :, None] * J[b] * t[:, None, :]
+        return kalman.symmetrise(P)
 
     def _feedback(self) -> None:
         """Closed loop: the relative attitude and velocity absorb phi and dw (states reset to 0)."""
