@@ -12,9 +12,14 @@ the same streams as the "after":
 ``{"seed_sets": across_seed_sets(...), "sets": [...]}`` (the JSON of ``fednav-sim eval --seeds``)
 to ``--out``, rewritten after every seed set (a cut-short run keeps the finished sets).
 
+``--table CLEAN.json OUTLIERS.json`` prints the markdown table of docs/seed003.md from two such
+files: per pipeline, the 3-D position RMS (whole run) and NEES on each scenario and the change
+against the KF on clean data of the same seed set, as the mean over the sets [min - max].
+
 Usage: OPENBLAS_NUM_THREADS=1 nice -n 5 .venv/bin/python benchmarks/seed003_seedsets.py
        seed003_outliers --seeds 3,103,203 --runs 10 --pipelines tc,tc_imm_sel,tc_imm_sel_fixed,tc_gate
        --out docs/seed003_seedsets_outliers.json
+       .venv/bin/python benchmarks/seed003_seedsets.py --table CLEAN.json OUTLIERS.json
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+
+import numpy as np
 
 from fednav.simulators import evaluate as ev
 from fednav.simulators.scenario import load_scenario
@@ -36,7 +43,49 @@ VARIANTS = {
 }
 
 
+def _spread(values: list[float], fmt: str) -> str:
+    return f"{np.mean(values):{fmt}} [{min(values):{fmt}} - {max(values):{fmt}}]"
+
+
+def table(clean_path: str, outliers_path: str) -> str:
+    """Markdown: mean over the seed sets [min - max] per pipeline and scenario."""
+    runs = {"clean": json.load(open(clean_path))["sets"], "outliers": json.load(open(outliers_path))["sets"]}
+    seeds = [r["seed"] for r in runs["clean"]]
+    if seeds != [r["seed"] for r in runs["outliers"]]:
+        raise SystemExit("the two files have different seed sets")
+    kf = [r["pipelines"]["tc"]["pos_rms_m"] for r in runs["clean"]]
+    names = list(runs["clean"][0]["pipelines"])
+    head = (
+        "| pipeline | clean: RMS (m) | vs KF clean | NEES | outliers: RMS (m) | vs KF clean | NEES |\n"
+        "|---|---|---|---|---|---|---|"
+    )
+    lines = [head]
+    for n in names:
+        cells = []
+        for sc in ("clean", "outliers"):
+            sets = [r["pipelines"].get(n) for r in runs[sc]]
+            if any(e is None for e in sets):
+                cells += ["-", "-", "-"]
+                continue
+            rms = [e["pos_rms_m"] for e in sets]
+            pct = [100.0 * (v / k - 1.0) for v, k in zip(rms, kf, strict=True)]
+            cells += [
+                _spread(rms, ".4f"),
+                _spread(pct, "+.2f") + " %",
+                _spread([e["nees"]["mean"] for e in sets], ".2f"),
+            ]
+        lines.append(f"| `{n}` | " + " | ".join(cells) + " |")
+    per_set = ", ".join(str(s) for s in seeds)
+    return (
+        f"seed sets {per_set} ({runs['clean'][0]['runs']} runs each): mean [min - max] over the sets\n\n"
+        + "\n".join(lines)
+    )
+
+
 def main() -> int:
+    if len(sys.argv) == 4 and sys.argv[1] == "--table":
+        print(table(sys.argv[2], sys.argv[3]))
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenario")
     ap.add_argument("--seeds", default="3,103,203")
