@@ -51,12 +51,14 @@ class InitStd:
     """1-sigma uncertainties of an initial state: ENU m, ENU m/s, nav-frame rad; ``cov``, when
     given, a full covariance they are part of: 9x9 of (dp, dv, phi), or of every state of the
     filter it restarts (its columns: the 15 INS error states, then its private blocks), so that a
-    restart keeps what the running filter knew of the correlations."""
+    restart keeps what the running filter knew of the correlations. ``pos_from_fix``: the position
+    is a GNSS fix's (its error is the receiver's, correlated part included)."""
 
     pos_enu_m: np.ndarray
     vel_enu_mps: np.ndarray
     att_rad: np.ndarray
     cov: np.ndarray | None = None
+    pos_from_fix: bool = False
 
 
 @dataclass
@@ -152,7 +154,7 @@ def static_alignment(
     att_std = static_attitude_std(
         float(np.linalg.norm(f)), math.radians(fix.lat_deg), gyro_bias_sigma, accel_bias_sigma
     )
-    std = InitStd(np.array(fix.pos_std()), np.full(3, STATIC_VEL_STD_MPS), att_std)
+    std = InitStd(np.array(fix.pos_std()), np.full(3, STATIC_VEL_STD_MPS), att_std, pos_from_fix=True)
     nav = nav_at_fix(fix, rpy, t)
     nav.vel_enu_mps = np.zeros(3)
     return nav, std
@@ -172,7 +174,8 @@ def motion_alignment(fix: GnssFix, t: float) -> tuple[NavState, InitStd]:
     vel, vel_std = fix.velocity(), fix.vel_std()
     if vel is None:  # position-only fix: velocity unknown (as a reference, only position counts)
         vel, vel_std = (0.0, 0.0, 0.0), (UNKNOWN_VEL_STD_MPS,) * 3
-    std = InitStd(np.array(fix.pos_std()), np.array(vel_std), np.radians(list(MOTION_ATT_STD_DEG)))
+    att = np.radians(list(MOTION_ATT_STD_DEG))
+    std = InitStd(np.array(fix.pos_std()), np.array(vel_std), att, pos_from_fix=True)
     return nav_at_fix(fix, attitude_from_velocity(vel), t), std
 
 
@@ -235,7 +238,7 @@ def moving_alignment(
         return nav, std
     nav.q_nb = earth.mat_to_quat(c_nb)
     att = np.array([tilt, tilt, math.radians(MOTION_ATT_STD_DEG[2])])
-    return nav, InitStd(std.pos_enu_m, std.vel_enu_mps, att)
+    return nav, InitStd(std.pos_enu_m, std.vel_enu_mps, att, pos_from_fix=std.pos_from_fix)
 
 
 def nav_at_fix(fix: GnssFix, rpy_rad: np.ndarray, t: float) -> NavState:

@@ -34,6 +34,7 @@ from fednav.service import earth
 from fednav.service.config import ImuModel
 from fednav.service.estimation.ins_filter import InsFilterBank
 from fednav.service.estimation.measurements.base import SigmaFloors
+from fednav.service.estimation.measurements.gnss_fix import BLOCK as GNSS_ERROR_BLOCK
 from fednav.service.ins import error_model as em
 from fednav.service.ins.alignment import InitStd
 from fednav.service.ins.mechanisation import NavState
@@ -55,6 +56,18 @@ def initial_covariance(std: InitStd, imu: ImuModel, private=()) -> np.ndarray:
         ]
     )
     P = np.diag(np.square(d))
+    if getattr(std, "pos_from_fix", False):
+        # a position taken from a fix carries the receiver's correlated error b: dp = b + n, and
+        # the model's error state is db = -b (gnss_fix.py), so Cov(dp, db) = -P_b (independent,
+        # the first fixes' b would count twice: consistent only after a correlation time)
+        col = em.N_STATES
+        for block in private:
+            if block.name == GNSS_ERROR_BLOCK:
+                sd_b = np.asarray(block.initial_std, dtype=float)
+                cross = -np.minimum(np.square(sd_b), 0.99 * sd_b * np.asarray(std.pos_enu_m, dtype=float))
+                i, j = np.arange(3), col + np.arange(3)
+                P[i, j] = P[j, i] = cross
+            col += block.size
     cov = getattr(std, "cov", None)
     if cov is not None:  # a restart that keeps the correlations of the state it restores
         cov = 0.5 * (np.asarray(cov, dtype=float) + np.asarray(cov, dtype=float).T)
