@@ -47,10 +47,20 @@ def recordings(drive, tmp_path_factory):
             for f in drive.fixes
         ]
         p = rf.write_all(tmp / f"logs_{scale}", rf.Drive(drive.imu, fixes, drive.truth), only=("nmea_csv",))
+        _speed_sigma(p["nmea_csv"], 1.0)  # the positions' sigmas are the ones mis-declared here
         rrd = tmp / f"run_{scale}.rrd"
         rf.record_replay(p["nmea_csv"], from_dict(CFG), rrd)
         out[scale] = (rrd, inspect.inspect_rrd(rrd))
     return out
+
+
+def _speed_sigma(mapping, scale: float) -> None:
+    """NMEA carries no speed sigma: the mapping declares the simulated one (times ``scale``, like
+    the positions'); the replay's default (0.15 m/s for a single fix, 3x the simulated 0.05) is
+    what inspect's innovations call underconfident in speed."""
+    text = mapping.read_text()
+    sig = f"{0.05 * scale:g}, {0.05 * scale:g}, {0.1 * scale:g}"
+    mapping.write_text(text.replace('sensor_id = "rx"', f'sensor_id = "rx"\nvel_std_mps = [{sig}]'))
 
 
 def test_a_consistent_run_is_called_consistent(recordings):
@@ -121,7 +131,10 @@ def test_the_text_says_it(recordings, capsys):
     assert "inputs nmea_csv: 500 GNSS fixes from rx" in text
 
 
-def test_correlated_error_states_are_not_judged_by_fix_residuals(recordings, tmp_path):
+def test_correlated_error_states_are_not_judged_by_fix_residuals(recordings, drive, tmp_path, monkeypatch):
+    """With correlated-error states the fix residuals cannot judge the claimed sigma: the
+    recording's innovations decide (tests/test_inspect_nis.py); a recording without them (an older
+    service) is not decidable."""
     rrd, _ = recordings[1.0]
     cfg = dict(
         CFG, pipelines=[{**CFG["pipelines"][0], "gnss_correlated_error": {"sigma_enu_m": [0.3, 0.3, 0.6]}}]
@@ -129,7 +142,14 @@ def test_correlated_error_states_are_not_judged_by_fix_residuals(recordings, tmp
     s = inspect.inspect_rrd(rrd, from_dict(cfg))
     p = s["pipelines"]["lc"]
     assert p["fix_residuals_apply"] is False
-    assert p["verdict"].startswith("not decidable from this recording (gnss_correlated_error"), p["verdict"]
+    assert p["innovations"] and not p["verdict"].startswith("not decidable"), p["verdict"]
+    p = rf.write_all(tmp_path / "logs", drive, only=("nmea_csv",))
+    _speed_sigma(p["nmea_csv"], 1.0)
+    monkeypatch.setattr(RerunSink, "log_innovations", lambda self, *a, **k: None)
+    old = tmp_path / "without_innovations.rrd"
+    rf.record_replay(p["nmea_csv"], from_dict(cfg), old)
+    v = inspect.inspect_rrd(old, from_dict(cfg))["pipelines"]["lc"]["verdict"]
+    assert v.startswith("not decidable from this recording (gnss_correlated_error"), v
     path = tmp_path / "svc.toml"
     path.write_text('[[pipelines]]\nname = "lc"\nkind = "loosely_coupled"\n')
     assert inspect.main([str(rrd), "--config", str(path), "--json"]) == 0
