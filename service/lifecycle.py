@@ -125,6 +125,8 @@ CHECKPOINT_MAX_AGE_S = 5.0
 CHECKPOINTS = 8
 #: ... one kept at most every this often (s; the cost of a copy of the filter at output epochs)
 CHECKPOINT_PERIOD_S = 0.1
+#: checkpoints this close before a contested IMU sample are not trusted (s)
+CONTESTED_GUARD_S = 0.1
 #: a carried checkpoint moves on with the acceleration and turn rate its INS had then; what the
 #: vehicle may have changed of them over the gap is the largest change between consecutive
 #: checkpoints seen in the last ``CARRY_HISTORY_S`` of verified navigation (its own dynamics, with
@@ -764,8 +766,13 @@ class VehicleLife:
 
     def on_imu_contested(self, t: float, reason: str) -> None:
         """An IMU sample refused as a second publisher's (``CONTESTED_IMU``): samples of that
-        publisher may have been taken, every running pipeline is suspect."""
+        publisher may have been taken, every running pipeline is suspect. Its checkpoints of the
+        last ``CONTESTED_GUARD_S`` are dropped: a forged sample may have been taken just before the
+        first refusal (a jittered second publisher), and a checkpoint after it is not a good state."""
         for p in self.engine.pipelines:
+            cps = self.checkpoints[p.name]
+            while cps and cps[-1][0] > t - CONTESTED_GUARD_S:
+                cps.pop()
             if self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost):
                 self.suspect(p, t, "imu_contested")
 
