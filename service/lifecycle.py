@@ -268,14 +268,19 @@ def consistent_fixes(a: GnssFix, b: GnssFix) -> bool:
     return float(np.sum(d[:3] ** 2 / var_p) + np.sum(d[3:] ** 2 / var_v)) <= alignment.PLAUSIBILITY_CHI2_6DOF
 
 
-def _dynamics(p: Pipeline, nav: NavState) -> tuple[np.ndarray, np.ndarray] | None:
-    """(acceleration ENU m/s^2, body turn rate relative to the navigation frame rad/s) of ``p``'s
-    INS over its last interval, or None without one."""
+def _imu_of(p: Pipeline) -> tuple[np.ndarray, np.ndarray] | None:
+    """(specific force ENU m/s^2, body rate w_ib rad/s) of ``p``'s INS over its last interval
+    (copies), or None without one: kept with a checkpoint, turned into motion only when carried."""
     ins = getattr(p.bank, "ins", None) if p.bank is not None else None
     if ins is None:
         return None
-    f_n = np.asarray(ins.last_fn_mps2, dtype=float)
-    w_ib = np.asarray(ins.last_wib_b_rps, dtype=float)
+    return np.array(ins.last_fn_mps2, dtype=float), np.array(ins.last_wib_b_rps, dtype=float)
+
+
+def _motion(imu: tuple[np.ndarray, np.ndarray], nav: NavState) -> tuple[np.ndarray, np.ndarray] | None:
+    """(acceleration ENU m/s^2, body turn rate relative to the navigation frame rad/s) of a state
+    ``nav`` whose INS measured ``imu`` (:func:`_imu_of`), or None when not finite."""
+    f_n, w_ib = imu
     if not (np.all(np.isfinite(f_n)) and np.all(np.isfinite(w_ib))):
         return None
     g = earth.gravity_normal(nav.lat_rad, nav.h_m)
@@ -813,12 +818,14 @@ class VehicleLife:
         cps = self.checkpoints[p.name]
         if cps and 0.0 <= est.nav.t - cps[-1][0] < CHECKPOINT_PERIOD_S:
             return
-        dyn = _dynamics(p, est.nav)
+        dyn = _imu_of(p)  # the changes of specific force and body rate: those of motion
         recent = cps and est.nav.t - cps[-1][0] <= 2 * CHECKPOINT_PERIOD_S
         if recent and dyn is not None and cps[-1][4] is not None:
             a0, w0 = cps[-1][4]
             changes = self.dyn_changes[p.name]
-            changes.append((est.nav.t, math.hypot(*(dyn[0] - a0)), math.hypot(*(dyn[1] - w0))))
+            da, dw = math.hypot(*(dyn[0] - a0)), math.hypot(*(dyn[1] - w0))
+            if math.isfinite(da) and math.isfinite(dw):
+                changes.append((est.nav.t, da, dw))
             while changes and changes[0][0] < est.nav.t - CARRY_HISTORY_S:
                 changes.popleft()
         cps.append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), dyn))
@@ -867,10 +874,11 @@ class VehicleLife:
         dt = t - t_cp
         v0 = np.asarray(cp.vel_enu_mps, dtype=float)
         acc_std, turn_std = self.carry_sigmas(p)
-        if dyn is None:
+        motion = None if dyn is None else _motion(dyn, cp)
+        if motion is None:
             nav = shifted(cp, v0 * dt)
         else:  # on with its acceleration and turn rate of then
-            a, w = dyn
+            a, w = motion
             nav = shifted(cp, v0 * dt + 0.5 * a * dt * dt)
             nav.vel_enu_mps = v0 + a * dt
             nav.q_nb = earth.quat_mul(np.asarray(cp.q_nb, dtype=float), earth.rotvec_to_quat(w * dt))
