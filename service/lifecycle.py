@@ -242,6 +242,9 @@ def full_state(p: Pipeline) -> tuple[np.ndarray, dict, np.ndarray | None] | None
         return bank.P[0].copy(), refs, None
     if type(bank) is InsFilterBank and p.restores_members:
         return bank.P.copy(), refs, bank.x[:, em.N_STATES :].copy()
+    combined = getattr(p, "combined", None)
+    if type(bank) is InsFilterBank and combined is not None:  # an IMM: its combined state, every
+        return combined()[1].copy(), refs, None  # model restarting from it (its errors fed back)
     return None
 
 
@@ -286,6 +289,29 @@ def _motion(imu: tuple[np.ndarray, np.ndarray], nav: NavState) -> tuple[np.ndarr
     g = earth.gravity_normal(nav.lat_rad, nav.h_m)
     w_nb = w_ib - nav.mat_nb.T @ earth.earth_rate_n(nav.lat_rad)
     return f_n - np.array([0.0, 0.0, g]), w_nb
+
+
+def _private_over(p: Pipeline, refs, P: np.ndarray, dt: float):
+    """A checkpoint's private states (receiver clock, correlated GNSS error, DVL offset, ...)
+    carried over ``dt`` by their own model: references x_ref <- Phi x_ref (a clock's bias moves on
+    by its drift: a checkpoint half a second old is tens of metres off in range otherwise), the
+    members' private error states likewise, covariance Phi P Phi' + Qd. (refs, P)."""
+    bank = p.bank
+    if refs is None or bank is None or dt <= 0.0 or P.shape[-1] != bank.n or bank.n == em.N_STATES:
+        return refs, P
+    refs, privx = refs if isinstance(refs, tuple) else (refs, None)
+    Phi_p, Qd_p = bank.private_model(dt)
+    Phi = np.eye(bank.n)
+    Phi[em.N_STATES :, em.N_STATES :] = Phi_p
+    refs = {
+        name: (Phi[bank.columns[name], bank.columns[name]] @ r if name in bank.columns else r)
+        for name, r in refs.items()
+    }
+    if privx is not None:
+        privx = privx @ Phi_p.T
+    P = Phi @ P @ Phi.T
+    P[..., em.N_STATES :, em.N_STATES :] += Qd_p
+    return (refs, privx), P
 
 
 def carried(nav: NavState, std: InitStd, t: float) -> tuple[NavState, InitStd]:
@@ -870,8 +896,9 @@ class VehicleLife:
         if c is None:
             return None
         t_cp, cp, P9, P, refs, dyn = c
-        P_old = P.copy()
         dt = t - t_cp
+        refs, P = _private_over(p, refs, P, dt)
+        P_old = P.copy()
         v0 = np.asarray(cp.vel_enu_mps, dtype=float)
         acc_std, turn_std = self.carry_sigmas(p)
         motion = None if dyn is None else _motion(dyn, cp)
@@ -939,6 +966,7 @@ class VehicleLife:
             return nav, std, None
         t_cp, cp, P9, P, refs, _ = c
         dt = t - t_cp
+        refs, P = _private_over(p, refs, P, dt)
         v_mean = 0.5 * (np.asarray(cp.vel_enu_mps) + np.asarray(nav.vel_enu_mps))
         pos = shifted(cp, v_mean * dt)
         sd_v = np.sqrt(np.clip(np.diagonal(P9)[3:6], 0.0, None))
