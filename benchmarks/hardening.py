@@ -202,6 +202,12 @@ def gnss_scenario(duration_s: float = 300.0):
         {"name": "central", "kind": "centralized", "fault_handling": "per_observation"},
         {"name": "tc", "kind": "tightly_coupled", "integrity": True, "phase": "npa"},
         {"name": "imm", "kind": "imm_tightly_coupled"},
+        {
+            "name": "imm_sel",
+            "kind": "imm_tightly_coupled",
+            "likelihood": "gaussian",
+            "selection_correction": True,
+        },
     ]
     return parse_scenario(d, "hardening: demo aircraft with raw GNSS and a star tracker")
 
@@ -232,7 +238,8 @@ FAMILIES = {
             "fed": "federated",
             "central": "centralized",
             "tc": "tightly_coupled",
-            "imm": "imm_tightly_coupled",
+            "imm": "imm_tightly_coupled (the paper's likelihood)",
+            "imm_sel": "imm_tightly_coupled (recommended: log-Gaussian, selection correction)",
         },
         100.0,
         "gnss_fix",
