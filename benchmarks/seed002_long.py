@@ -228,6 +228,36 @@ def write_scenarios() -> None:
 _SERIES = ("lever", "lever_sig", "head", "head_sig", "nees")
 
 
+def variant(name: str, minutes: float | None = None, slave_vrw: float | None = None):
+    """The scenario ``name`` cut to ``minutes`` and/or with the slaves' VRW (ug/sqrt(Hz)) set in
+    the simulator and in every pipeline's model (a diagnostic: Table 1 says 50)."""
+    import tomllib
+
+    from fednav.simulators.scenario import parse_scenario
+
+    data = tomllib.loads((SCEN_DIR / f"{name}.toml").read_text())
+    if minutes is not None:
+        data["duration_s"] = 60.0 * minutes
+        segs, total = [], 0.0
+        for seg in data["segments"]:
+            if total + seg["duration_s"] > data["duration_s"] + 1e-9:
+                break
+            segs.append(seg)
+            total += seg["duration_s"]
+        data["segments"] = segs
+    if slave_vrw is not None:
+        data["wing"]["vrw_ugpsHz"] = slave_vrw
+        data["service"]["pipelines"] = [p | {"vrw_ugpsHz": slave_vrw} for p in data["service"]["pipelines"]]
+    tag = "".join(
+        [
+            f"_{minutes:g}min" if minutes is not None else "",
+            f"_vrw{slave_vrw:g}" if slave_vrw is not None else "",
+        ]
+    )
+    data["name"] = name + tag
+    return parse_scenario(data, data["name"])
+
+
 def run(name, seeds: list[int], pipes: list[str] | None, out: Path) -> None:
     """Every seed's run through the scenario's pipelines (or ``pipes``); errors and 1-sigma at
     1 Hz (every tenth filter epoch) and each seed's ``fednav-sim eval`` summary (RMSE after 60 s)."""
@@ -266,6 +296,30 @@ def run(name, seeds: list[int], pipes: list[str] | None, out: Path) -> None:
     print(f"wrote {out}")
 
 
+def merge(out: Path, first: Path, second: Path) -> None:
+    """One .npz of two runs over the same seeds: the second's pipelines replace the first's, whose
+    replaced ones are kept as ``{name}_before`` (e.g. a filter before and after a change)."""
+    m1, a1 = _load(first)
+    m2, a2 = _load(second)
+    if m1["seeds"] != m2["seeds"] or not np.array_equal(a1["t"], a2["t"]):
+        raise SystemExit("merge: the runs differ in seeds or duration")
+    arrays, pipes = {"t": a1["t"]}, []
+    for p in m1["pipelines"]:
+        name = f"{p}_before" if p in m2["pipelines"] else p
+        pipes.append(name)
+        arrays |= {k.replace(f"{p}/", f"{name}/", 1): v for k, v in a1.items() if k.startswith(f"{p}/")}
+    for p in m2["pipelines"]:
+        pipes.append(p)
+        arrays |= {k: v for k, v in a2.items() if k.startswith(f"{p}/")}
+    evals = [
+        {(f"{k}_before" if k in m2["pipelines"] else k): v for k, v in e1.items()} | e2
+        for e1, e2 in zip(m1["per_seed_eval"], m2["per_seed_eval"], strict=True)
+    ]
+    meta = m1 | {"pipelines": pipes, "per_seed_eval": evals, "merged_from": [str(first), str(second)]}
+    np.savez_compressed(out, meta=json.dumps(meta), **arrays)
+    print(f"wrote {out}")
+
+
 def _load(path: Path) -> tuple[dict, dict]:
     z = np.load(path)
     return json.loads(str(z["meta"])), {k: z[k] for k in z.files if k != "meta"}
@@ -273,6 +327,14 @@ def _load(path: Path) -> tuple[dict, dict]:
 
 def _rms(x: np.ndarray, axis) -> np.ndarray:
     return np.sqrt(np.nanmean(np.square(x), axis=axis))
+
+
+def _slope(per_pattern: list[float]) -> float | None:
+    y = np.asarray(per_pattern[1:])
+    if y.size < 2:
+        return None
+    t = (np.arange(y.size) + 1.5) * PATTERN_S
+    return float(np.polyfit(np.log(t), np.log(y), 1)[0].round(3))
 
 
 def _lev3(lever: np.ndarray) -> float:
@@ -321,10 +383,11 @@ def _summary(path: Path) -> dict:
         head, hsig = np.degrees(a[f"{p}/head"]), np.degrees(a[f"{p}/head_sig"])  # (S, E, B)
         nees = a[f"{p}/nees"]
         cps = {}
-        for m in CHECKPOINTS_MIN:
+        ends = [m for m in CHECKPOINTS_MIN if 60.0 * m <= t[-1] + 1e-6]
+        if not ends or 60.0 * ends[-1] < t[-1] - 1e-6:
+            ends.append(round(t[-1] / 60.0, 2))  # the end of the run
+        for m in ends:
             te_ = 60.0 * m
-            if te_ > t[-1] + 1e-6:
-                continue
             sel = (t > te_ - WINDOW_S) & (t <= te_ + 1e-6)
             enu = _rms(lever[:, sel], axis=(0, 1))  # (B, 3)
             cps[f"{m}min"] = {
@@ -404,6 +467,8 @@ def _summary(path: Path) -> dict:
             "lever_information_gain_by_phase_1_per_m2": gain,
             "checkpoints": cps,
             "lever_3d_m_per_pattern": [round(v, 5) for v in per_pat],
+            # least-squares slope of log RMS against log t (pattern mid-times), from the 2nd pattern
+            "lever_decay_exponent": _slope(per_pat),
             "second_half_by_phase": by_phase,
             "second_half_by_air": by_turb,
             "fading_trigger_rate": float(np.mean(a[f"{p}/trig"])),
@@ -485,9 +550,15 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--seeds", default="2,102,202")
     r.add_argument("--pipelines", default=None, help="comma-separated subset (default: the scenario's)")
     r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--minutes", type=float, default=None, help="cut the scenario (diagnostics)")
+    r.add_argument("--slave-vrw", type=float, default=None, help="slaves' VRW ug/sqrt(Hz), sim and filters")
     s = sub.add_parser("summary")
-    s.add_argument("npz", type=Path)
+    s.add_argument("npz", type=Path, nargs="+", help="several: one object keyed by scenario")
     s.add_argument("--json", type=Path, default=None)
+    mg = sub.add_parser("merge", help="OUT FIRST SECOND: the second's pipelines replace the first's")
+    mg.add_argument("out", type=Path)
+    mg.add_argument("first", type=Path)
+    mg.add_argument("second", type=Path)
     pl = sub.add_parser("plot")
     pl.add_argument("npz", type=Path, nargs="+", help="the first is plotted per seed; all on the bottom row")
     pl.add_argument("--png", type=Path, required=True)
@@ -497,13 +568,19 @@ def main(argv: list[str] | None = None) -> int:
         write_scenarios()
     elif args.cmd == "run":
         pipes = args.pipelines.split(",") if args.pipelines else None
-        run(args.scenario, [int(v) for v in args.seeds.split(",")], pipes, args.out)
+        sc = args.scenario
+        if args.minutes is not None or args.slave_vrw is not None:
+            sc = variant(sc, args.minutes, args.slave_vrw)
+        run(sc, [int(v) for v in args.seeds.split(",")], pipes, args.out)
     elif args.cmd == "summary":
-        res = summary(args.npz)
+        res = [summary(p) for p in args.npz]
+        res = res[0] if len(res) == 1 else {r["scenario"]: r for r in res}
         text = json.dumps(res, indent=1)
         print(text)
         if args.json:
             args.json.write_text(text + "\n")
+    elif args.cmd == "merge":
+        merge(args.out, args.first, args.second)
     elif args.cmd == "plot":
         plot(args.npz, args.png, args.node)
     else:
