@@ -516,23 +516,28 @@ def plot(paths: list[Path], png: Path, node: int = 1) -> None:
                 ax.set_title(f"{p}, {meta['nodes'][node]}: error per seed {meta['seeds']}")
                 ax.legend(loc="upper right", fontsize=8)
         ax = axs[4, j]
+        sm0 = None
         for path, style in zip(paths, ("-", ":", "-."), strict=False):
             m2, a2 = _load(path)
-            if p not in m2["pipelines"]:
-                continue
-            t2 = a2["t"] / 60.0
-            lev3 = np.sqrt(np.sum(_rms(a2[f"{p}/lever"], axis=0) ** 2, axis=-1)).mean(axis=-1) * 1e3
-            w = 60  # 60 s running RMS
-            k = np.ones(w) / w
-            sm = np.sqrt(
-                np.convolve(lev3**2, k, mode="same") / np.convolve(np.ones_like(lev3), k, mode="same")
-            )
-            ax.loglog(t2[t2 > 1], sm[t2 > 1], style, label=f"3-D RMS, {m2['scenario']}")
+            for q, color in ((p, "C0"), (f"{p}_before", "0.6")):
+                if q not in m2["pipelines"]:
+                    continue
+                t2 = a2["t"] / 60.0
+                lev3 = np.sqrt(np.sum(_rms(a2[f"{q}/lever"], axis=0) ** 2, axis=-1)).mean(axis=-1) * 1e3
+                w = 60  # 60 s running RMS
+                k = np.ones(w) / w
+                sm = np.sqrt(
+                    np.convolve(lev3**2, k, mode="same") / np.convolve(np.ones_like(lev3), k, mode="same")
+                )
+                sm0 = sm if sm0 is None else sm0
+                what = " (before the fading fix)" if q != p else ""
+                ax.loglog(t2[t2 > 1], sm[t2 > 1], style, color=color, label=f"{m2['scenario']}{what}")
+        sm = sm0
         ref = t[t > 1]
         i5 = np.searchsorted(t, 5.0)
         if i5 < t.size:
             ax.loglog(ref, sm[min(i5, sm.size - 1)] * np.sqrt(5.0 / ref), "k:", lw=0.8, label="1/sqrt(t)")
-        ax.set_ylabel("lever arm 3-D (mm)\nRMS seeds, nodes")
+        ax.set_ylabel("lever arm 3-D RMS (mm)\nover seeds and nodes")
         ax.set_xlabel("time (min)")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
