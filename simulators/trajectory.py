@@ -91,10 +91,15 @@ class _RampedSegment(_SegmentBase):
 
 
 class TurnSegment(_RampedSegment):
-    """Level coordinated turn; positive turn rate = heading increasing (right turn, right wing down)."""
+    """Level turn; positive turn rate = heading increasing (right turn, right wing down)."""
 
     kind: Literal["turn"]
     turn_rate_dps: float = Field(ge=-30.0, le=30.0, description="Heading rate when fully rolled in, deg/s")
+    bank: Literal["coordinated", "level"] = Field(
+        "coordinated",
+        description="'coordinated': rolled into the turn (tan(roll) = v omega / g, an aircraft); "
+        "'level': no roll, the centripetal force on the body's lateral axis (a car, a ship)",
+    )
 
 
 class ClimbSegment(_RampedSegment):
@@ -255,9 +260,10 @@ def _plan(start: StartSpec, segments: list, imu_rate_hz: float, duration_s: floa
                 )
         elif seg.kind == "turn":
             w = math.radians(seg.turn_rate_dps)
-            phi = math.atan(speed * w / g0)  # coordinated: tan(roll) = v omega / g
             hrate += [_Ramp(t, ramp, w), _Ramp(end_ramp, ramp, -w)]
-            roll += [_Ramp(t, ramp, phi), _Ramp(end_ramp, ramp, -phi)]
+            if seg.bank == "coordinated":
+                phi = math.atan(speed * w / g0)  # coordinated: tan(roll) = v omega / g
+                roll += [_Ramp(t, ramp, phi), _Ramp(end_ramp, ramp, -phi)]
         elif seg.kind == "climb":
             if seg.climb_rate_mps is not None:
                 if speed <= abs(seg.climb_rate_mps):

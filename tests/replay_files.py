@@ -179,9 +179,9 @@ CAR_SEGMENTS = (
 )
 
 
-def car_segments(duration_s: float, stop_s: float = 0.0) -> str:
+def car_segments(duration_s: float, stop_s: float = 0.0, level_turns: bool = False) -> str:
     """The segments of ``duration_s``; ``stop_s`` > 0: first a stop of that long (braking from
-    14 m/s over 8 s, standing, pulling away over 8 s)."""
+    14 m/s over 8 s, standing, pulling away over 8 s); ``level_turns``: turns without roll."""
     out, t, k = [], 0.0, 0
     if stop_s > 0:
         for kind, d, kw in (
@@ -199,6 +199,8 @@ def car_segments(duration_s: float, stop_s: float = 0.0) -> str:
         if t + d > duration_s:  # the rest is padded with straight driving
             break
         lines = [f'kind = "{kind}"', f"duration_s = {d}"] + [f"{a} = {b}" for a, b in kw.items()]
+        if kind == "turn" and level_turns:
+            lines.append('bank = "level"')
         out.append("[[segments]]\n" + "\n".join(lines))
         t += d
     return "\n\n".join(out)
@@ -233,21 +235,25 @@ def simulate_car_drive(
     pos_std_m: float = 0.5,
     gm_std_m: float = 0.0,
     stop_s: float = 0.0,
+    level_turns: bool = False,
 ) -> Drive:
     """A car drive that starts in motion, IMU of ``grade`` (docs/imu_grades.md presets), 10 Hz fixes
     (white ``pos_std_m`` plus a 30 s Gauss-Markov error ``gm_std_m``, vertical 2x); ``stop_s``: a
-    stop of that long after 11 s."""
+    stop of that long after 11 s. ``level_turns``: the simulator flies the turns without roll (a
+    car's body; the IMU and its errors as simulated, the truth's attitude the body's); else turns
+    are coordinated and :func:`car_imu` rotates the IMU into a level-roll body afterwards (its
+    biases then turn with the roll: not a real IMU's errors)."""
     from fednav.service.ins.imu_grades import PRESETS
     from fednav.simulators.scenario import load_scenario
     from fednav.simulators.stream import simulate
 
-    p = tmp / f"car_{grade}_{seed}_{stop_s:g}.toml"
+    p = tmp / f"car_{grade}_{seed}_{stop_s:g}{'_level' if level_turns else ''}.toml"
     p.write_text(
         CAR_SCENARIO_TOML.format(
             grade=grade,
             duration=duration_s,
             t0=T0_GPS_S,
-            segments=car_segments(duration_s, stop_s),
+            segments=car_segments(duration_s, stop_s, level_turns),
             g=PRESETS[grade],
             pos_std=pos_std_m,
             pos_std_u=2 * pos_std_m,
@@ -263,7 +269,7 @@ def simulate_car_drive(
             fixes.append(msg)
         elif isinstance(msg, Truth):
             truth.append(msg)
-    return Drive(car_imu(imu, truth), fixes, truth)
+    return Drive(imu if level_turns else car_imu(imu, truth), fixes, truth)
 
 
 def trim(drive: Drive, start_s: float) -> Drive:

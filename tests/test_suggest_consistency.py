@@ -4,7 +4,10 @@ within 0.7-1.5) on consumer, industrial and tactical simulated IMUs, horizontall
 The suggestion is made from the 60 s log of tests/test_replay_suggest.py (a car drive starting in
 a turn, NMEA + IMU CSV, fixes 0.15 m white + 0.3 m Gauss-Markov of 30 s, vertical 2x); the
 configuration it writes then runs (the service's per-vehicle loop, in-process) on other drives of
-the same vehicle, seeds SEEDS, DRIVE_S each, against their truth after SKIP_S.
+the same vehicle, seeds SEEDS, DRIVE_S each, against their truth after SKIP_S. The drives turn
+like a car (no roll: ``level_turns``), so the IMU's errors are the simulated ones in the car's body;
+the rolled-then-derolled IMU of the other replay tests (``car_imu``) turns its biases with the
+roll, which no real IMU does, and read the velocity 2-8x overconfident.
 
 How it is measured matters: the receiver's slowly varying error is what the filter cannot tell
 from its position, so the real error over a drive is that error's realisation, which a 40 s
@@ -93,7 +96,9 @@ def test_the_suggested_config_is_consistent_over_seeds(grade, tmp_path):
     for seed in SEEDS:
         where = tmp_path / f"seed{seed}"
         where.mkdir()
-        d = rf.simulate_car_drive(where, grade, duration_s=DRIVE_S, seed=seed, pos_std_m=0.15, gm_std_m=0.3)
+        d = rf.simulate_car_drive(
+            where, grade, duration_s=DRIVE_S, seed=seed, pos_std_m=0.15, gm_std_m=0.3, level_turns=True
+        )
         a, b = squared_errors(d, cfg)
         per_seed[seed] = ratios(a, b)
         e2.append(a)
@@ -102,4 +107,4 @@ def test_the_suggested_config_is_consistent_over_seeds(grade, tmp_path):
     print(grade, "pooled", {k: round(x, 2) for k, x in pooled.items()})
     for seed, r in per_seed.items():
         print(grade, seed, {k: round(x, 2) for k, x in r.items()})
-    assert LOW <= pooled["h"] <= HIGH and LOW <= pooled["v"] <= HIGH, (pooled, per_seed)
+    assert all(LOW <= pooled[k] <= HIGH for k in ("h", "v", "vel_h", "vel_v")), (pooled, per_seed)
