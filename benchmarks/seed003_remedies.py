@@ -5,8 +5,9 @@ fault's own stream), with the plain KF and IMM variants (Gaussian likelihood) on
 
     tc               the tightly coupled KF (reference)
     gauss            the paper's model set, Pi and mu0 (= tc_imm_gauss of the scenarios)
-    gauss_sel        + the selection correction (= tc_imm_sel)
-    gauss_sel_iid    + a memoryless transition: every row of Pi = mu0 = [0.97, 0.01, 0.01, 0.01]
+    gauss_sel        + the selection correction, the paper's fixed Pi (= tc_imm_sel before the learned
+                     transition; tc_imm_sel now learns Pi: docs/seed003.md, benchmarks/seed003_diag.py)
+    gauss_sel_iid    + a fixed memoryless transition: every row of Pi = mu0 = [0.97, 0.01, 0.01, 0.01]
     gauss_pi99       the paper's set with Pi's diagonal 0.99
     gauss_map        output and feedback of the most probable model instead of eq (12)-(13)
     gate             the KF with the chi-square innovation gate (= tc_gate)
@@ -44,9 +45,13 @@ GAUSS = {"kind": "imm_tightly_coupled", "likelihood": "gaussian"}
 VARIANTS = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},
     "gauss": GAUSS,
-    "gauss_sel": dict(GAUSS, selection_correction=True),
+    "gauss_sel": dict(GAUSS, selection_correction=True, learn_transition_s=None),
     "gauss_sel_iid": dict(
-        GAUSS, selection_correction=True, transition=MEMORYLESS, initial_probabilities=MEMORYLESS[0]
+        GAUSS,
+        selection_correction=True,
+        learn_transition_s=None,
+        transition=MEMORYLESS,
+        initial_probabilities=MEMORYLESS[0],
     ),
     "gauss_pi99": dict(GAUSS, transition=DIAG_99),
     "gauss_map": dict(GAUSS, output="map"),
