@@ -211,13 +211,19 @@ class VehicleEngine:
             self.rejected["unexpected_sensor"] += len(rows)
             return 0
         decide = self.rules.decide_imu
+        key = f"imu/{sensor_id}" if sensor_id else "imu"
+        streams, refusals = self.streams, self._refusals
         accepted = 0
         for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist():
             verdict = decide(t, dt, self.last_imu_t)
             reason = verdict.reason
             if reason is None or reason in ("imu_gap", "time_jump"):
-                self._note_stream("imu", sensor_id, t)
-            self._watch_refusals("imu", sensor_id, t, reason)
+                # _note_stream and _watch_refusals of an accepted record, inline (the hot path)
+                prev = streams.get(key)
+                streams[key] = (t, (t - prev[0]) if prev and t > prev[0] else (prev[1] if prev else None))
+                refusals.pop(key, None)
+            else:
+                self._watch_refusals("imu", sensor_id, t, reason)
             accepted += self._imu_values(t, dt, (a0, a1, a2), (v0, v1, v2), verdict)
         return accepted
 

@@ -165,6 +165,16 @@ HISTORY_MIN_SAMPLES = 20
 _MEDIAN_CHI2_1 = 0.45493642311957184
 
 
+def _median(values) -> float:
+    """The median of a short sequence of finite floats, as ``np.median`` computes it (the mean of
+    the two middle values of an even count), without the array round trip (the sigma floors'
+    histories are updated at every aiding epoch of every vehicle)."""
+    s = sorted(values)
+    n = len(s)
+    m = n // 2
+    return float(s[m]) if n % 2 else (s[m - 1] + s[m]) / 2.0
+
+
 class _RowHistory:
     __slots__ = ("claimed", "r2", "hph", "floor", "stale")
 
@@ -179,9 +189,9 @@ class _RowHistory:
         if len(self.claimed) < HISTORY_MIN_SAMPLES:
             self.floor = 0.0
             return
-        f = CLAIM_FRACTION * float(np.median(self.claimed))
+        f = CLAIM_FRACTION * _median(self.claimed)
         if len(self.r2) >= HISTORY_MIN_SAMPLES:
-            var = float(np.median(self.r2)) / _MEDIAN_CHI2_1 - float(np.median(self.hph))
+            var = _median(self.r2) / _MEDIAN_CHI2_1 - _median(self.hph)
             f = max(f, SPREAD_FRACTION * math.sqrt(max(var, 0.0)))
         self.floor = f
         self.stale = 0
