@@ -222,6 +222,11 @@ class Intake:
         ]
         self._deliver = deliver
         self._order_key = order_key
+        # one subscription, no reordering (the service's own intake): the thread blocks in the
+        # channel's recv (Zenoh releases the GIL while it waits) instead of polling; stop()
+        # closes the channel by undeclaring it, and what had arrived is still delivered first
+        self._blocking = len(self._subs) == 1 and order_key is None
+        self._handlers = [s.handler for s in self._subs]
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
         self._thread.start()
@@ -273,19 +278,34 @@ class Intake:
         return bool(batch)
 
     def _run(self) -> None:
+        if self._blocking:
+            self._run_blocking()
+            return
         while not self._stop.is_set():
             if not self._drain():
                 self._stop.wait(0.0005)
         self._drain()  # what already arrived
 
+    def _run_blocking(self) -> None:
+        handler = self._handlers[0]
+        while True:
+            try:
+                sample = handler.recv()
+            except zenoh.ZError:  # "channel is empty and closed": undeclared by stop()
+                return
+            self._deliver_one(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
+
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=5.0)
-        for s in self._subs:
+        if not self._blocking:
+            self._thread.join(timeout=5.0)
+        for s in self._subs:  # closes the channels: a blocked recv returns what is left, then ends
             try:
                 s.undeclare()
             except zenoh.ZError:
                 pass
+        if self._blocking:
+            self._thread.join(timeout=5.0)
 
 
 #: one reply: (concrete key, payload, encoding)

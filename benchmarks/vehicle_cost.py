@@ -1,0 +1,112 @@
+"""The CPU cost of one fleet vehicle in-process: what a service's pool worker spends per vehicle.
+
+The same messages ``fednav-sim fleet`` publishes for one vehicle (the demo aircraft at 200 Hz IMU
+and 10 Hz fixes, ImuBatch payloads of ``--imu-batch`` samples or JSON per sample) go through the
+service's own per-vehicle loop (``VehicleLoop.process``: decoding, validation, the engine, one
+loosely coupled pipeline, the output sink with every message serialised) without Zenoh and without
+threads. Printed: CPU per vehicle-second (process time / scenario time; ``benchmarks/fleet_load.py``
+gives the same figure for a whole service, Zenoh and threads included, so the difference is the
+transport's and the scheduling's share) and a digest of every serialised output, so that a change
+of the hot path can show its outputs are byte-identical.
+
+Usage: .venv/bin/python benchmarks/vehicle_cost.py [--duration 120] [--imu-batch 10] [--repeat 3]
+           [--profile]
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import hashlib
+import pstats
+import time
+
+
+class _Publishers:
+    """The service's publishers without Zenoh: every message serialised as it would be sent."""
+
+    def __init__(self) -> None:
+        self.digest = hashlib.sha256()
+        self.n = 0
+
+    def publish(self, key: str, msg) -> None:
+        self.digest.update(key.encode())
+        self.digest.update(msg.to_json())
+        self.n += 1
+
+
+def run(duration_s: float, imu_batch: int, profile: bool = False, vehicles: int = 1) -> dict:
+    from fednav.service import keys
+    from fednav.service.app import OutputSink
+    from fednav.service.config import ServiceConfig
+    from fednav.service.vehicle import VehicleLoop
+    from fednav.simulators.fleet import fleet_scenario, variant_items
+
+    data = fleet_scenario("demo_aircraft", 200.0, 10.0, duration_s)
+    items, _ = variant_items(data, 1, 0.0, imu_batch, False, keys.DEFAULT_PREFIX)
+    inputs = []
+    for it in items:
+        parsed = keys.parse_input(f"{keys.DEFAULT_PREFIX}/veh000/{it.suffix}")
+        inputs.append((parsed.kind, parsed.sensor_id, it.payload))
+    config = ServiceConfig.model_validate(
+        {"vehicles": ["*"], "pipelines": [{"name": "lc", "kind": "loosely_coupled"}]}
+    )
+    pubs = _Publishers()
+    sink = OutputSink(keys.DEFAULT_PREFIX, pubs, None)
+    loops = [VehicleLoop(f"veh{i:03d}", config, sink) for i in range(vehicles)]
+    prof = cProfile.Profile() if profile else None
+    if prof is not None:
+        prof.enable()
+    c0 = time.process_time()
+    for kind, sensor_id, payload in inputs:  # vehicles interleaved message by message, as in a fleet
+        for loop in loops:
+            loop.process(kind, sensor_id, payload)
+    cpu = time.process_time() - c0
+    loop = loops[0]
+    if prof is not None:
+        prof.disable()
+        pstats.Stats(prof).sort_stats("tottime").print_stats(30)
+    return {
+        "messages": len(inputs),
+        "accepted_samples": loop.accepted,
+        "refused": dict(loop.counters),
+        "outputs": pubs.n,
+        "cpu_ms_per_vehicle_s": 1e3 * cpu / duration_s / vehicles,
+        "digest": pubs.digest.hexdigest()[:16],
+    }
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=120.0, help="scenario seconds (default 120)")
+    ap.add_argument("--imu-batch", type=int, default=10, help="samples per ImuBatch, 1 = JSON (default 10)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs; the minimum CPU is printed (default 3)")
+    ap.add_argument(
+        "--vehicles", type=int, default=1, help="vehicles served side by side, interleaved (default 1)"
+    )
+    ap.add_argument("--profile", action="store_true", help="one run under cProfile, its top functions")
+    args = ap.parse_args()
+    if args.profile:
+        run(args.duration, args.imu_batch, profile=True, vehicles=args.vehicles)
+        return 0
+    run(min(args.duration, 10.0), args.imu_batch)  # warm-up: lazy imports, schema builds, caches
+    runs = [run(args.duration, args.imu_batch, vehicles=args.vehicles) for _ in range(max(1, args.repeat))]
+    best = min(r["cpu_ms_per_vehicle_s"] for r in runs)
+    r = runs[0]
+    digests = {x["digest"] for x in runs}
+    inputs = f"ImuBatch of {args.imu_batch}" if args.imu_batch > 1 else "JSON"
+    print(
+        f"{args.vehicles} vehicle(s), {args.duration:.0f} s, {inputs}: "
+        f"{r['messages']} messages, {r['accepted_samples']} samples accepted, {r['outputs']} outputs, "
+        f"refused {r['refused'] or 'none'}"
+    )
+    print(
+        f"CPU per vehicle-second: {best:.2f} ms (min of {len(runs)}; all: "
+        + ", ".join(f"{x['cpu_ms_per_vehicle_s']:.2f}" for x in runs)
+        + f"); output digest {'/'.join(sorted(digests))}"
+    )
+    return 0 if len(digests) == 1 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,101 @@
+"""The service's intake thread (service/transport/zenoh_io.py ``Intake``): with one subscription it
+blocks in the Zenoh channel instead of polling, and stopping it still delivers, in order, every
+sample that had arrived (nothing is lost on shutdown). Two real Zenoh sessions over loopback."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from fednav.service.config import ZenohConfig  # noqa: E402
+from fednav.service.transport.zenoh_io import Intake, make_config  # noqa: E402
+from fednav.simulators.processes import free_port  # noqa: E402
+
+
+@pytest.fixture
+def sessions():
+    port = free_port()
+    a = zenoh.open(make_config(ZenohConfig(mode="peer"), listen=[f"tcp/127.0.0.1:{port}"], connect=[]))
+    b = zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    yield a, b
+    b.close()
+    a.close()
+
+
+def _wait(cond, timeout=10.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()
+
+
+def test_blocking_intake_delivers_in_order_and_drains_on_stop(sessions):
+    a, b = sessions
+    got: list[tuple[str, bytes]] = []
+    first = threading.Event()
+    release = threading.Event()
+
+    def deliver(wall: float, key: str, payload: bytes) -> None:
+        got.append((key, payload))
+        if len(got) == 1:
+            first.set()
+            release.wait(5.0)  # a slow consumer: the rest queue up in the channel
+
+    intake = Intake(a, ["t/*/**"], deliver)
+    assert intake._blocking
+    time.sleep(0.5)  # the subscription reaches the client
+    pub = b.declare_publisher("t/v1/sensor/imu/main", reliability=zenoh.Reliability.RELIABLE)
+    for i in range(50):
+        pub.put(f"m{i}".encode())
+    assert first.wait(10.0)
+    # everything published is in the channel while the consumer is still busy with the first
+    time.sleep(0.5)
+    stopper = threading.Thread(target=intake.stop)
+    stopper.start()
+    time.sleep(0.2)
+    release.set()
+    stopper.join(10.0)
+    assert not stopper.is_alive() and not intake._thread.is_alive()
+    assert [p for _, p in got] == [f"m{i}".encode() for i in range(50)]
+    assert {k for k, _ in got} == {"t/v1/sensor/imu/main"}
+
+
+def test_blocking_intake_costs_nothing_while_idle(sessions):
+    """An idle intake thread sleeps in the channel (the polling one woke 2,000 times a second)."""
+    a, _ = sessions
+    intake = Intake(a, ["t/*/**"], lambda *args: None)
+    try:
+        time.sleep(0.3)
+        c0 = time.thread_time(), time.process_time()
+        time.sleep(1.0)
+        used = time.process_time() - c0[1] - (time.thread_time() - c0[0])
+        # the whole process (Zenoh's runtime included) under 2 % of a core while nothing arrives
+        # (measured: 0.2 %; the polling thread it replaced: 5.9 %)
+        assert used < 0.02, used
+    finally:
+        intake.stop()
+    assert not intake._thread.is_alive()
+
+
+def test_intake_survives_a_failing_consumer(sessions):
+    a, b = sessions
+    got = []
+
+    def deliver(wall, key, payload):
+        if payload == b"bad":
+            raise RuntimeError("consumer bug")
+        got.append(payload)
+
+    intake = Intake(a, ["t/*/**"], deliver)
+    time.sleep(0.5)
+    for p in (b"one", b"bad", b"two"):
+        b.put("t/v1/x", p)
+    assert _wait(lambda: len(got) == 2)
+    intake.stop()
+    assert got == [b"one", b"two"]
