@@ -286,10 +286,20 @@ def _faults_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any] |
         if ent.startswith(sharing_root) and len(s):
             local, _, state = ent[len(sharing_root) :].partition("/")
             sharing[local][state] = _f(s.values[-1])
-    if not obs and not sub_iso and not sharing:
+    # the private filter states a pipeline reports on Faults (estimated lever arm, scale factors,
+    # DVL offset): the last value and 1-sigma of each
+    states_root = paths.filter_state(v, p) + "/"
+    states: dict[str, dict[str, float | None]] = defaultdict(dict)
+    for ent, s in data.items():
+        if ent.startswith(states_root) and len(s):
+            name, _, leaf = ent[len(states_root) :].partition("/")
+            if leaf in ("value", "std"):
+                states[name][leaf] = _f(s.values[-1])
+    if not obs and not sub_iso and not sharing and not states:
         return None
     return {
         "vehicle": v,
+        "states_last": {k: dict(sorted(d.items(), reverse=True)) for k, d in sorted(states.items())},
         "observations": dict(sorted(obs.items())),
         "flagged": {k: o["flagged"] for k, o in sorted(obs.items())},
         "subsystem_isolated_epochs": dict(sorted(sub_iso.items())),
@@ -889,6 +899,8 @@ def render_text(s: dict[str, Any]) -> str:
         for sub, n in f["subsystem_isolated_epochs"].items():
             if n:
                 lines.append(f"    subsystem {sub} isolated in {n} epochs")
+        for name, st in f.get("states_last", {}).items():
+            lines.append(f"    state {name:<18} {_fmt(st.get('value'))} +- {_fmt(st.get('std'))} (last)")
     for key, i in s["integrity"].items():
         lines.append(
             f"integrity {key}: {i['epochs']} epochs, HPL median {_fmt(i['hpl_median_m'])} m "

@@ -204,3 +204,26 @@ def test_nis_interval_is_chi_square_of_the_epochs():
     lo, hi = chi2.ppf(0.025, n) / n, chi2.ppf(0.975, n) / n
     assert lo == pytest.approx(1 - 1.96 * math.sqrt(2 / n), abs=0.01)
     assert hi == pytest.approx(1 + 1.96 * math.sqrt(2 / n), abs=0.01)
+
+
+def test_inspect_prints_the_estimated_states(tmp_path):
+    """Faults ``states`` (an estimated lever arm, scale factors, a DVL offset) reach the recording
+    and ``fednav-inspect`` reports the last value and 1-sigma of each (read back with Rerun's reader)."""
+    from fednav.service.messages import Faults, StateEstimate, SubsystemFaults
+
+    out = tmp_path / "states.rrd"
+    sink = RerunSink(out)
+    for t, value, std in ((10.0, 0.5, 0.3), (11.0, 0.82, 0.04)):
+        sub = SubsystemFaults(name="gnss_fix", isolated=False, observations=[])
+        states = [
+            StateEstimate(name="gnss_lever_arm_y_m", value=value, std=std),
+            StateEstimate(name="gyro_scale_z_ppm", value=100.0 * value, std=10.0 * std),
+        ]
+        sink.log_faults("v1", Faults(t=t, pipeline="lc", subsystems=[sub], states=states))
+    sink.close()
+    s = inspect.inspect_rrd(out)
+    got = s["faults"]["lc"]["states_last"]  # one vehicle: keyed by pipeline
+    assert got["gnss_lever_arm_y_m"] == {"value": pytest.approx(0.82), "std": pytest.approx(0.04)}
+    assert got["gyro_scale_z_ppm"] == {"value": pytest.approx(82.0), "std": pytest.approx(0.4)}
+    text = inspect.render_text(s)
+    assert re.search(r"state gnss_lever_arm_y_m\s+0\.82\d* \+- 0\.04", text), text
