@@ -201,7 +201,7 @@ def gnss_scenario(duration_s: float = 300.0):
         },
         {"name": "central", "kind": "centralized", "fault_handling": "per_observation"},
         {"name": "tc", "kind": "tightly_coupled", "integrity": True, "phase": "npa"},
-        {"name": "imm", "kind": "imm_tightly_coupled"},
+        {"name": "imm", "kind": "imm_tightly_coupled", "likelihood": "paper", "selection_correction": False},
         {
             "name": "imm_sel",
             "kind": "imm_tightly_coupled",

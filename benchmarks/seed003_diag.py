@@ -29,7 +29,7 @@ from fednav.simulators import evaluate as ev
 from fednav.simulators import faults as faults_mod
 from fednav.simulators.scenario import load_scenario
 
-GAUSS = {"kind": "imm_tightly_coupled", "likelihood": "gaussian"}
+GAUSS = {"kind": "imm_tightly_coupled", "likelihood": "gaussian", "selection_correction": False}
 VARIANTS: dict[str, dict] = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},
     "sel": dict(GAUSS, selection_correction=True, learn_transition_s=None),  # tc_imm_sel before the learning
@@ -39,7 +39,13 @@ VARIANTS: dict[str, dict] = {
     "sel_c16": dict(GAUSS, selection_correction=True, learn_transition_s=None, big=16.0),
     "sel_gate": dict(GAUSS, selection_correction=True, learn_transition_s=None, gate_p_fa=0.001),
     "gauss": GAUSS,  # = tc_imm_gauss
-    "gate": {"kind": "imm_tightly_coupled", "models": ["normal"], "gate_p_fa": 0.001},  # = tc_gate
+    "gate": {
+        "kind": "imm_tightly_coupled",
+        "models": ["normal"],
+        "gate_p_fa": 0.001,
+        "likelihood": "paper",
+        "selection_correction": False,
+    },  # = tc_gate
 }
 SPANS = ((0, 10), (10, 50), (50, 200), (200, 400), (400, 500), (500, 700))
 

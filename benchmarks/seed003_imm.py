@@ -26,9 +26,15 @@ from fednav.simulators.stream import Simulation
 
 PIPELINES = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},
-    "tc_imm": {"kind": "imm_tightly_coupled", "likelihood": "paper"},
-    "tc_imm_gauss": {"kind": "imm_tightly_coupled", "likelihood": "gaussian"},
-    "tc_gate": {"kind": "imm_tightly_coupled", "models": ["normal"], "gate_p_fa": 0.001},
+    "tc_imm": {"kind": "imm_tightly_coupled", "likelihood": "paper", "selection_correction": False},
+    "tc_imm_gauss": {"kind": "imm_tightly_coupled", "likelihood": "gaussian", "selection_correction": False},
+    "tc_gate": {
+        "kind": "imm_tightly_coupled",
+        "models": ["normal"],
+        "gate_p_fa": 0.001,
+        "likelihood": "paper",
+        "selection_correction": False,
+    },
 }
 
 

@@ -41,7 +41,7 @@ DIAG_99 = [
     [0.004, 0.004, 0.99, 0.002],
     [0.004, 0.004, 0.002, 0.99],
 ]
-GAUSS = {"kind": "imm_tightly_coupled", "likelihood": "gaussian"}
+GAUSS = {"kind": "imm_tightly_coupled", "likelihood": "gaussian", "selection_correction": False}
 VARIANTS = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},
     "gauss": GAUSS,
@@ -55,7 +55,13 @@ VARIANTS = {
     ),
     "gauss_pi99": dict(GAUSS, transition=DIAG_99),
     "gauss_map": dict(GAUSS, output="map"),
-    "gate": {"kind": "imm_tightly_coupled", "models": ["normal"], "gate_p_fa": 0.001},
+    "gate": {
+        "kind": "imm_tightly_coupled",
+        "models": ["normal"],
+        "gate_p_fa": 0.001,
+        "likelihood": "paper",
+        "selection_correction": False,
+    },
 }
 
 

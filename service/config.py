@@ -437,7 +437,9 @@ class ImmTightlyCoupledConfig(Model):
         description="mu0, sums to 1 (None: the paper's [9, 3, 3, 1]/16 for its four models, else uniform)",
     )
     likelihood: Literal["paper", "gaussian"] = Field(
-        "paper", description="'paper': Lambda = 1/(V' P^-1 V) (eq 11); 'gaussian': N(r; 0, S) in log space"
+        "gaussian",
+        description="'gaussian' (default): N(r; 0, S) in log space; 'paper': Lambda = 1/(V' P^-1 V) (eq 11, "
+        "the paper's IMM with selection_correction = false: overconfident, docs/seed003.md)",
     )
     h_percent: float = Field(
         100.0, gt=0, le=100, description="p of eq (14): H-row scale of suspected rows, %"
@@ -448,9 +450,9 @@ class ImmTightlyCoupledConfig(Model):
         None, gt=0, lt=0.5, description="Chi-square innovation gate with row rejection (None: off)"
     )
     selection_correction: bool = Field(
-        False,
+        True,
         description="Divide a fault model's likelihood by C(m, k), the number of k-row sets it chose its "
-        "suspected rows from (not in the paper; docs/seed003.md)",
+        "suspected rows from (not in the paper; on by default: the recommended IMM; docs/seed003.md)",
     )
     output: Literal["combined", "map"] = Field(
         "combined",

@@ -44,7 +44,8 @@ def short_outliers(tmp_path: Path) -> Path:
         r"(?s)pipelines = \[.*?\n\]",
         "pipelines = [\n"
         '  { name = "tc", kind = "tightly_coupled", integrity = false, elevation_mask_deg = 5.0 },\n'
-        '  { name = "tc_imm", kind = "imm_tightly_coupled", likelihood = "paper" },\n]',
+        '  { name = "tc_imm", kind = "imm_tightly_coupled", likelihood = "paper",'
+        " selection_correction = false },\n]",
         text,
         count=1,
     )
