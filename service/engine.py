@@ -212,16 +212,14 @@ class VehicleEngine:
             return 0
         decide = self.rules.decide_imu
         key = f"imu/{sensor_id}" if sensor_id else "imu"
-        streams, refusals = self.streams, self._refusals
+        refusals = self._refusals
         accepted = 0
         for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist():
             verdict = decide(t, dt, self.last_imu_t)
             reason = verdict.reason
             if reason is None or reason in ("imu_gap", "time_jump"):
-                # _note_stream and _watch_refusals of an accepted record, inline (the hot path)
-                prev = streams.get(key)
-                streams[key] = (t, (t - prev[0]) if prev and t > prev[0] else (prev[1] if prev else None))
-                refusals.pop(key, None)
+                self._note_key(key, t)  # _note_stream, the key made once per batch
+                refusals.pop(key, None)  # _watch_refusals of an accepted record
             else:
                 self._watch_refusals("imu", sensor_id, t, reason)
             accepted += self._imu_values(t, dt, (a0, a1, a2), (v0, v1, v2), verdict)
@@ -248,7 +246,9 @@ class VehicleEngine:
         return False
 
     def _note_stream(self, kind: str, sensor_id: str, t: float) -> None:
-        key = f"{kind}/{sensor_id}" if sensor_id else kind
+        self._note_key(f"{kind}/{sensor_id}" if sensor_id else kind, t)
+
+    def _note_key(self, key: str, t: float) -> None:
         prev = self.streams.get(key)
         self.streams[key] = (t, (t - prev[0]) if prev and t > prev[0] else (prev[1] if prev else None))
 
