@@ -22,6 +22,7 @@ import math
 from collections import defaultdict
 
 import numpy as np
+from seed003_remedies import GATE
 
 from fednav.service import config as config_mod
 from fednav.service.messages import ImmModels
@@ -39,13 +40,7 @@ VARIANTS: dict[str, dict] = {
     "sel_c16": dict(GAUSS, selection_correction=True, learn_transition_s=None, big=16.0),
     "sel_gate": dict(GAUSS, selection_correction=True, learn_transition_s=None, gate_p_fa=0.001),
     "gauss": GAUSS,  # = tc_imm_gauss
-    "gate": {
-        "kind": "imm_tightly_coupled",
-        "models": ["normal"],
-        "gate_p_fa": 0.001,
-        "likelihood": "paper",
-        "selection_correction": False,
-    },  # = tc_gate
+    "gate": GATE,  # = tc_gate
 }
 SPANS = ((0, 10), (10, 50), (50, 200), (200, 400), (400, 500), (500, 700))
 

@@ -42,6 +42,14 @@ DIAG_99 = [
     [0.004, 0.004, 0.002, 0.99],
 ]
 GAUSS = {"kind": "imm_tightly_coupled", "likelihood": "gaussian", "selection_correction": False}
+#: the scenarios' tc_gate: the KF (one model) with the chi-square gate, the paper's likelihood
+GATE = {
+    "kind": "imm_tightly_coupled",
+    "models": ["normal"],
+    "gate_p_fa": 0.001,
+    "likelihood": "paper",
+    "selection_correction": False,
+}
 VARIANTS = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},
     "gauss": GAUSS,
@@ -55,13 +63,7 @@ VARIANTS = {
     ),
     "gauss_pi99": dict(GAUSS, transition=DIAG_99),
     "gauss_map": dict(GAUSS, output="map"),
-    "gate": {
-        "kind": "imm_tightly_coupled",
-        "models": ["normal"],
-        "gate_p_fa": 0.001,
-        "likelihood": "paper",
-        "selection_correction": False,
-    },
+    "gate": GATE,
 }
 
 
