@@ -66,21 +66,21 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def service_config(tmp: Path, workers: int, record: bool, extra: str = "") -> Path:
+def service_config(tmp: Path, workers: int | None, record: bool, extra: str = "") -> Path:
     p = tmp / "fleet_service.toml"
     p.write_text(
         'vehicles = ["*"]\n'
         'pipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
         + ("rrd_vehicle_interval_s = 1.0\n" if record else "")
         + f"{extra}"
-        "[intake]\n"
-        f"workers = {workers}\n"
-        "max_vehicles = 1000\n"
+        "[intake]\n" + (f"workers = {workers}\n" if workers is not None else "") + "max_vehicles = 1000\n"
     )
     return p
 
 
-def run_case(n: int, mode: str, record: bool, duration: float, workers: int, shards: int, tmp: Path) -> dict:
+def run_case(
+    n: int, mode: str, record: bool, duration: float, workers: int | None, shards: int, tmp: Path
+) -> dict:
     import zenoh
 
     from fednav.service.config import ZenohConfig
@@ -214,7 +214,9 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--modes", nargs="+", default=["batch", "json"], choices=["batch", "json"])
     ap.add_argument("--record", nargs="+", default=["off"], choices=["off", "on"])
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--workers", type=int, default=None, help="[intake] workers (default: the service's, 0 = inline)"
+    )
     ap.add_argument("--shards", type=int, default=1)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()

@@ -9,8 +9,11 @@ gives the same figure for a whole service, Zenoh and threads included, so the di
 transport's and the scheduling's share) and a digest of every serialised output, so that a change
 of the hot path can show its outputs are byte-identical.
 
+With ``--pace-ms``, the thread sleeps after every ``--burst`` messages, as a service's worker idles
+between arrivals: its own CPU for the same work (``time.thread_time``) shows what idling costs.
+
 Usage: .venv/bin/python benchmarks/vehicle_cost.py [--duration 120] [--imu-batch 10] [--repeat 3]
-           [--profile]
+           [--vehicles 1] [--pace-ms 0 --burst 1] [--profile]
 """
 
 from __future__ import annotations
@@ -35,7 +38,14 @@ class _Publishers:
         self.n += 1
 
 
-def run(duration_s: float, imu_batch: int, profile: bool = False, vehicles: int = 1) -> dict:
+def run(
+    duration_s: float,
+    imu_batch: int,
+    profile: bool = False,
+    vehicles: int = 1,
+    pace_s: float = 0.0,
+    burst: int = 1,
+) -> dict:
     from fednav.service import keys
     from fednav.service.app import OutputSink
     from fednav.service.config import ServiceConfig
@@ -57,11 +67,18 @@ def run(duration_s: float, imu_batch: int, profile: bool = False, vehicles: int 
     prof = cProfile.Profile() if profile else None
     if prof is not None:
         prof.enable()
-    c0 = time.process_time()
+    cpu = 0.0
+    c0 = time.thread_time()
+    n = 0
     for kind, sensor_id, payload in inputs:  # vehicles interleaved message by message, as in a fleet
         for loop in loops:
             loop.process(kind, sensor_id, payload)
-    cpu = time.process_time() - c0
+            n += 1
+            if pace_s > 0.0 and n % burst == 0:  # idle between bursts, as a paced service is
+                cpu += time.thread_time() - c0
+                time.sleep(pace_s)
+                c0 = time.thread_time()
+    cpu += time.thread_time() - c0
     loop = loops[0]
     if prof is not None:
         prof.disable()
@@ -84,17 +101,30 @@ def main() -> int:
     ap.add_argument(
         "--vehicles", type=int, default=1, help="vehicles served side by side, interleaved (default 1)"
     )
+    ap.add_argument(
+        "--pace-ms",
+        type=float,
+        default=0.0,
+        help="sleep this long after every --burst messages (the thread's own CPU is still what is "
+        "counted): the cost of the same work done by a thread that idles between messages",
+    )
+    ap.add_argument("--burst", type=int, default=1, help="messages between two --pace-ms sleeps")
     ap.add_argument("--profile", action="store_true", help="one run under cProfile, its top functions")
     args = ap.parse_args()
     if args.profile:
         run(args.duration, args.imu_batch, profile=True, vehicles=args.vehicles)
         return 0
     run(min(args.duration, 10.0), args.imu_batch)  # warm-up: lazy imports, schema builds, caches
-    runs = [run(args.duration, args.imu_batch, vehicles=args.vehicles) for _ in range(max(1, args.repeat))]
+    pace = {"pace_s": args.pace_ms * 1e-3, "burst": args.burst}
+    runs = [
+        run(args.duration, args.imu_batch, vehicles=args.vehicles, **pace) for _ in range(max(1, args.repeat))
+    ]
     best = min(r["cpu_ms_per_vehicle_s"] for r in runs)
     r = runs[0]
     digests = {x["digest"] for x in runs}
     inputs = f"ImuBatch of {args.imu_batch}" if args.imu_batch > 1 else "JSON"
+    if args.pace_ms > 0.0:
+        inputs += f", idle {args.pace_ms:g} ms after every {args.burst} message(s)"
     print(
         f"{args.vehicles} vehicle(s), {args.duration:.0f} s, {inputs}: "
         f"{r['messages']} messages, {r['accepted_samples']} samples accepted, {r['outputs']} outputs, "

@@ -352,19 +352,39 @@ class VehicleWorker:
 
 class PoolWorker:
     """A thread that owns many vehicles: one bounded queue of (vehicle, item), consumed in
-    arrival order (a vehicle's events keep their order: a vehicle always lives on one worker)."""
+    arrival order (a vehicle's events keep their order: a vehicle always lives on one worker).
 
-    def __init__(self, index: int, config: ServiceConfig, fleet: tuple[str, str] | None = None):
+    ``inline`` (``[intake] workers = 0``): no queue; the thread that receives a message (the
+    intake) runs it at once, under this worker's lock, and this worker's own thread only scans the
+    vehicles for Health and handover states every 50 ms. No hand-over between threads: on a busy
+    process the fastest (docs/SCALING.md, "Inline intake"); the Zenoh channel back-pressures the
+    publishers when the service falls behind, and one vehicle's long epoch delays the others."""
+
+    def __init__(
+        self, index: int, config: ServiceConfig, fleet: tuple[str, str] | None = None, inline: bool = False
+    ):
         self.index = index
         self.config = config
         self.fleet = fleet  # (group, this service's id) when sharing a fleet: handover states out
+        self.inline = inline
         self.vehicles: list[VehicleWorker] = []
         self.q: queue.Queue = queue.Queue(maxsize=config.intake.queue_size)
+        self._lock = threading.Lock()  # inline: one message or one scan at a time
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"fednav-worker-{index}", daemon=True)
+        self._next_scan = 0.0
+        target = self._run_scans if inline else self._run
+        self._thread = threading.Thread(target=target, name=f"fednav-worker-{index}", daemon=True)
         self._thread.start()
 
     def submit(self, vw: VehicleWorker, item) -> None:
+        if self.inline:
+            with self._lock:
+                try:  # nothing a message or a sink does may end the intake
+                    self._one(vw, item)
+                except Exception:
+                    log.exception("worker %d: error", self.index)
+                    vw.counters["internal_error"] += 1
+            return
         if self.config.intake.overload == "block":
             self.q.put((vw, item))
         else:
@@ -375,8 +395,29 @@ class PoolWorker:
                 return
         vw.queued += 1
 
+    def _one(self, vw: VehicleWorker, item) -> None:
+        """One item of one vehicle (an input, a rejection, or the order to retire it)."""
+        wall, kind, sensor_id, payload = item
+        if kind is None and sensor_id == RETIRE:
+            self._retire(vw)
+        elif not vw.retired:
+            vw.loop.process(kind, sensor_id, payload, wall)
+
+    def _scan(self) -> None:
+        """Health (and handover states) of the vehicles that are due: every 50 ms, not per event."""
+        now = time.monotonic()
+        if now < self._next_scan:
+            return
+        self._next_scan = now + 0.05
+        for v in list(self.vehicles):
+            if now >= v.next_health:
+                v.next_health = now + self.config.output.health_period_s
+                v.publish_health()
+            if self.fleet is not None and now >= v.next_state:
+                v.next_state = now + self.config.fleet.handover_period_s
+                v.publish_states(*self.fleet)
+
     def _run(self) -> None:
-        next_scan = 0.0
         while True:
             try:
                 vw, item = self.q.get(timeout=0.05)
@@ -385,27 +426,22 @@ class PoolWorker:
             try:  # nothing a message or a sink does may end this worker
                 if item is not None:
                     vw.queued -= 1
-                    wall, kind, sensor_id, payload = item
-                    if kind is None and sensor_id == RETIRE:
-                        self._retire(vw)
-                    elif not vw.retired:
-                        vw.loop.process(kind, sensor_id, payload, wall)
-                now = time.monotonic()
-                if now >= next_scan:  # health: a scan of the vehicles every 50 ms, not per event
-                    next_scan = now + 0.05
-                    for v in list(self.vehicles):
-                        if now >= v.next_health:
-                            v.next_health = now + self.config.output.health_period_s
-                            v.publish_health()
-                        if self.fleet is not None and now >= v.next_state:
-                            v.next_state = now + self.config.fleet.handover_period_s
-                            v.publish_states(*self.fleet)
+                    self._one(vw, item)
+                self._scan()
             except Exception:
                 log.exception("worker %d: error", self.index)
                 if vw is not None:
                     vw.counters["internal_error"] += 1
             if item is None and self._stop.is_set():
                 break
+
+    def _run_scans(self) -> None:
+        while not self._stop.wait(0.05):
+            try:
+                with self._lock:
+                    self._scan()
+            except Exception:
+                log.exception("worker %d: health scan failed", self.index)
 
     def _retire(self, vw: VehicleWorker) -> None:
         """The vehicle moved to another service: its last state out (the new owner starts from
@@ -435,8 +471,9 @@ class PoolWorker:
         if self._thread.is_alive():
             log.warning("worker %d: %d events not processed at shutdown", self.index, self.q.qsize())
             return
-        for v in self.vehicles:
-            v.final_outputs()
+        with self._lock:
+            for v in self.vehicles:
+                v.final_outputs()
 
 
 class Service:
@@ -510,7 +547,9 @@ class Service:
             self.fleet_states = fleet.StateCache(cfg.intake.max_vehicles * 10)
             fleet_id = (self.fleet_group, zid)
         # a bounded pool of worker threads, each owning many vehicles (no thread per vehicle)
-        self.pool = [PoolWorker(i, cfg, fleet_id) for i in range(cfg.intake.workers)]
+        # (workers = 0: one inline worker, run by the intake thread itself)
+        inline = cfg.intake.workers == 0
+        self.pool = [PoolWorker(i, cfg, fleet_id, inline) for i in range(max(1, cfg.intake.workers))]
         self._watches = []
         if self.fleet_view is not None:
             base = f"{cfg.prefix}/_fleet/{self.fleet_group}"
@@ -533,7 +572,8 @@ class Service:
             if served_only
             else keys.inputs_selector("*", cfg.prefix)
         )
-        self.intake = zenoh_io.Intake(self.session, selectors, self._deliver)
+        many = self._deliver_many if inline else None  # inline: drains handed over whole
+        self.intake = zenoh_io.Intake(self.session, selectors, self._deliver, deliver_many=many)
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
             from fednav.service.transport.ros2 import header_stamp_s
@@ -670,18 +710,42 @@ class Service:
             log.warning("%s: data for vehicle %r refused (served: %s)%s", reason, vehicle[:80], served, hint)
 
     def _deliver(self, wall: float, key: str, payload: bytes) -> None:
+        routed = self._route(wall, key, payload)
+        if routed is not None:
+            w, item = routed
+            w.pool_worker.submit(w, item)
+
+    def _deliver_many(self, items: list[tuple[float, str, bytes]]) -> None:
+        """The inline intake's drain of its channel: routed first, so that each vehicle's Health
+        ``queue_depth`` counts what of it still waits, then run message by message."""
+        routed = []
+        for wall, key, payload in items:
+            try:
+                r = self._route(wall, key, payload)
+            except Exception:  # routing must survive any one message
+                log.exception("intake: delivery of %s failed", key[:200])
+                continue
+            if r is not None:
+                r[0].queued += 1
+                routed.append(r)
+        for w, item in routed:
+            w.queued -= 1
+            w.pool_worker.submit(w, item)
+
+    def _route(self, wall: float, key: str, payload: bytes) -> tuple[VehicleWorker, tuple] | None:
+        """The vehicle an input is for and its item, or None (refused and counted, or not ours)."""
         pk = keys.parse_input(key, self.config.prefix)
         if pk is None and keys.is_output(key, self.config.prefix):
-            return  # another fednav service's outputs share the prefix: not input, not an error
+            return None  # another fednav service's outputs share the prefix: not input, not an error
         parts = key.split("/")
         vehicle = parts[1] if len(parts) > 1 else ""
         if not keys.valid_name(vehicle):
             return self._refuse("bad_vehicle_name", vehicle)
         if self.fleet_view is not None:
             if not self.fleet_view.mine(vehicle):
-                return  # another service of the fleet serves it (validated name first)
+                return None  # another service of the fleet serves it (validated name first)
         elif self.shard is not None and not self._mine(vehicle):
-            return  # another shard of this service serves it (validated name first)
+            return None  # another shard of this service serves it (validated name first)
         serve_all = "*" in self.config.vehicles
         if not serve_all and vehicle not in self.config.vehicles:
             return self._refuse("unserved_vehicle", vehicle)
@@ -691,8 +755,8 @@ class Service:
         if pk is None:
             w.received += 1
             w.reject("unknown_key", key)
-            return
-        w.submit(wall, pk.kind, pk.sensor_id, payload)
+            return None
+        return w, (wall, pk.kind, pk.sensor_id, payload)
 
     # --- fleet sharing ([fleet] sharding = "rendezvous") -----------------------------------------
     def _on_member(self, key: str, payload: bytes | None) -> None:

@@ -535,7 +535,9 @@ class ZenohConfig(Model):
 class IntakeConfig(Model):
     queue_size: int = Field(100_000, ge=16, description="Bounded intake queue per vehicle (events)")
     overload: Literal["block", "drop"] = Field(
-        "block", description="Full queue: block (back-pressure to reliable publishers) or drop (counted)"
+        "block",
+        description="Full queue (workers >= 1): block (back-pressure to reliable publishers) or drop "
+        "(counted); with workers = 0 there is no queue and the intake always back-pressures",
     )
     late_tolerance_s: float = Field(0.5, ge=0, description="Aiding older than INS time by more is rejected")
     max_lead_s: float = Field(5.0, gt=0, description="Aiding ahead of the INS by more is rejected")
@@ -560,11 +562,14 @@ class IntakeConfig(Model):
         "services sharing a fleet on one bus: none receives or counts the others' vehicles)",
     )
     workers: int = Field(
-        2,
-        ge=1,
+        0,
+        ge=0,
         le=64,
-        description="Worker threads of the service, each owning many vehicles (a vehicle lives on one "
-        "worker, so its events keep their order); more processes: [service] shards / --shard",
+        description="0 (default): the intake thread runs each message itself, no hand-over between "
+        "threads (the fastest: with the GIL, threads add no parallelism, only hand-overs; "
+        "docs/SCALING.md); N: N worker threads, each owning many vehicles (a vehicle lives on one "
+        "worker, so its events keep their order), so that one vehicle's long epoch (an MHSS bank) "
+        "does not hold the others; more processes: fednav-service --shards",
     )
     max_vehicles: int = Field(
         1000,

@@ -14,8 +14,13 @@ from .scenario_utils import SCENARIOS
 pytestmark = pytest.mark.integration
 
 
-def test_two_vehicles_one_service():
+@pytest.mark.parametrize("workers", [None, 2], ids=["inline", "two_worker_threads"])
+def test_two_vehicles_one_service(tmp_path, workers):
     demo = SCENARIOS / "demo_aircraft.toml"
+    if workers is not None:  # the same scenario, its service with a pool of worker threads
+        cfg = tmp_path / "demo_workers.toml"
+        cfg.write_text(demo.read_text() + f"\n[service.intake]\nworkers = {workers}\n")
+        demo = cfg
     port = free_port()
     svc = start_service(port, config=demo, table="service", extra=["--vehicle", "*"])
     session = zenoh_client(port)

@@ -195,6 +195,10 @@ class Publishers:
             self._pubs.clear()
 
 
+#: most messages one drain of the intake hands on together (``deliver_many``)
+DRAIN_MAX = 256
+
+
 class Intake:
     """Subscribes to input keys and hands (arrival time, key, payload) to ``deliver`` from a thread.
 
@@ -213,6 +217,7 @@ class Intake:
         deliver: Callable[[float, str, bytes], None],
         capacity: int = 4096,
         order_key: Callable[[bytes], float] | None = None,
+        deliver_many: Callable[[list[tuple[float, str, bytes]]], None] | None = None,
     ):
         self._subs = [
             session.declare_subscriber(
@@ -221,6 +226,7 @@ class Intake:
             for k in key_exprs
         ]
         self._deliver = deliver
+        self._deliver_many = deliver_many
         self._order_key = order_key
         # one subscription, no reordering (the service's own intake): the thread blocks in the
         # channel's recv (Zenoh releases the GIL while it waits) instead of polling; stop()
@@ -288,12 +294,29 @@ class Intake:
 
     def _run_blocking(self) -> None:
         handler = self._handlers[0]
+        many = self._deliver_many
         while True:
             try:
                 sample = handler.recv()
             except zenoh.ZError:  # "channel is empty and closed": undeclared by stop()
                 return
-            self._deliver_one(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
+            if many is None:
+                self._deliver_one(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
+                continue
+            # with deliver_many: and what else has arrived (at most DRAIN_MAX), handed on together
+            batch = [(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())]
+            while len(batch) < DRAIN_MAX:
+                try:
+                    sample = handler.try_recv()
+                except zenoh.ZError:
+                    break
+                if sample is None:
+                    break
+                batch.append((self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes()))
+            try:
+                many(batch)
+            except Exception:  # routing must survive any one drain
+                log.exception("intake: delivery of %d messages failed", len(batch))
 
     def stop(self) -> None:
         self._stop.set()
