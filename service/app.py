@@ -357,8 +357,9 @@ class PoolWorker:
     ``inline`` (``[intake] workers = 0``): no queue; the thread that receives a message (the
     intake) runs it at once, under this worker's lock, and this worker's own thread only scans the
     vehicles for Health and handover states every 50 ms. No hand-over between threads: on a busy
-    process the fastest (docs/SCALING.md, "Inline intake"); the Zenoh channel back-pressures the
-    publishers when the service falls behind, and one vehicle's long epoch delays the others."""
+    process the fastest (docs/SCALING.md, "Idle between messages, and the inline intake"); the
+    Zenoh channel back-pressures the publishers when the service falls behind, and one vehicle's
+    long epoch delays the others."""
 
     def __init__(
         self, index: int, config: ServiceConfig, fleet: tuple[str, str] | None = None, inline: bool = False

@@ -99,3 +99,34 @@ def test_intake_survives_a_failing_consumer(sessions):
     assert _wait(lambda: len(got) == 2)
     intake.stop()
     assert got == [b"one", b"two"]
+
+
+def test_inline_drain_at_shutdown_ends_at_its_deadline_and_counts_the_rest(sessions, caplog):
+    """The inline intake runs what had arrived when the service stops, for at most ``drain_s``
+    (then one drain's worth more): the rest is counted in the log, and stop() returns."""
+    import logging
+
+    a, b = sessions
+    ran: list[str] = []
+
+    def many(batch):
+        for _, key, _payload in batch:
+            time.sleep(0.002)  # a slow service: 500 messages a second
+            ran.append(key)
+
+    intake = Intake(a, ["t/*/**"], lambda *args: None, deliver_many=many)
+    time.sleep(0.5)  # the subscription reaches the client
+    pub = b.declare_publisher("t/v1/sensor/imu/main", reliability=zenoh.Reliability.RELIABLE)
+    n = 1500
+    for i in range(n):
+        pub.put(f"m{i}".encode())
+    time.sleep(0.3)  # most of it waits in the channel
+    t0 = time.monotonic()
+    with caplog.at_level(logging.WARNING, logger="fednav.service"):
+        intake.stop(drain_s=0.4)
+    took = time.monotonic() - t0
+    assert not intake._thread.is_alive()
+    assert took < 3.0, took
+    assert 0 < len(ran) < n
+    assert intake._left > 0 and len(ran) + intake._left == n, (len(ran), intake._left)
+    assert any(f"{intake._left} messages not run at shutdown" in r.getMessage() for r in caplog.records)

@@ -234,6 +234,8 @@ class Intake:
         self._blocking = len(self._subs) == 1 and order_key is None
         self._handlers = [s.handler for s in self._subs]
         self._stop = threading.Event()
+        self._abandon = threading.Event()  # set by stop() when its drain outlasts the deadline
+        self._left = 0  # messages not run at shutdown (counted when abandoned)
         self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
         self._thread.start()
 
@@ -296,6 +298,9 @@ class Intake:
         handler = self._handlers[0]
         many = self._deliver_many
         while True:
+            if self._abandon.is_set():  # stop()'s deadline passed: what is left is not run
+                self._left = self._count_left(handler)
+                return
             try:
                 sample = handler.recv()
             except zenoh.ZError:  # "channel is empty and closed": undeclared by stop()
@@ -318,17 +323,37 @@ class Intake:
             except Exception:  # routing must survive any one drain
                 log.exception("intake: delivery of %d messages failed", len(batch))
 
-    def stop(self) -> None:
+    @staticmethod
+    def _count_left(handler) -> int:
+        n = 0
+        while True:
+            try:
+                if handler.try_recv() is None:
+                    return n
+            except zenoh.ZError:
+                return n
+            n += 1
+
+    def stop(self, drain_s: float = 5.0) -> None:
+        """Stop receiving; what had arrived is still delivered for at most ``drain_s`` (the inline
+        intake runs it: the service's shutdown drain), the rest is counted in the log."""
         self._stop.set()
         if not self._blocking:
-            self._thread.join(timeout=5.0)
+            self._thread.join(timeout=drain_s)
         for s in self._subs:  # closes the channels: a blocked recv returns what is left, then ends
             try:
                 s.undeclare()
             except zenoh.ZError:
                 pass
         if self._blocking:
-            self._thread.join(timeout=5.0)
+            self._thread.join(timeout=drain_s)
+            if self._thread.is_alive():  # still running what had arrived: stop after this drain
+                self._abandon.set()
+                self._thread.join(timeout=drain_s)
+                if self._thread.is_alive():
+                    log.warning("intake: still running a drain %.1f s after shutdown began", 2 * drain_s)
+                else:
+                    log.warning("intake: %d messages not run at shutdown (after %.1f s)", self._left, drain_s)
 
 
 #: one reply: (concrete key, payload, encoding)
