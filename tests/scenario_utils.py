@@ -1,7 +1,8 @@
-"""Shortened variants of the shipped scenarios for fast tests."""
+"""Shortened variants of the shipped scenarios for fast tests, and a polling wait."""
 
 from __future__ import annotations
 
+import time
 import tomllib
 from pathlib import Path
 
@@ -68,3 +69,13 @@ def initial_nav_message(t: float, nav, pos_std_enu_m, vel_std_enu_mps, rpy_std_d
         vel_std_enu_mps=tuple(float(v) for v in vel_std_enu_mps),
         rpy_std_deg=tuple(float(v) for v in rpy_std_deg),
     )
+
+
+def wait_until(cond, timeout: float = 10.0, poll_s: float = 0.01) -> bool:
+    """Poll ``cond()`` until it is true or ``timeout`` seconds have passed; its last value."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(poll_s)
+    return cond()

@@ -4,6 +4,7 @@ back (real processes: fednav-router, fednav-service x3, fednav-sim fleet, a plai
 
 from __future__ import annotations
 
+import functools
 import math
 import signal
 import sys
@@ -16,6 +17,11 @@ from fednav.service import fleet
 from fednav.simulators.fleet import vehicle_names
 from fednav.simulators.fleet_watch import FleetWatch
 from fednav.simulators.processes import Proc, free_port
+
+from .scenario_utils import wait_until
+
+#: the services are polled every 0.2 s
+_wait = functools.partial(wait_until, poll_s=0.2)
 
 pytestmark = pytest.mark.integration
 
@@ -39,15 +45,6 @@ def _service(port: int, cfg) -> Proc:
 def _zid(proc: Proc) -> str:
     """The Zenoh id a service logs when it starts."""
     return proc.output().split("fednav-service up: zid=", 1)[1].split()[0]
-
-
-def _wait(cond, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.2)
-    return cond()
 
 
 def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):

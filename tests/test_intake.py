@@ -15,6 +15,8 @@ from fednav.service.config import ZenohConfig  # noqa: E402
 from fednav.service.transport.zenoh_io import Intake, make_config  # noqa: E402
 from fednav.simulators.processes import free_port  # noqa: E402
 
+from .scenario_utils import wait_until  # noqa: E402
+
 
 @pytest.fixture
 def sessions():
@@ -24,15 +26,6 @@ def sessions():
     yield a, b
     b.close()
     a.close()
-
-
-def _wait(cond, timeout=10.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 def test_blocking_intake_delivers_in_order_and_drains_on_stop(sessions):
@@ -96,7 +89,7 @@ def test_intake_survives_a_failing_consumer(sessions):
     time.sleep(0.5)
     for p in (b"one", b"bad", b"two"):
         b.put("t/v1/x", p)
-    assert _wait(lambda: len(got) == 2)
+    assert wait_until(lambda: len(got) == 2)
     intake.stop()
     assert got == [b"one", b"two"]
 

@@ -15,6 +15,8 @@ import pytest
 from fednav.service.app import PoolWorker
 from fednav.service.config import ServiceConfig
 
+from .scenario_utils import wait_until
+
 
 class _Loop:
     def __init__(self, log: list, busy: list):
@@ -61,13 +63,6 @@ def _config(workers: int) -> ServiceConfig:
     return ServiceConfig.model_validate({"intake": {"workers": workers}, "output": {"health_period_s": 0.1}})
 
 
-def _wait(cond, timeout=10.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end and not cond():
-        time.sleep(0.01)
-    return cond()
-
-
 def test_inline_is_the_default():
     assert ServiceConfig().intake.workers == 0
 
@@ -90,13 +85,13 @@ def test_items_run_once_in_order_never_two_at_once(inline):
         t.start()
     for t in threads:
         t.join()
-    assert _wait(lambda: len(a.log) == len(b.log) == n - 1)
+    assert wait_until(lambda: len(a.log) == len(b.log) == n - 1)
     for v in (a, b):
         assert v.log == [f"{v.vehicle}{i}".encode() for i in range(n) if i != 100]
         assert v.counters["internal_error"] == 1  # the failing item, counted; the next ones ran
     # idle vehicles still publish Health (every health_period_s, from the worker's own scan)
     before = a.health_published
-    assert _wait(lambda: a.health_published >= before + 2, timeout=5.0)
+    assert wait_until(lambda: a.health_published >= before + 2, timeout=5.0)
     pw.request_stop()
     pw.stop(time.monotonic() + 5.0)
     assert a.finals == b.finals == 1
