@@ -22,7 +22,7 @@ import math
 from collections import defaultdict
 
 import numpy as np
-from seed003_remedies import GATE
+from seed003_remedies import GATE, pin_clock
 
 from fednav.service import config as config_mod
 from fednav.service.messages import ImmModels
@@ -62,7 +62,7 @@ faults_mod.FaultSet._outliers = _recording_outliers
 def run(scenario: str, seed: int, names: list[str]) -> tuple[dict, list, float]:
     sc = load_scenario(scenario)
     service = dict(sc.service)
-    service["pipelines"] = [dict(VARIANTS[n], name=n) for n in names]
+    service["pipelines"] = pin_clock([dict(VARIANTS[n], name=n) for n in names])
     cfg = config_mod.from_dict(service, "seed003_diag")
     traj = sc.build_trajectory()
     HITS.clear()

@@ -18,6 +18,8 @@ import argparse
 import json
 import time
 
+from seed003_remedies import pin_clock
+
 from fednav.service import config as config_mod
 from fednav.service import keys
 from fednav.service.engine import VehicleEngine
@@ -71,7 +73,7 @@ def stream(duration_s: float, seed: int) -> tuple[list, object]:
 
 
 def run(name: str, msgs: list, sc) -> tuple[float, int]:
-    cfg = config_mod.from_dict({**sc.service, "pipelines": [{"name": name, **PIPELINES[name]}]})
+    cfg = config_mod.from_dict({**sc.service, "pipelines": pin_clock([{"name": name, **PIPELINES[name]}])})
     engine = VehicleEngine("v1", cfg, DiscardSink())
     t0 = time.perf_counter()
     for kind, sid, msg in msgs:

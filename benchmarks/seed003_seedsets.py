@@ -29,6 +29,7 @@ import json
 import sys
 
 import numpy as np
+from seed003_remedies import pin_clock
 
 from fednav.simulators import evaluate as ev
 from fednav.simulators.scenario import load_scenario
@@ -95,7 +96,9 @@ def main() -> int:
     args = ap.parse_args()
     sc = load_scenario(args.scenario)
     service = dict(sc.service)
-    service["pipelines"] = list(service["pipelines"]) + [dict(v, name=n) for n, v in VARIANTS.items()]
+    service["pipelines"] = list(service["pipelines"]) + pin_clock(
+        [dict(v, name=n) for n, v in VARIANTS.items()]
+    )
     sc = sc.model_copy(update={"service": service})
     names = args.pipelines.split(",") if args.pipelines else None
     sets = []
