@@ -4,7 +4,11 @@ NAV-PVT: time from the GPS time of week ``iTOW`` (ms) with the week taken from t
 fields (UTC + leap seconds, rounded to the nearest week start: exact to the ms), position
 (``lat``/``lon`` deg, ``height`` mm above the ellipsoid), velocity ``velN/velE/velD`` (mm/s),
 sigmas from ``hAcc`` (the horizontal accuracy, split over east and north as hAcc/sqrt(2)),
-``vAcc`` (vertical) and ``sAcc`` (speed, per axis). Epochs without ``gnssFixOk`` or with
+``vAcc`` (vertical) and ``sAcc`` (speed: east and north each; the vertical velocity's scaled by
+the geometry's vertical-to-horizontal ratio vAcc / (hAcc/sqrt(2)), at least 1: Doppler velocity
+has the position's dilution of precision, and a receiver's vertical velocity is noisier than its
+horizontal one; the same sAcc on the vertical claimed a half of the simulated receiver's noise and
+the filter's innovation consistency test called it). Epochs without ``gnssFixOk`` or with
 fixType < 3 (no 3-D fix) are skipped.
 
 ESF-RAW: each block is a 24-bit signed value and a data type (u-blox interface description):
@@ -80,13 +84,14 @@ def events(
             h_std = max(m.hAcc * 1e-3 / math.sqrt(2.0), 1e-3)
             pstd = (h_std, h_std, max(m.vAcc * 1e-3, 1e-3))
             s_std = max(m.sAcc * 1e-3, 1e-3)
+            s_up = s_std * max(1.0, pstd[2] / h_std)  # vertical: the geometry's ratio (docstring)
             vel = (m.velE * 1e-3, m.velN * 1e-3, -m.velD * 1e-3)
             # the 3-D velocity is the receiver's own (velD is measured, not invented); fix type
             # from the carrier-phase and differential flags (only labels it: the sigmas are given)
             carr = int(getattr(m, "carrSoln", 0) or 0)
             ftype = {1: "float", 2: "fixed"}.get(carr, "dgnss" if getattr(m, "diffSoln", 0) else "single")
             fix = gnss_fix_to_wire(
-                t, m.lat, m.lon, m.height * 1e-3, vel, pstd, (s_std,) * 3, m.numSV, fix_type=ftype
+                t, m.lat, m.lon, m.height * 1e-3, vel, pstd, (s_std, s_std, s_up), m.numSV, fix_type=ftype
             )
             count(stats, "sigma_pos:receiver")
             count(stats, "sigma_vel:receiver")

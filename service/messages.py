@@ -626,7 +626,8 @@ class PipelineHealth(WireModel):
     screened: dict[str, int] = Field(
         default_factory=dict,
         description="Observations refused (or sigmas raised) by screening, by reason: innovation_gate, "
-        "fault_test, excluded_satellite, gate_recovery, sigma_floor",
+        "fault_test, excluded_satellite, gate_recovery, sigma_floor; and innovations_inconsistent: the "
+        "times a stream's innovations turned larger than the filter claims (status degraded meanwhile)",
     )
 
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from fednav.service import earth
 from fednav.service.config import ImuModel
+from fednav.service.estimation.consistency import InnovationConsistency
 from fednav.service.estimation.ins_filter import InsFilterBank
 from fednav.service.estimation.measurements.base import SigmaFloors
 from fednav.service.estimation.measurements.gnss_fix import BLOCK as GNSS_ERROR_BLOCK
@@ -164,6 +165,10 @@ class Pipeline(ABC):
         self._refused_reports = 0
         #: sigma floors from each stream's own history (measurements.base.SigmaFloors)
         self.floors = SigmaFloors()
+        #: are the innovations as small as the filter claims (estimation/consistency.py)? the
+        #: last time a stream's window failed: ``degraded`` for a coasting window after it
+        self.consistency = InnovationConsistency()
+        self.last_inconsistent_t: float | None = None
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
@@ -255,8 +260,9 @@ class Pipeline(ABC):
     HISTORY_MAX_SIGMA = 5.0
 
     def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None) -> None:
-        """The rows of an update that used them, into the stream's sigma history (innovations
-        ``z - H x`` of the prior and the diagonal of their covariance S = H P H' + R)."""
+        """The rows of an update that used them, into the stream's sigma history and its
+        innovation consistency window (innovations ``z - H x`` of the prior and the diagonal of
+        their covariance S = H P H' + R; ``used``: the rows the update took)."""
         innovation = np.asarray(innovation, dtype=float)
         S_diag = np.asarray(S_diag, dtype=float)
         ok = np.abs(innovation) <= self.HISTORY_MAX_SIGMA * np.sqrt(np.maximum(S_diag, 1e-300))
@@ -264,10 +270,19 @@ class Pipeline(ABC):
             ok &= np.asarray(used, dtype=bool)
         self.floors.record(key, meas, claimed, innovation, S_diag - np.diagonal(meas.R), ok)
         ins = getattr(self.bank, "ins", None)
+        t = ins.state.t if ins is not None else getattr(self.bank, "t", None)
+        used_rows = np.ones(len(innovation), bool) if used is None else np.asarray(used, dtype=bool)
+        r = innovation / np.sqrt(np.maximum(S_diag, 1e-300))
         if ins is not None:  # for the recording's innovation windows (fednav-inspect's NIS per row)
-            used_rows = np.ones(len(innovation), bool) if used is None else np.asarray(used, dtype=bool)
-            r = innovation / np.sqrt(np.maximum(S_diag, 1e-300))
-            self.innovations.append((ins.state.t, key, meas.labels, r, used_rows))
+            self.innovations.append((t, key, meas.labels, r, used_rows))
+        if t is None:
+            return
+        ru = r[used_rows]
+        was = self.consistency.is_failing(key)
+        if self.consistency.add(key, t, float(ru @ ru), int(ru.size)):
+            self.last_inconsistent_t = t
+            if not was:  # counted once per episode, in Health's screened counts
+                self.screened["innovations_inconsistent"] += 1
 
     def record_prior_rows(self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None) -> None:
         """:meth:`record_rows` from the prior (x, P) the rows were tested against."""
@@ -292,6 +307,8 @@ class Pipeline(ABC):
         self.reinitialisations += 1
         self.aided_since_start = False
         self.failed = False
+        self.consistency.clear()  # the restarted covariance's innovations start a new history
+        self.last_inconsistent_t = None
 
     def coast_after_s(self) -> float:
         if self.aiding_period_s is None:
@@ -300,7 +317,8 @@ class Pipeline(ABC):
 
     def current_status(self, t: float | None) -> str:
         """``initialising`` (no filter, or the INS lost), ``failed``, ``degraded`` (the state is not
-        verified by the vehicle's own aiding, or screening refused aiding recently), ``unaided``
+        verified by the vehicle's own aiding, or screening refused aiding recently, or a stream's
+        innovations were larger than the filter claims recently: estimation/consistency.py), ``unaided``
         (never aided since the start), ``coasting`` (aided before, nothing for longer than
         :meth:`coast_after_s`), ``aided``."""
         if self.bank is None or self.lost:
@@ -313,6 +331,8 @@ class Pipeline(ABC):
         window = self.coast_after_s()
         if self.last_screened_t is not None and t - self.last_screened_t <= window:
             return "degraded"
+        if self.last_inconsistent_t is not None and t - self.last_inconsistent_t <= window:
+            return "degraded"  # innovations larger than the filter claims: its sigmas understate
         if not self.aided_since_start:
             return "unaided"
         if self.last_aiding_t is None or t - self.last_aiding_t > window:
@@ -333,7 +353,8 @@ class Pipeline(ABC):
             self.reinitialisations += 1
         self.aided_since_start = False
         self.failed = self.lost = False
-        self.last_aiding_t = self.last_screened_t = None
+        self.last_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
+        self.consistency.clear()
         self._refused_from = None
 
     def restore_references(self, refs: dict[str, np.ndarray]) -> None:
@@ -446,13 +467,13 @@ class Pipeline(ABC):
             lat_deg=math.degrees(nav.lat_rad),
             lon_deg=(math.degrees(nav.lon_rad) + 180.0) % 360.0 - 180.0,
             height_m=nav.h_m,
-            vel_enu_mps=tuple(float(v) for v in nav.vel_enu_mps),
+            vel_enu_mps=tuple(nav.vel_enu_mps.tolist()),  # tolist: Python floats, as float(v) gives
             rpy_deg=tuple(earth.rpy_msg_deg(rpy)),
-            pos_std_enu_m=tuple(float(v) for v in sd[0:3]),
-            vel_std_enu_mps=tuple(float(v) for v in sd[3:6]),
-            rpy_std_deg=tuple(float(v) for v in rpy_std),
-            gyro_bias_dph=tuple(float(v) for v in nav.gyro_bias_rps / earth.DPH),
-            accel_bias_ug=tuple(float(v) for v in nav.accel_bias_mps2 / earth.UG),
+            pos_std_enu_m=tuple(sd[0:3].tolist()),
+            vel_std_enu_mps=tuple(sd[3:6].tolist()),
+            rpy_std_deg=tuple(rpy_std.tolist()),
+            gyro_bias_dph=tuple((nav.gyro_bias_rps / earth.DPH).tolist()),
+            accel_bias_ug=tuple((nav.accel_bias_mps2 / earth.UG).tolist()),
             status=self.current_status(nav.t),
         )
 

@@ -1,0 +1,126 @@
+"""The innovation consistency test (service/estimation/consistency.py) and the status it drives:
+a pipeline whose innovations are materially and significantly larger than it claims reports
+``degraded``, counted in its screened counts; honest innovations never trip it."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from fednav.service import earth
+from fednav.service.config import ImuModel, LooselyCoupledConfig
+from fednav.service.estimation.consistency import InnovationConsistency, chi2_upper
+from fednav.service.ins.alignment import InitStd
+from fednav.service.ins.mechanisation import NavState
+from fednav.service.messages import GnssFix
+from fednav.service.pipelines.loosely_coupled import LooselyCoupled
+
+T0 = 1000.0
+KEY = "gnss_fix/main"
+
+
+@pytest.mark.parametrize("dof", [20, 60, 600, 2400])
+def test_the_quantile_formula_is_the_chi_square_one_and_never_below_it(dof):
+    z = 4.753424308822899  # the standard normal quantile at 1 - 1e-6
+    exact = chi2.isf(1e-6, dof)
+    assert exact <= chi2_upper(dof, z) <= 1.012 * exact
+
+
+def _feed(c: InnovationConsistency, rng, sigma: float, seconds: float, rows: int = 6, rate_hz: float = 1.0):
+    """Standardised innovations of ``rows`` rows per update whose real spread is ``sigma`` times the
+    claimed one; the verdicts of every update."""
+    out = []
+    for k in range(int(seconds * rate_hz)):
+        r = sigma * rng.standard_normal(rows)
+        out.append(c.add("gnss_fix/main", T0 + k / rate_hz, float(r @ r), rows))
+    return out
+
+
+def test_honest_innovations_never_fail_over_a_long_run():
+    c = InnovationConsistency()
+    verdicts = _feed(c, np.random.default_rng(1), 1.0, 20_000.0, rows=6, rate_hz=1.0)
+    assert verdicts[:3] == [None, None, None]  # 6, 12, 18 rows: fewer than MIN_DOF, not tested
+    assert verdicts[3] is False
+    assert not any(v for v in verdicts)
+    # also at 10 Hz with many rows (the tightly coupled case: a large window, a tight quantile)
+    c = InnovationConsistency()
+    assert not any(_feed(c, np.random.default_rng(2), 1.0, 2_000.0, rows=24, rate_hz=10.0))
+
+
+def test_innovations_twice_the_claimed_spread_fail_and_recover_after_the_window():
+    c = InnovationConsistency()
+    rng = np.random.default_rng(3)
+    assert not any(_feed(c, rng, 1.0, 60.0))
+    bad = [
+        c.add("gnss_fix/main", T0 + 60.0 + k, float(np.sum((2.0 * rng.standard_normal(6)) ** 2)), 6)
+        for k in range(10)
+    ]
+    assert bad[-1] is True and c.is_failing("gnss_fix/main") and c.failing() == ["gnss_fix/main"]
+    assert 3.0 < c.ratio("gnss_fix/main") < 5.5
+    # honest again: once the bad updates have left the 10 s window, the stream passes
+    after = [
+        c.add("gnss_fix/main", T0 + 70.0 + k, float(np.sum(rng.standard_normal(6) ** 2)), 6)
+        for k in range(12)
+    ]
+    assert after[-1] is False and not c.is_failing("gnss_fix/main")
+
+
+def test_a_small_excess_is_not_a_failure_however_many_rows():
+    """Significant but not material (sigmas 10 % too small, 24 rows at 10 Hz): not a failure."""
+    c = InnovationConsistency()
+    assert not any(_feed(c, np.random.default_rng(4), 1.1, 300.0, rows=24, rate_hz=10.0))
+
+
+def test_one_large_innovation_does_not_fail_a_window_and_time_going_back_starts_a_new_one():
+    c = InnovationConsistency()
+    rng = np.random.default_rng(5)
+    _feed(c, rng, 1.0, 30.0)
+    assert c.add("gnss_fix/main", T0 + 30.0, 24.0 + float(np.sum(rng.standard_normal(5) ** 2)), 6) is False
+    assert c.add("gnss_fix/main", T0 - 100.0, 1e6, 6) is None  # a restarted stream: 6 rows, untested
+    assert c.ratio("gnss_fix/main") == pytest.approx(1e6 / 6)
+    c.clear()
+    assert c.ratio("gnss_fix/main") is None and c.failing() == []
+
+
+def _lc(claimed_std_m: float, real_std_m: float, seconds: float = 90.0):
+    """A static, level loosely coupled filter (no innovation gate) fed 1 Hz fixes at the truth plus
+    N(0, real) noise claiming ``claimed``; its status and counts after ``seconds``."""
+    # no innovation gate: the consistency test alone can make it degraded
+    p = LooselyCoupled(LooselyCoupledConfig(name="lc", innovation_gate_sigma=None), ImuModel(), 0.1)
+    lat, lon = math.radians(40.0), math.radians(10.0)
+    nav = NavState(T0, lat, lon, 100.0, np.zeros(3), earth.mat_to_quat(np.eye(3)))
+    p.start(nav, InitStd(np.full(3, 2.0), np.full(3, 0.1), np.radians([0.1, 0.1, 0.5])))
+    g = earth.gravity_normal(lat, 100.0)
+    w = earth.OMEGA_IE_RPS * 0.01  # the earth's rotation, sensed by the gyros of a vehicle at rest (ENU body)
+    dth = (0.0, w * math.cos(lat), w * math.sin(lat))
+    rng = np.random.default_rng(6)
+    r_m, r_n = earth.radii(lat)
+    t = T0
+    for k in range(int(seconds * 100)):
+        t = T0 + (k + 1) * 0.01
+        p.push_imu(dth, (0.0, 0.0, g * 0.01), 0.01, t)
+        if (k + 1) % 100 == 0:
+            p.sync()
+            e, n, u = real_std_m * rng.standard_normal(3)
+            fix = GnssFix(
+                t=t,
+                lat_deg=math.degrees(lat + n / (r_m + 100.0)),
+                lon_deg=math.degrees(lon + e / ((r_n + 100.0) * math.cos(lat))),
+                height_m=100.0 + u,
+                vel_enu_mps=tuple(0.05 * real_std_m * rng.standard_normal(3)),
+                pos_std_enu_m=(claimed_std_m,) * 3,
+                vel_std_enu_mps=(0.05 * claimed_std_m,) * 3,
+            )
+            p.apply("gnss_fix", "main", fix)
+    return p.current_status(t), p.screened
+
+
+def test_an_honest_receiver_keeps_the_filter_aided():
+    status, screened = _lc(1.0, 1.0)
+    assert status == "aided" and screened["innovations_inconsistent"] == 0
+
+
+def test_a_receiver_claiming_a_third_of_its_noise_makes_the_filter_degraded():
+    status, screened = _lc(1.0, 3.0)
+    assert status == "degraded" and screened["innovations_inconsistent"] >= 1
