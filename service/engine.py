@@ -433,7 +433,24 @@ class VehicleEngine:
             err9 = self._errors(p, msg.t) if outputs else None
             for out in outputs:
                 self.sink.on_output(self.vehicle, out, err9)
+            if p.screened.get("innovations_inconsistent") and ("inconsistent", p.name) not in self._warned:
+                self._warn_inconsistent(p)
         self.life.after_aiding(kind, msg, self.pre.t_end, sensor_id)
+
+    def _warn_inconsistent(self, p: Pipeline) -> None:
+        """Log once per pipeline when a stream's innovations first turn larger than it claims."""
+        self._warned.add(("inconsistent", p.name))
+        streams = ", ".join(f"{k} {p.consistency.ratio(k):.1f}x" for k in p.consistency.failing())
+        log.warning(
+            "vehicle %s: pipeline %s: innovations larger than the filter claims over the last %.0f s "
+            "(%s the claimed variance): its sigmas understate the error, status degraded meanwhile; "
+            "a sensor's sigmas or the filter's process noise (IMU grade, receiver clock) are too "
+            "optimistic (Health screened innovations_inconsistent counts the episodes)",
+            self.vehicle,
+            p.name,
+            p.consistency.window_s,
+            streams or "a stream",
+        )
 
     def _unused(self, p: Pipeline, kind: str) -> None:
         """A sensor kind reached a pipeline that is not configured to use it: counted (Health

@@ -2,19 +2,25 @@
 a pipeline whose innovations are materially and significantly larger than it claims reports
 ``degraded``, counted in its screened counts; honest innovations never trip it."""
 
+import logging
 import math
 
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from fednav.service import earth
+from fednav.service import earth, keys
 from fednav.service.config import ImuModel, LooselyCoupledConfig
+from fednav.service.engine import VehicleEngine
 from fednav.service.estimation.consistency import InnovationConsistency, chi2_upper
 from fednav.service.ins.alignment import InitStd
 from fednav.service.ins.mechanisation import NavState
 from fednav.service.messages import GnssFix
 from fednav.service.pipelines.loosely_coupled import LooselyCoupled
+from fednav.simulators.evaluate import CollectingSink, service_config
+from fednav.simulators.stream import Simulation
+
+from .scenario_utils import shortened
 
 T0 = 1000.0
 KEY = "gnss_fix/main"
@@ -124,3 +130,35 @@ def test_an_honest_receiver_keeps_the_filter_aided():
 def test_a_receiver_claiming_a_third_of_its_noise_makes_the_filter_degraded():
     status, screened = _lc(1.0, 3.0)
     assert status == "degraded" and screened["innovations_inconsistent"] >= 1
+
+
+def _demo_run(claim_scale: float, caplog):
+    """The demo aircraft for 60 s through the engine, its fixes claiming ``claim_scale`` times
+    their simulated sigmas; the loosely coupled pipeline's statuses (t from the start) and the
+    warnings about inconsistent innovations."""
+    sc = shortened("demo_aircraft.toml", 60.0)
+    eng = VehicleEngine("v1", service_config(sc), CollectingSink(keep_solutions=True))
+    with caplog.at_level(logging.WARNING, logger="fednav.service"):
+        for key, msg in Simulation(sc, seed=5):
+            pk = keys.parse_input(key)
+            if pk.kind == "gnss_fix":
+                msg = msg.model_copy(
+                    update={
+                        "pos_std_enu_m": tuple(claim_scale * s for s in msg.pos_std_enu_m),
+                        "vel_std_enu_mps": tuple(claim_scale * s for s in msg.vel_std_enu_mps),
+                    }
+                )
+            eng.handle(pk.kind, pk.sensor_id, msg)
+    p = eng.pipelines[0]
+    warnings = [r.getMessage() for r in caplog.records if "innovations larger than" in r.getMessage()]
+    return p, eng.pipeline_states()["lc"], warnings
+
+
+def test_the_engine_names_the_inconsistent_stream_once_and_health_counts_it(caplog):
+    p, state, warnings = _demo_run(1.0 / 3.0, caplog)
+    assert state["screened"].get("innovations_inconsistent", 0) >= 1
+    assert len(warnings) == 1 and "pipeline lc" in warnings[0] and "gnss_fix/main" in warnings[0]
+    caplog.clear()
+    p, state, warnings = _demo_run(1.0, caplog)
+    assert "innovations_inconsistent" not in state["screened"] and warnings == []
+    assert state["status"] == "aided"
