@@ -162,3 +162,17 @@ def test_the_engine_names_the_inconsistent_stream_once_and_health_counts_it(capl
     p, state, warnings = _demo_run(1.0, caplog)
     assert "innovations_inconsistent" not in state["screened"] and warnings == []
     assert state["status"] == "aided"
+
+
+def test_the_clock_default_is_a_tcxo_and_seed003_keeps_its_own():
+    """The default drift PSD is a TCXO's (the simulators' receiver clock); the seed 003 scenarios
+    name the value their documented figures were measured with, on every tightly coupled filter."""
+    from fednav.service.config import SEED003_DRIFT_PSD_M2PS3, ClockModel, from_dict
+    from fednav.simulators.gnss.raw_sensor import TCXO_DRIFT_PSD_M2PS3
+    from fednav.simulators.scenario import load_scenario
+
+    assert ClockModel().drift_psd_m2ps3 == pytest.approx(TCXO_DRIFT_PSD_M2PS3, rel=1e-3)
+    for name in ("seed003_clean", "seed003_outliers", "seed003_outliers_obs"):
+        cfg = from_dict(load_scenario(name).service, name)
+        clocks = [p.clock.drift_psd_m2ps3 for p in cfg.pipelines if hasattr(p, "clock")]
+        assert len(clocks) == 5 and all(c == SEED003_DRIFT_PSD_M2PS3 for c in clocks)

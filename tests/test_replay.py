@@ -522,3 +522,13 @@ def test_no_service_and_unserved_vehicle_are_named(files, capsys):
         assert replay_main(args) == 3
     err = capsys.readouterr().err
     assert "no subscriber matched fednav/nmea_csv/sensor/" in err and "serving vehicle 'nmea_csv'" in err
+
+
+def test_ubx_vertical_velocity_sigma_follows_the_geometry(files):
+    """sAcc is east and north; the vertical velocity's sigma is scaled by vAcc / (hAcc / sqrt 2):
+    the test receiver's (1, 1, 2) m position and (0.05, 0.05, 0.1) m/s velocity noise come back."""
+    m, base = mapping.load_mapping(files["ubx"])
+    fix_stream = next(s for s in m.streams if s.kind == "gnss_fix")
+    out = [e.msg for e in stream_events(fix_stream, base, m)]
+    assert out and all(f.pos_std_enu_m == pytest.approx((1.0, 1.0, 2.0), abs=1e-3) for f in out)
+    assert all(f.vel_std_enu_mps == pytest.approx((0.05, 0.05, 0.1), abs=1e-3) for f in out)
