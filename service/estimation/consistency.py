@@ -108,6 +108,11 @@ class InnovationConsistency:
         w = self._streams.get(key)
         return w is not None and w.failing
 
+    def is_consistent(self, key: str) -> bool:
+        """Whether stream ``key`` has been tested (enough rows in its window) and passed."""
+        w = self._streams.get(key)
+        return w is not None and w.dof >= self.min_dof and not w.failing
+
     def failing(self) -> list[str]:
         """The streams whose latest test failed."""
         return sorted(k for k, w in self._streams.items() if w.failing)

@@ -169,6 +169,9 @@ class Pipeline(ABC):
         #: last time a stream's window failed: ``degraded`` for a coasting window after it
         self.consistency = InnovationConsistency()
         self.last_inconsistent_t: float | None = None
+        #: per stream, in an episode of updates with failing rows: whether the rest of a failing
+        #: row's source is suspect (:meth:`source_groups`)
+        self._source_episode: dict[str, bool] = {}
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
@@ -260,9 +263,11 @@ class Pipeline(ABC):
     HISTORY_MAX_SIGMA = 5.0
 
     def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None) -> None:
-        """The rows of an update that used them, into the stream's sigma history and its
-        innovation consistency window (innovations ``z - H x`` of the prior and the diagonal of
-        their covariance S = H P H' + R; ``used``: the rows the update took)."""
+        """The rows of an update that passed its screening, into the stream's sigma history and
+        its innovation consistency window (innovations ``z - H x`` of the prior and the diagonal
+        of their covariance S = H P H' + R; ``used``: the rows the screening passed, those the
+        update took and those left out only as suspects of a faulty source (:meth:`source_groups`:
+        their innovations are the stream's spread all the same))."""
         innovation = np.asarray(innovation, dtype=float)
         S_diag = np.asarray(S_diag, dtype=float)
         ok = np.abs(innovation) <= self.HISTORY_MAX_SIGMA * np.sqrt(np.maximum(S_diag, 1e-300))
@@ -290,6 +295,31 @@ class Pipeline(ABC):
         S = np.einsum("ij,jk,ik->i", meas.H, P, meas.H) + np.diagonal(meas.R)
         self.record_rows(key, meas, claimed, r, S, used)
 
+    def source_groups(self, key: str, meas) -> np.ndarray | None:
+        """The rows' sources (``meas.groups``) for a screening that makes the rest of a failing
+        row's source suspect (measurements.base.refused_with_source), or None: the rule of the
+        stream's episode of updates with failing rows, set when it began (call
+        :meth:`end_source_episode` after the screening). A failing row is evidence of a fault in
+        its source only in a stream whose rows are otherwise as good as they claim: the rule
+        holds for an episode that began while the stream's innovations had been tested
+        consistent (estimation/consistency.py), not otherwise. In a stream whose sigmas are too
+        optimistic throughout (a receiver claiming a fifth of its error) failing rows are the
+        rule, and refusing the rest of every such fix starved the filter (it diverged on the 5x
+        case of tests/test_inspect_nis.py); within a fault episode the suspects' own innovations
+        make the window fail, which must not end the rule (the demo's step would be taken through
+        its height after a few seconds)."""
+        if meas.groups is None:
+            return None
+        rule = self._source_episode.get(key)
+        if rule is None:
+            rule = self._source_episode[key] = self.consistency.is_consistent(key)
+        return meas.groups if rule else None
+
+    def end_source_episode(self, key: str, flagged_any: bool) -> None:
+        """After a screening: an update without failing rows ends the stream's episode."""
+        if not flagged_any:
+            self._source_episode.pop(key, None)
+
     def report(self, event: str) -> None:
         """Tell the vehicle's lifecycle what the pipeline's own screening concluded."""
         self._events.append(event)
@@ -308,6 +338,7 @@ class Pipeline(ABC):
         self.aided_since_start = False
         self.failed = False
         self.consistency.clear()  # the restarted covariance's innovations start a new history
+        self._source_episode.clear()
         self.last_inconsistent_t = None
 
     def coast_after_s(self) -> float:
@@ -355,6 +386,7 @@ class Pipeline(ABC):
         self.failed = self.lost = False
         self.last_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
         self.consistency.clear()
+        self._source_episode.clear()
         self._refused_from = None
 
     def restore_references(self, refs: dict[str, np.ndarray]) -> None:

@@ -125,13 +125,19 @@ class LooselyCoupled(Pipeline):
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
         prior = res
         gate = self.cfg.innovation_gate_sigma
-        refused = np.abs(res.standardised[0]) > gate if gate is not None else np.zeros(len(meas.z), bool)
+        flagged = np.abs(res.standardised[0]) > gate if gate is not None else np.zeros(len(meas.z), bool)
+        if flagged.any():  # the rest of a failing row's source is suspect (Pipeline.source_groups)
+            groups = self.source_groups(key, meas)
+            refused = measurements.refused_with_source(res.standardised[0], flagged, groups)
+        else:
+            refused = flagged
+            self.end_source_episode(key, False)
         outputs: list[WireModel] = []
         if refused.any():
             self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
-            outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], refused))
+            outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], flagged, refused))
             self._gate_reported.add(kind)
-            if refused.all():
+            if flagged.all():  # every row beyond the gate on its own (not only by its group)
                 since = self._refused_since.setdefault(kind, nav.t)
                 if kind not in self._trusted or nav.t - since < self.cfg.gate_recovery_s:
                     return outputs  # a sensor never accepted is never trusted by recovery
@@ -146,14 +152,18 @@ class LooselyCoupled(Pipeline):
                 self._recovered_at[kind] = nav.t
                 self.report("aiding_still_refused" if again else "aiding_refused")
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
+                refused = np.zeros_like(refused)
             else:
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R, mask=~refused[None, :])
         elif kind in self._gate_reported:  # the first update the gate passes whole: say it is clear
             self._gate_reported.discard(kind)
-            outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], refused))
-        self._refused_since.pop(kind, None)
+            outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], flagged, refused))
+        self._refused_since.pop(kind, None)  # (only a run of epochs with every row flagged counts)
+        # the rows within the gate (the suspects of a faulty source too)
+        self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~flagged)
+        if refused.size and refused.all():
+            return outputs  # the flagged rows and the rest of their sources: nothing left to take
         self._trusted.add(kind)
-        self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~refused)
         if not kalman.is_positive_definite(P)[0]:
             # numerical health: never continue on a broken P; keep the INS, re-initialise the
             # covariance to the initial one and flag it
@@ -201,16 +211,17 @@ class LooselyCoupled(Pipeline):
             out += [StateEstimate(name=n, value=float(v), std=float(s)) for n, v, s in rows]
         return out
 
-    def _gate_faults(self, t: float, kind: str, labels, standardised, refused) -> Faults:
+    def _gate_faults(self, t: float, kind: str, labels, standardised, flagged, refused) -> Faults:
         """The gate's decision on Faults (published when it refuses a row, and once more at the
         first update it passes whole, so that a subscriber's isolation state clears): per row
-        |r|/sqrt(S) against the gate; refused rows are flagged and isolated."""
+        |r|/sqrt(S) against the gate; rows beyond it are flagged, flagged rows and the suspect
+        rows of their source (measurements.refused_with_source) isolated."""
         gate = float(self.cfg.innovation_gate_sigma)
         rows = [
             ObservationFault(
-                label=label, statistic=float(abs(v)), threshold=gate, flagged=bool(r), isolated=bool(r)
+                label=label, statistic=float(abs(v)), threshold=gate, flagged=bool(f), isolated=bool(r)
             )
-            for label, v, r in zip(labels, standardised, refused, strict=True)
+            for label, v, f, r in zip(labels, standardised, flagged, refused, strict=True)
         ]
         return Faults(
             t=t,

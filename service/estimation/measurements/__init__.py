@@ -16,6 +16,7 @@ from fednav.service.estimation.measurements.base import (
     PrivateStates,
     private_layout,
     private_transition,
+    refused_with_source,
 )
 
 
@@ -70,4 +71,5 @@ __all__ = [
     "plain_kinds",
     "private_layout",
     "private_transition",
+    "refused_with_source",
 ]

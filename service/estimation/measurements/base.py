@@ -141,6 +141,26 @@ __all__ = [
 ]
 
 
+#: a row whose source (``Measurement.groups``) has a row refused as faulty is suspect: it is used
+#: only when its standardised innovation is within this (a fault large enough to fail one axis
+#: of a receiver's solution is in its other axes too, smaller: under a 5-sigma gate it would be
+#: taken at full weight; a clean row of that source passes with 95 % probability)
+SUSPECT_SIGMA = 2.0
+
+
+def refused_with_source(
+    standardised: np.ndarray, refused: np.ndarray, groups: np.ndarray | None
+) -> np.ndarray:
+    """(m,) bool: the ``refused`` rows, and the rows of a refused row's source (``groups``) whose
+    ``|standardised|`` exceeds :data:`SUSPECT_SIGMA`. Without sources: ``refused``."""
+    refused = np.asarray(refused, dtype=bool)
+    if groups is None or not refused.any() or len(groups) != len(refused):
+        return refused
+    groups = np.asarray(groups)
+    hit = np.isin(groups, groups[refused])
+    return refused | (hit & (np.abs(np.asarray(standardised, dtype=float)) > SUSPECT_SIGMA))
+
+
 def floored_variances(std: np.ndarray, minimum: np.ndarray | float) -> tuple[np.ndarray, int]:
     """Variances of the given sigmas, each sigma raised to at least ``minimum``; and how many were
     raised. A sensor message cannot claim more precision than the model admits (one fix with a

@@ -50,6 +50,7 @@ own velocity (none for a position-only fix).
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numpy as np
 
@@ -67,6 +68,21 @@ from fednav.service.messages import DEFAULT_VERTICAL_RATE_STD_MPS, GnssFix
 #: rows of a full fix (also the simulator's fault channels)
 LABELS = ("pos_e", "pos_n", "pos_u", "vel_e", "vel_n", "vel_u")
 SPEED_COURSE_LABELS = ("vel_along", "vel_cross")
+#: the sources of a fix's rows (``Measurement.groups``): the position rows are one least-squares
+#: solution of the receiver, the velocity rows (velocity, speed and course, vertical rate)
+#: another, from its Dopplers: a fault large enough to fail one row of a solution is in its
+#: other rows too, only smaller (measurements.base.refused_with_source)
+FIX_GROUPS = ("position", "velocity")
+
+
+@lru_cache(maxsize=8)
+def _groups(rows: int) -> np.ndarray:
+    """The source of each of a fix's ``rows`` rows: three position rows first (read-only, shared)."""
+    g = np.minimum(np.arange(rows) // 3, 1)
+    g.flags.writeable = False
+    return g
+
+
 MIN_POS_STD_M = 0.005
 MIN_VEL_STD_MPS = 0.001
 MIN_WHITE_FRACTION = 0.2
@@ -230,4 +246,6 @@ class GnssFixModel:
         if not np.all(np.isfinite(z)):
             return None
         var, floored = floored_variances(np.concatenate(stds), np.concatenate(mins))
-        return Measurement(z, np.vstack(Hs), np.diag(var), tuple(labels), floored=floored)
+        H, R = np.vstack(Hs), np.diag(var)
+        groups = _groups(len(z))
+        return Measurement(z, H, R, tuple(labels), groups=groups, group_ids=FIX_GROUPS, floored=floored)
