@@ -193,13 +193,13 @@ def gnss_scenario(duration_s: float = 300.0):
             "name": "fed",
             "kind": "federated",
             "sharing": "vector_eigen",
-            "fault_handling": "per_observation",
+            "fault_handling": "per_source",
             "subsystems": [
                 {"name": "INS/GNSS", "sensors": ["gnss_fix"]},
                 {"name": "INS/CNS", "sensors": ["star"]},
             ],
         },
-        {"name": "central", "kind": "centralized", "fault_handling": "per_observation"},
+        {"name": "central", "kind": "centralized", "fault_handling": "per_source"},
         {"name": "tc", "kind": "tightly_coupled", "integrity": True, "phase": "npa"},
         {"name": "imm", "kind": "imm_tightly_coupled", "likelihood": "paper", "selection_correction": False},
         {

@@ -145,7 +145,8 @@ class LooselyCoupledConfig(Model):
         5.0,
         gt=0,
         description="Innovation gate: an observation (row) whose standardised innovation |r_j|/sqrt(S_jj) "
-        "exceeds this is refused and the other rows are used (5: a false refusal per row about 6e-7 "
+        "exceeds this is refused, the other rows of its source (a fix's position solution) are used only "
+        "within 2 sigma, the other sources' rows are used (5: a false refusal per row about 6e-7 "
         "under the model; None: no gate, not recommended)",
     )
     gate_recovery_s: float = Field(
@@ -168,7 +169,7 @@ SharingName = Literal[
     "edop",
     "norm_weighted",
 ]
-FaultHandlingName = Literal["none", "per_observation", "subsystem", "chi2_reconfig"]
+FaultHandlingName = Literal["none", "per_observation", "per_source", "subsystem", "chi2_reconfig"]
 
 
 class SubsystemConfig(Model):
@@ -196,7 +197,12 @@ class FederatedConfig(Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     subsystems: list[SubsystemConfig] = Field(default_factory=_default_subsystems, min_length=1)
     sharing: SharingName = Field("vector_eigen", description="Information-sharing strategy")
-    fault_handling: FaultHandlingName = Field("per_observation", description="Fault handling plug-in")
+    fault_handling: FaultHandlingName = Field(
+        "per_source",
+        description="Fault handling plug-in (service/estimation/federated/fault_tests.py): per_source drops "
+        "a failing row and the rows of its source (a fix's position solution, its velocity) beyond 2 sigma; "
+        "per_observation (seed 000's eq 5-10) drops only the failing rows",
+    )
     reset: Literal["fusion_reset", "no_reset"] = Field("fusion_reset", description="Master reset mode")
     false_alarm_prob: float = Field(0.001, gt=0, lt=0.5, description="Per-test false-alarm probability")
     floor_share: float = Field(

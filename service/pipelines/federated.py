@@ -231,8 +231,9 @@ class _CorePipeline(Pipeline):
             self.screened["sigma_floor"] += meas.floored
         x0, P0 = bank.x[ch.owner].copy(), bank.P[ch.owner].copy()
         self._version += 1
-        upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test)
-        self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.used)
+        upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test, self.source_groups(key, meas))
+        self.end_source_episode(key, bool(upd.decision.flagged.any()))
+        self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.passed)
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
             self.mark_aided(bank.t)

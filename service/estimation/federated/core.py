@@ -201,11 +201,14 @@ class FederatedCore:
         self._dirty = False
 
     # --- local update -------------------------------------------------------------------------
-    def update(self, owner: int, z: np.ndarray, H: np.ndarray, R: np.ndarray, test: FaultTest) -> LocalUpdate:
+    def update(
+        self, owner: int, z: np.ndarray, H: np.ndarray, R: np.ndarray, test: FaultTest, groups=None
+    ) -> LocalUpdate:
         """Test and apply one measurement of local ``owner`` (one bank call; others unchanged).
 
-        z (m,), H (m, n), R (m, m). Raises ``kalman.NotPositiveDefinite`` before changing any
-        state when S or the updated covariance is not positive definite.
+        z (m,), H (m, n), R (m, m); ``groups`` (m,) the rows' sources, for the test. Raises
+        ``kalman.NotPositiveDefinite`` before changing any state when S or the updated covariance
+        is not positive definite.
         """
         if not 0 <= owner < self.n_locals:
             raise ValueError(f"owner {owner} is not a local filter (0..{self.n_locals - 1})")
@@ -225,7 +228,7 @@ class FederatedCore:
         xl, Pl = b.x[:N], b.P[:N]
         x_new, P_new, res = kalman.update(xl, Pl, z, H, R, mask)
         std, nis = res.standardised[owner], float(res.nis[owner])
-        decision = test.flags(std, res.S[owner], nis)
+        decision = test.decide(std, res.S[owner], nis, groups)
         used = decision.used
         if not np.all(used):  # redo without the isolated rows (rare: only when a test fails)
             mask[owner] = used  # seed 000 eq (8)-(10): a faulty row gets infinite noise = dropped

@@ -1,10 +1,14 @@
 """Fault tests of a local filter's innovation: which observation rows to drop this epoch.
 
-Interface (docs/STYLE.md 2): ``FaultTest.flags(standardised, S, nis) -> FaultDecision``
+Interface (docs/STYLE.md 2): ``FaultTest.flags(standardised, S, nis) -> FaultDecision``; a test that
+also looks at the rows' sources overrides ``decide(standardised, S, nis, groups)`` (what the
+federated core calls; by default ``flags``)
 
     standardised : (m,)   r_j / sqrt(S_jj), the standardised predicted innovations
     S            : (m, m) innovation covariance H P H' + R of the local filter being tested
     nis          : float  r' S^-1 r (normalised innovation squared, chi2(m) when fault free)
+    groups       : (m,) int or None  the source of each row (``Measurement.groups``: a fix's
+                          position solution, its velocity; a satellite)
 
 ``FaultDecision`` carries, per row, the statistic and threshold (for display), whether the row
 failed its test (``flagged``) and whether it is dropped from the update (``isolated``). Dropping a
@@ -13,6 +17,10 @@ row is the exact equivalent of seed 000 eq (8)-(10) (R_jj -> infinity for a faul
 Tests (registry names = ``service.config.FaultHandlingName``):
   per_observation  seed 000 eq (5)-(7): f_jj = r_j^2 / S_jj against chi2_1(1 - alpha); only the
                    failing rows are dropped, healthy rows of the same subsystem are still used.
+  per_source       the same per-row test; a failing row makes the rest of its source suspect (a
+                   receiver's position solution: a fault large enough to fail one axis is in the
+                   others, merely smaller; per_observation would take them at full weight): they
+                   are kept only within SUSPECT_SIGMA (2). Rows without sources: per_observation.
   subsystem        seed 000 "method 1": the same per-row tests, but if any row fails the whole
                    subsystem is isolated this epoch.
   chi2_reconfig    seed 004: NIS against chi2_m(1 - alpha); on failure the subsystem is excluded
@@ -31,6 +39,8 @@ from typing import ClassVar
 
 import numpy as np
 from scipy.stats import chi2
+
+from fednav.service.estimation.measurements.base import refused_with_source
 
 
 @lru_cache(maxsize=256)
@@ -52,11 +62,19 @@ class FaultDecision:
     threshold: np.ndarray
     flagged: np.ndarray
     isolated: np.ndarray
+    #: (m,) bool or None: rows isolated only as the rest of a failing row's source (``per_source``)
+    suspect: np.ndarray | None = None
 
     @property
     def used(self) -> np.ndarray:
         """(m,) bool: rows that update the filter."""
         return ~self.isolated
+
+    @property
+    def passed(self) -> np.ndarray:
+        """(m,) bool: rows used or isolated only as suspects (their innovations are the stream's
+        spread: its sigma history and consistency window take them)."""
+        return self.used if self.suspect is None else self.used | self.suspect
 
     @property
     def subsystem_isolated(self) -> bool:
@@ -76,6 +94,11 @@ class FaultTest(ABC):
     @abstractmethod
     def flags(self, standardised: np.ndarray, S: np.ndarray, nis: float) -> FaultDecision:
         """Decide which rows are faulty and which are dropped this epoch."""
+
+    def decide(self, standardised: np.ndarray, S: np.ndarray, nis: float, groups=None) -> FaultDecision:
+        """:meth:`flags`, given also each row's source (``Measurement.groups`` or None); tests
+        that use the sources override this."""
+        return self.flags(standardised, S, nis)
 
     def reset(self) -> None:  # noqa: B027 (optional hook: stateless tests keep nothing)
         """Forget any state (re-initialisation)."""
@@ -105,6 +128,22 @@ class PerObservation(FaultTest):
     def flags(self, standardised, S, nis):
         f, thr, bad = self._per_row(standardised)
         return FaultDecision(f, thr, bad, bad.copy())  # eq (8)-(10): faulty row -> R infinite
+
+
+class PerSource(FaultTest):
+    """Per-row chi2(1) test as :class:`PerObservation`; a failing row also isolates the rows of its
+    source (``groups``) beyond ``SUSPECT_SIGMA`` this epoch (measurements.base.refused_with_source);
+    the other sources' rows are kept."""
+
+    name = "per_source"
+
+    def flags(self, standardised, S, nis):
+        return self.decide(standardised, S, nis)
+
+    def decide(self, standardised, S, nis, groups=None):
+        f, thr, bad = self._per_row(standardised)
+        isolated = refused_with_source(standardised, bad, groups)
+        return FaultDecision(f, thr, bad, isolated, isolated & ~bad)
 
 
 class SubsystemIsolation(FaultTest):
@@ -158,7 +197,7 @@ class Chi2Reconfig(FaultTest):
 
 
 FAULT_TESTS: dict[str, type[FaultTest]] = {
-    cls.name: cls for cls in (NoFaultHandling, PerObservation, SubsystemIsolation, Chi2Reconfig)
+    cls.name: cls for cls in (NoFaultHandling, PerObservation, PerSource, SubsystemIsolation, Chi2Reconfig)
 }
 
 
