@@ -30,9 +30,9 @@ POS_STD = (5.0, 5.0, 8.0)
 def _run(
     p, step_from: float, step_s: float, seconds: float = 120.0, seed: int = 4, step=STEP, claim: float = 1.0
 ):
-    """A static, level vehicle: 1 Hz fixes at the truth plus their claimed noise, offset by
-    ``step`` from ``step_from`` for ``step_s``, claiming ``claim`` x their noise. Per second: (height error, vertical sigma,
-    status), and every Faults published."""
+    """A static, level vehicle: 1 Hz fixes at the truth plus their noise, offset by ``step`` from
+    ``step_from`` for ``step_s``, claiming ``claim`` x their noise. Per second: (height error,
+    vertical sigma, status), and every Faults published."""
     nav = NavState(T0, LAT, LON, H, np.zeros(3), earth.mat_to_quat(np.eye(3)))
     p.start(nav, InitStd(np.full(3, 2.0), np.full(3, 0.1), np.radians([0.1, 0.1, 0.5])))
     g = earth.gravity_normal(LAT, H)
@@ -193,3 +193,54 @@ def test_per_source_fault_test_isolates_the_failing_rows_source_only():
 
 def test_the_federated_default_is_per_source():
     assert FederatedConfig(name="f").fault_handling == "per_source"
+
+
+class _StatusSink:
+    """Per pipeline: height error, vertical sigma and status at every output epoch."""
+
+    def __init__(self):
+        self.rec: dict[str, list] = {}
+
+    def on_estimate(self, vehicle, out) -> None:
+        if out.err9 is not None:
+            sd_up = math.sqrt(max(float(out.P9[2, 2]), 0.0))
+            self.rec.setdefault(out.name, []).append((out.err9[2], sd_up, out.pipeline.current_status(out.t)))
+
+    def on_output(self, vehicle, msg, err9=None) -> None:
+        pass
+
+    def on_truth(self, vehicle, truth) -> None:
+        pass
+
+
+@pytest.mark.parametrize("seed", [1, 7])
+def test_the_demo_step_leaves_no_aided_height_beyond_three_sigma(seed):
+    """The demo (`make demo`'s scenario, its 40-55 s GNSS step) through the engine, the loosely
+    coupled and federated pipelines: never 'aided' with the height beyond 3x its sigma (before the
+    rule, this test found 435 such epochs of the loosely coupled pipeline on seed 1; seed 7 is
+    the worst of benchmarks/status_truth.py's seeds 4-8, 9.8 sigma)."""
+    import tomllib
+
+    from fednav.service import keys
+    from fednav.service.engine import VehicleEngine
+    from fednav.simulators.evaluate import service_config
+    from fednav.simulators.scenario import parse_scenario
+    from fednav.simulators.stream import Simulation
+
+    from .scenario_utils import SCENARIOS
+
+    data = tomllib.loads((SCENARIOS / "demo_product.toml").read_text())
+    data["service"]["pipelines"] = [p for p in data["service"]["pipelines"] if p["name"] in ("lc", "fed")]
+    data.pop("gnss_raw")
+    data["faults"] = [f for f in data["faults"] if f["sensor"] == "gnss"]
+    sc = parse_scenario(data, "demo_product: lc and fed")
+    sink = _StatusSink()
+    eng = VehicleEngine("v1", service_config(sc), sink)
+    for key, msg in Simulation(sc, seed=seed):
+        pk = keys.parse_input(key)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+    for name in ("lc", "fed"):
+        rec = sink.rec[name]
+        assert len(rec) > 1000
+        assert _lies(rec) == 0, name
+        assert any(st == "aided" for _, _, st in rec[-100:])  # and aided again at the end
