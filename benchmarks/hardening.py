@@ -212,6 +212,15 @@ def gnss_scenario(duration_s: float = 300.0):
     return parse_scenario(d, "hardening: demo aircraft with raw GNSS and a star tracker")
 
 
+def demo_scenario(duration_s: float = 300.0):
+    """The main job's scenario as it is (``make demo``: demo_product, its three pipelines and its
+    own faults: the 40-55 s GNSS step, the 30-110 s GEO3 ramp, in the clean run too), run for
+    ``duration_s`` (straight on after its last turn): what a probe of the running demo sees."""
+    d = _toml("demo_product")
+    d["duration_s"] = duration_s
+    return parse_scenario(d, f"hardening: demo_product, {duration_s:.0f} s")
+
+
 def ta_scenario():
     d = _toml("seed002_wing")
     d["service"]["pipelines"] = [p for p in d["service"]["pipelines"] if p["name"] == "ta_akf"]
@@ -242,6 +251,12 @@ FAMILIES = {
             "imm_sel": "imm_tightly_coupled (recommended: log-Gaussian, selection correction)",
         },
         100.0,
+        "gnss_fix",
+    ),
+    "demo": (
+        demo_scenario,
+        {"lc": "demo: loosely_coupled", "fed": "demo: federated", "tc_mhss": "demo: tightly_coupled (MHSS)"},
+        140.0,
         "gnss_fix",
     ),
     "ta": (ta_scenario, {"ta_akf": "transfer_alignment"}, 100.0, "gnss_fix"),
