@@ -197,6 +197,10 @@ class Publishers:
 
 #: most messages one drain of the intake hands on together (``deliver_many``)
 DRAIN_MAX = 256
+#: after the shutdown drain's deadline, the drain in progress is let finish for at least this
+#: long (s): it is not interrupted, and DRAIN_MAX messages of a slow consumer (2 ms each: 0.5 s)
+#: outlast a short ``drain_s``
+ABANDON_GRACE_S = 2.0
 
 
 class Intake:
@@ -349,9 +353,10 @@ class Intake:
             self._thread.join(timeout=drain_s)
             if self._thread.is_alive():  # still running what had arrived: stop after this drain
                 self._abandon.set()
-                self._thread.join(timeout=drain_s)
+                grace = max(drain_s, ABANDON_GRACE_S)
+                self._thread.join(timeout=grace)
                 if self._thread.is_alive():
-                    log.warning("intake: still running a drain %.1f s after shutdown began", 2 * drain_s)
+                    log.warning("intake: still running a drain %.1f s after shutdown began", drain_s + grace)
                 else:
                     log.warning("intake: %d messages not run at shutdown (after %.1f s)", self._left, drain_s)
 
