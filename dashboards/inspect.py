@@ -152,6 +152,21 @@ def _align(base: Series, other: Series | None) -> np.ndarray:
     return out
 
 
+def _flag_counts(flag: Series, stat: Series | None, thr: Series | None) -> tuple[int, int]:
+    """(rows that failed their own test, rows isolated) of one recorded observation. A row can be
+    isolated without failing its test (with its subsystem, or as the rest of a failing row's
+    source: ``per_source`` and the loosely coupled gate): failed is statistic > threshold where
+    both were recorded with the state, else any state but ``ok``."""
+    states = np.asarray(flag.values, dtype=object)
+    isolated = int(np.count_nonzero(states == "isolated"))
+    bad = states != "ok"
+    if stat is not None and thr is not None:
+        st, th = _align(flag, stat), _align(flag, thr)
+        known = np.isfinite(st) & np.isfinite(th)
+        bad = np.where(known, st > th, bad)
+    return int(np.count_nonzero(bad)), isolated
+
+
 def _rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else math.nan
 
@@ -274,10 +289,13 @@ def _faults_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any] |
         elif len(rest) == 3 and rest[2] == "flagged":
             key = f"{rest[0]}/{rest[1]}"
             stat = data.get(paths.faults(v, p, rest[0], rest[1], "statistic"))
+            flagged, isolated = _flag_counts(
+                s, stat, data.get(paths.faults(v, p, rest[0], rest[1], "threshold"))
+            )
             obs[key] = {
                 "tests": len(s),
-                "flagged": sum(1 for x in s.values if x != "ok"),
-                "isolated": sum(1 for x in s.values if x == "isolated"),
+                "flagged": flagged,
+                "isolated": isolated,
                 "max_statistic": _f(np.max(stat.values)) if stat is not None and len(stat) else None,
             }
     sharing_root = paths.sharing(v, p) + "/"
@@ -533,8 +551,7 @@ def _screening(v: str, p: str, data: dict[str, Series], n_fixes: int) -> dict[st
         sub, label = ent[len(root) :].split("/")[:2]
         stat = data.get(paths.faults(v, p, sub, label, "statistic"))
         thr = data.get(paths.faults(v, p, sub, label, "threshold"))
-        refused = sum(1 for x in flag.values if x == "isolated")
-        flagged = sum(1 for x in flag.values if x != "ok")
+        flagged, refused = _flag_counts(flag, stat, thr)
         threshold = float(np.median(thr.values)) if thr is not None and len(thr) else None
         r: dict[str, Any] = {
             "recorded": len(flag),
@@ -548,10 +565,10 @@ def _screening(v: str, p: str, data: dict[str, Series], n_fixes: int) -> dict[st
             r["tests"] = tests
             if threshold is not None:
                 r["expected_rate"] = float(2.0 * norm.sf(threshold))
-            if tests:
-                rate = refused / tests
+            if tests:  # the rows beyond the gate on their own (not those refused with them)
+                rate = flagged / tests
                 r["rate"] = rate
-                if refused >= 3 and threshold is not None and rate < 1.0:
+                if flagged >= 3 and threshold is not None and rate < 1.0:
                     # |N(0, k^2)| > g with probability rate: k = g / z(1 - rate/2)
                     r["implied_factor"] = float(threshold / norm.isf(rate / 2.0))
         else:
@@ -986,7 +1003,9 @@ def _render_real_run(p: dict[str, Any], t0: float) -> list[str]:
     for label, r in (p.get("screening") or {}).items():
         tests = r.get("tests")
         rate = (
-            f" of {tests} tests ({100 * r['rate']:.2g} %)" if tests else f" ({r['recorded']} rows recorded)"
+            f" of {tests} tests ({100 * r['rate']:.2g} % failing)"
+            if tests
+            else f" ({r['recorded']} rows recorded)"
         )
         exp = f", expected {r['expected_rate']:.1g} per test" if r.get("expected_rate") is not None else ""
         k = f", implied real/claimed {r['implied_factor']:.2f}" if r.get("implied_factor") is not None else ""
@@ -995,7 +1014,12 @@ def _render_real_run(p: dict[str, Any], t0: float) -> list[str]:
             if "median_statistic" in r
             else ""
         )
-        out.append(f"    {r['test']} {label}: refused {r['refused']}{rate}{exp}{med}{k}")
+        own = (
+            f" ({r['flagged']} beyond it on their own)"
+            if r.get("flagged", r["refused"]) != r["refused"]
+            else ""
+        )
+        out.append(f"    {r['test']} {label}: refused {r['refused']}{own}{rate}{exp}{med}{k}")
     if p.get("verdict"):
         out.append(f"    verdict: {p['verdict']}")
     return out

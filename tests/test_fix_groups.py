@@ -244,3 +244,16 @@ def test_the_demo_step_leaves_no_aided_height_beyond_three_sigma(seed):
         assert len(rec) > 1000
         assert _lies(rec) == 0, name
         assert any(st == "aided" for _, _, st in rec[-100:])  # and aided again at the end
+
+
+def test_inspect_counts_a_row_failing_its_own_test_apart_from_one_isolated_with_its_source():
+    """fednav-inspect's counts (the demo's summary): 'flagged' is a row beyond its own threshold,
+    'isolated' any row left out (a suspect of a failing source, a row of an isolated subsystem)."""
+    from fednav.dashboards.inspect import Series, _flag_counts
+
+    t = np.arange(4, dtype=np.int64) * 1_000_000_000
+    flag = Series(t, ["isolated", "isolated", "ok", "flagged"])
+    stat = Series(t, np.array([7.0, 3.1, 0.5, 6.0]))
+    thr = Series(t, np.full(4, 5.0))
+    assert _flag_counts(flag, stat, thr) == (2, 2)  # the 3.1 row was isolated with its source
+    assert _flag_counts(flag, None, None) == (3, 2)  # without statistics: every state but ok
