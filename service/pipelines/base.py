@@ -30,6 +30,11 @@ from functools import lru_cache
 
 import numpy as np
 
+# at import, not at the first quantile: a lazy import of scipy.stats (~0.4 s) would stall the
+# service's intake, and every vehicle with it, at the first epoch of its first tightly coupled
+# vehicle (the other families import it through their gates and fault tests anyway)
+from scipy.stats import chi2
+
 from fednav.service import earth
 from fednav.service.config import ImuModel
 from fednav.service.estimation.consistency import InnovationConsistency
@@ -124,8 +129,6 @@ def sensor_option_errors(cfg, used: set[str]) -> list[tuple[str, str]]:
 
 @lru_cache(maxsize=256)
 def _chi2_quantile(dof: int, p: float) -> float:
-    from scipy.stats import chi2
-
     return float(chi2.isf(p, dof))
 
 
