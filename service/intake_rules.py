@@ -31,7 +31,11 @@ it are refused, and only a run of samples that agree with each other re-bases it
   ``CADENCE_TOLERANCE`` periods from it is a second publisher interleaving with the sensor under
   its key (a forged stream between the genuine fixes) and is refused ``off_cadence``, as long as
   the sensor keeps its phase; a phase silent for ``CADENCE_RELEARN_PERIODS`` periods is learnt
-  again from the new messages (a receiver restarted on another timing, a rate change).
+  again from the new messages (a receiver restarted on another timing, a rate change). Silent
+  means the INS moved on that long without an on-phase message, not a message stamped that far
+  ahead: a second publisher whose messages reach the service seconds before the sensor's own
+  (another session, less loaded) would otherwise restart the learning with its own message and
+  take the key, the sensor's then refused ``time_backwards``.
 
 Messages accepted (and aiding refused only as ``not_initialised``) become their key's latest time.
 """
@@ -75,8 +79,9 @@ class _Cadence:
     anchor: float | None = None
     established: bool = False
 
-    def judge(self, t: float) -> bool:
-        """Whether ``t`` fits the stream (learning, or on its phase); learns from it if so."""
+    def judge(self, t: float, t_ins: float | None = None) -> bool:
+        """Whether ``t`` fits the stream (learning, or on its phase); learns from it if so.
+        ``t_ins``: the INS time (the last IMU time), the clock silence is measured on."""
         a = self.anchor
         if a is None:
             self.anchor = t
@@ -87,7 +92,8 @@ class _Cadence:
             if n >= 1 and abs(dt - n * self.period) <= CADENCE_TOLERANCE * self.period:
                 self.anchor = t
                 return True
-            if dt > CADENCE_RELEARN_PERIODS * self.period:  # its phase went silent: learn again
+            silent = CADENCE_RELEARN_PERIODS * self.period
+            if dt > silent and (t_ins is None or t_ins - a > silent):  # its phase went silent
                 self.period, self.count, self.anchor, self.established = None, 0, t, False
                 return True
             return False
@@ -173,7 +179,7 @@ class AcceptanceRules:
             c = self._cadence.get(key)
             if c is None:
                 c = self._cadence[key] = _Cadence()
-            if not c.judge(msg.t):
+            if not c.judge(msg.t, t_ins):
                 return Verdict("off_cadence")
         if verdict.accepted or verdict.reason == "not_initialised":
             self.last_t[key] = msg.t

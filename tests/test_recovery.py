@@ -186,14 +186,40 @@ def test_an_initial_nav_burst_does_not_pin_the_state(demo, north_m):
     assert INIT_RESET_INTERVAL_S > 2.5
 
 
-def test_a_forged_fix_stream_between_the_receivers_fixes_is_refused(demo):
+def forged_at(sim, t: float, north_m: float) -> GnssFix:
+    """A forged fix at ``t``: the truth moved ``north_m`` north, 1 m/s north more, claiming 1 m."""
+    s = sim.truth.trajectory.state_at(t)
+    r_m, _ = earth.radii(s.llh[0])
+    return GnssFix(
+        t=t,
+        lat_deg=math.degrees(s.llh[0] + north_m / (r_m + s.llh[2])),
+        lon_deg=math.degrees(s.llh[1]),
+        height_m=float(s.llh[2]),
+        vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps + np.array([0.0, 1.0, 0.0])),
+        pos_std_enu_m=(1.0, 1.0, 1.0),
+        vel_std_enu_mps=(0.1, 0.1, 0.1),
+    )
+
+
+@pytest.mark.parametrize("lead_s", [0.0, 4.0])
+def test_a_forged_fix_stream_between_the_receivers_fixes_is_refused(demo, lead_s):
     """A forged fix stream under the receiver's own key, between its fixes (half a period off),
     drifting 1 m/s for 30 s and claiming 1 m: off the stream's established cadence, every forged
     fix is refused ``off_cadence``; the solution does not move. Before this it was 7.7 m off and
-    stayed ~5 m off (the filter had believed the claimed 1 m)."""
+    stayed ~5 m off (the filter had believed the claimed 1 m).
+
+    ``lead_s`` 4: each forged fix reaches the service 4 s of stream time before the receiver's own
+    stream does (the forger's session less loaded than the sensors': found with real processes at
+    10x pace, demo_product). It was stamped more than 3 periods after the stream's last fix, which
+    restarted the cadence's learning with it: the forger took the key and the receiver's own fixes
+    were refused ``time_backwards`` (the loosely coupled solution 16 m off, `aided` beyond 3
+    sigma). The phase is now silent only when the INS moved on 3 periods without it."""
     sc, clean = demo
+    forged_fixes: list[tuple[float, GnssFix]] = []
 
     def inject(eng, pk, msg, t_rel, sim):
+        while forged_fixes and pk.kind == "imu" and t_rel >= forged_fixes[0][0]:
+            eng.handle("gnss_fix", "main", forged_fixes.pop(0)[1])
         if pk.kind == "gnss_fix" and AT_S <= t_rel < AT_S + 30.0:
             s = sim.truth.trajectory.state_at(msg.t + 0.5)
             drift = 1.0 * (t_rel - AT_S)
@@ -207,13 +233,19 @@ def test_a_forged_fix_stream_between_the_receivers_fixes_is_refused(demo):
                 pos_std_enu_m=(1.0, 1.0, 1.0),
                 vel_std_enu_mps=(0.1, 0.1, 0.1),
             )
-            eng.handle(pk.kind, pk.sensor_id, msg)
-            eng.handle(pk.kind, pk.sensor_id, forged)
-            return False
+            if lead_s == 0.0:
+                eng.handle(pk.kind, pk.sensor_id, msg)
+                eng.handle(pk.kind, pk.sensor_id, forged)
+                return False
+            if not forged_fixes and t_rel == AT_S:  # the whole stream, each lead_s early
+                forged_fixes.extend(
+                    (t_rel + k + 0.5 - lead_s, forged_at(sim, msg.t + k + 0.5, 1.0 * (k + 0.5)))
+                    for k in range(30)
+                )
         return True
 
     eng, rec = _run(sc, inject)
-    assert eng.rejected["off_cadence"] == 30
+    assert eng.rejected["off_cadence"] == 30, dict(eng.rejected)
     diff = max(abs(a[1] - b[1]) for a, b in zip(rec["lc"], clean["lc"], strict=True))
     assert diff < 1e-9
 
@@ -237,6 +269,13 @@ def test_cadence_rules():
     assert ok(20.6).accepted  # its phase silent for 3.6 periods: learnt again
     assert ok(21.1).accepted  # learning a new period
     assert ok(15.5, "b").accepted  # another sensor: its own cadence
+    for k in range(6):  # b keeps a 1 Hz phase
+        assert ok(16.0 + k, "b").accepted
+    # a message stamped 4.5 periods after b's last one, arriving while the INS is still there: b's
+    # phase is not silent (the message is early, not the sensor late), so it is off its cadence
+    assert r.decide("gnss_fix", "b", fix(25.5), 21.2, True).reason == "off_cadence"
+    assert r.decide("gnss_fix", "b", fix(22.0), 22.0, True).accepted  # b's own, on its phase
+    assert r.decide("gnss_fix", "b", fix(26.5), 26.1, True).accepted  # INS 4.1 s past 22: relearnt
 
 
 def test_sigma_floors_follow_the_streams_history():
