@@ -1,0 +1,271 @@
+"""Transient corruption through real processes, as an outside probe sees it.
+
+``benchmarks/hardening.py`` injects its attacks into the engine in-process, in one stream order.
+Here fednav-service runs as its own process on ``make demo``'s scenario (``demo_product``: its
+three pipelines and its own faults) and four vehicles are published at ``--pace`` x real time,
+each from its own plain Zenoh session, with the attacks from a second session of their own:
+
+- ``clean``: the stream as it is (the reference: its 95th percentile of the horizontal error);
+- ``burst``: 50 forged IMU samples (20 rad/s about x) slipped between the genuine ones at 70 s;
+- ``inits``: 500 InitialNav in 2.5 s from 70 s, 20 m north, claiming 1 cm / 0.01 m/s / 0.01 deg;
+- ``drift``: a forged fix stream under the receiver's key, half a period after each genuine fix,
+  drifting 1 m/s north for 30 s from 70 s and claiming 1 m.
+
+Two sessions reach the service in an order no in-process run reproduces (the sensors' session is
+busier than the forger's: its messages can arrive seconds of stream time later), so runs differ;
+``--runs`` repeats the probe. Printed per run and pipeline: the peak horizontal error after the
+attack, the time after its end until the error is back under the clean vehicle's 95th percentile
+and stays under 1.5 times it, the epochs reported ``aided`` while the horizontal error exceeds 3x
+its sigma or the height error 3x its own, and the vehicle's refusal counts.
+
+Usage: .venv/bin/python benchmarks/process_probe.py [--runs 3] [--seed 5] [--pace 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fednav.service import earth, keys  # noqa: E402
+from fednav.service.messages import GnssFix, ImuSample, InitialNav  # noqa: E402
+from fednav.simulators.processes import free_port, query_status, start_service, wait_idle  # noqa: E402
+from fednav.simulators.scenario import load_scenario  # noqa: E402
+from fednav.simulators.stream import Simulation  # noqa: E402
+from tests.plain_zenoh import client  # noqa: E402  (the tests' plain client: no fednav code)
+from tests.test_hostile import Publisher  # noqa: E402  (reliable, blocking, waits for the subscriber)
+
+AT_S = 70.0
+VEHICLES = ("clean", "burst", "inits", "drift")
+ENDS = {"burst": AT_S + 0.6, "inits": AT_S + 2.5, "drift": AT_S + 30.0}
+PIPELINES = ("lc", "fed", "tc_mhss")
+
+
+def _moved(traj, t: float, north_m: float, dvn: float = 0.0):
+    s = traj.state_at(t)
+    r_m, _ = earth.radii(s.llh[0])
+    return s, math.degrees(s.llh[0] + north_m / (r_m + s.llh[2])), s.vel_enu_mps + np.array([0.0, dvn, 0.0])
+
+
+def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float) -> int:
+    genuine, attacker = client(port), client(port)
+    pub, forged = Publisher(genuine), Publisher(attacker)
+    k_imu, k_fix = keys.sensor(vehicle, "imu", "main"), keys.sensor(vehicle, "gnss_fix", "main")
+    sim = Simulation(sc, seed=seed, vehicle=vehicle)
+    traj = sim.truth.trajectory
+    burst: list[ImuSample] = []
+    sent = 0
+    try:
+        for key, msg in sim:
+            t_rel = msg.t - sc.t0_gps_s
+            if isinstance(msg, ImuSample):
+                delay = t_wall0 + t_rel / pace - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                if vehicle == "burst" and abs(t_rel - AT_S) < 0.005:
+                    burst = [
+                        msg.model_copy(update={"t": msg.t + 0.005 + 0.01 * k, "dtheta_rad": (0.2, 0.0, 0.0)})
+                        for k in range(1, 51)
+                    ]
+                if burst and burst[0].t < msg.t + msg.dt_s:  # just before the genuine sample
+                    forged.put(k_imu, burst.pop(0).to_json())
+                    sent += 1
+                if vehicle == "inits" and AT_S <= t_rel < AT_S + 2.5:
+                    for j in (0, 1):
+                        t = msg.t + 0.005 * j
+                        s, lat, _ = _moved(traj, t, 20.0)
+                        init = InitialNav(
+                            t=t,
+                            lat_deg=lat,
+                            lon_deg=math.degrees(s.llh[1]),
+                            height_m=float(s.llh[2]),
+                            vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps),
+                            rpy_deg=tuple(earth.rpy_msg_deg(s.rpy_rad)),
+                            pos_std_enu_m=(0.01,) * 3,
+                            vel_std_enu_mps=(0.01,) * 3,
+                            rpy_std_deg=(0.01,) * 3,
+                        )
+                        forged.put(keys.init(vehicle), init.to_json())
+                        sent += 1
+            pub.put(key, msg.to_json())
+            if vehicle == "drift" and isinstance(msg, GnssFix) and AT_S <= t_rel < AT_S + 30.0:
+                t = msg.t + 0.5
+                s, lat, vel = _moved(traj, t, 1.0 * (t_rel + 0.5 - AT_S), 1.0)
+                fake = GnssFix(
+                    t=t,
+                    lat_deg=lat,
+                    lon_deg=math.degrees(s.llh[1]),
+                    height_m=float(s.llh[2]),
+                    vel_enu_mps=tuple(float(v) for v in vel),
+                    pos_std_enu_m=(1.0, 1.0, 1.0),
+                    vel_std_enu_mps=(0.1, 0.1, 0.1),
+                )
+                forged.put(k_fix, fake.to_json())
+                sent += 1
+    finally:
+        genuine.close()
+        attacker.close()
+    return sent
+
+
+def one_run(seed: int, pace: float, workdir: Path) -> dict:
+    sc = load_scenario("demo_product")
+    text = (ROOT / "simulators" / "scenarios" / "demo_product.toml").read_text()
+    text = text.replace("[service]\n", '[service]\nvehicles = ["*"]\n', 1)
+    cfg = workdir / "service.toml"
+    cfg.write_text(text)
+    port = free_port()
+    svc = start_service(port, config=cfg, table="service", rrd=workdir / "probe.rrd")
+    session = client(port)
+    sols: dict[tuple[str, str], list[dict]] = {}
+    lock = threading.Lock()
+
+    def on_solution(sample: zenoh.Sample) -> None:
+        d = json.loads(sample.payload.to_bytes())
+        parts = str(sample.key_expr).split("/")
+        with lock:
+            sols.setdefault((parts[1], parts[3]), []).append(d)
+
+    session.declare_subscriber("fednav/*/nav/*/solution", on_solution)
+    sent: dict[str, int] = {}
+    try:
+        t_wall0 = time.monotonic() + 1.0
+        threads = [
+            threading.Thread(
+                target=lambda v=v: sent.__setitem__(v, publish(sc, v, port, t_wall0, seed, pace))
+            )
+            for v in VEHICLES
+        ]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join(timeout=600)
+        # the service may still work through a backlog (four demo vehicles at 10x load it):
+        # wait until every vehicle's Health time reached the end of the scenario
+        end_t = sc.t0_gps_s + sc.duration_s - 0.5
+        deadline = time.monotonic() + 300.0
+        for v in VEHICLES:
+            while time.monotonic() < deadline:
+                h = ((query_status(port, v) or {}).get("health")) or {}
+                if (h.get("t") or 0.0) >= end_t:
+                    break
+                time.sleep(0.5)
+        status = {v: wait_idle(port, vehicle=v) for v in VEHICLES}
+        # and until this process's subscriber has taken every Solution in flight (its callback
+        # thread lags behind when the publishing threads hold the GIL)
+        count, still = -1, 0
+        while still < 3 and time.monotonic() < deadline:
+            with lock:
+                n = sum(len(x) for x in sols.values())
+            still = still + 1 if n == count else 0
+            count = n
+            time.sleep(1.0)
+        alive = svc.p.poll() is None
+    finally:
+        svc.signal(signal.SIGTERM)
+        rc = svc.wait(timeout=60)
+        session.close()
+    traj = Simulation(sc, seed=seed).truth.trajectory
+
+    def errors(v: str, p: str) -> list[tuple]:
+        out = []
+        for d in sorted(sols.get((v, p), []), key=lambda d: d["t"]):
+            s = traj.state_at(d["t"])
+            r_m, r_n = earth.radii(s.llh[0])
+            dn = (math.radians(d["lat_deg"]) - s.llh[0]) * (r_m + s.llh[2])
+            de = earth.wrap_pi(math.radians(d["lon_deg"]) - s.llh[1]) * (r_n + s.llh[2]) * math.cos(s.llh[0])
+            sd = d["pos_std_enu_m"]
+            out.append(
+                (d["t"] - sc.t0_gps_s, math.hypot(de, dn), math.hypot(sd[0], sd[1]), d["status"],
+                 abs(d["height_m"] - s.llh[2]), sd[2])
+            )  # fmt: skip
+        return out
+
+    def lies(e) -> int:
+        return sum(1 for _, h, s, st, u, su in e if st == "aided" and (h > 3 * s or u > 3 * su))
+
+    result = {"alive": alive, "rc": rc, "sent": sent, "pipelines": {}}
+    for p in PIPELINES:
+        clean = errors("clean", p)
+        if not clean:
+            result["pipelines"][p] = None
+            continue
+        p95 = float(np.percentile([e[1] for e in clean], 95))
+        row = {"clean_p95": p95, "clean_lies": lies(clean)}
+        for v, end in ENDS.items():
+            e = errors(v, p)
+            if not e:
+                row[v] = None
+                continue
+            rec = None
+            for i, x in enumerate(e):
+                if x[0] >= end and x[1] <= p95 and all(y[1] <= 1.5 * p95 for y in e[i:]):
+                    rec = x[0] - end
+                    break
+            after = [x[1] for x in e if x[0] >= AT_S]
+            peak = max(after) if after else None  # None: its solutions stopped before the attack
+            row[v] = {"peak": peak, "recovered": rec, "lies": lies(e), "last": e[-1][0]}
+        result["pipelines"][p] = row
+    result["refused"] = {
+        v: ((status.get(v) or {}).get("health") or {}).get("rejected") for v in ("burst", "inits", "drift")
+    }
+    return result
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--pace", type=float, default=10.0, help="x real time (default 10, the probes')")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args()
+    results = []
+    for r in range(a.runs):
+        with tempfile.TemporaryDirectory(prefix="fednav_probe_") as tmp:
+            res = one_run(a.seed, a.pace, Path(tmp))
+        results.append(res)
+        if a.json:
+            continue
+        print(f"run {r + 1}: service alive {res['alive']}, exit {res['rc']}, forged messages {res['sent']}")
+        for p, row in res["pipelines"].items():
+            if row is None:
+                print(f"  {p}: no solutions")
+                continue
+            cells = []
+            for v in ENDS:
+                x = row[v]
+                if x is None:
+                    cells.append(f"{v}: no solutions")
+                    continue
+                if x["peak"] is None:
+                    cells.append(f"{v}: solutions stopped at {x['last']:.0f} s")
+                    continue
+                rec = "never" if x["recovered"] is None else f"{x['recovered']:.1f} s"
+                cells.append(
+                    f"{v}: peak {x['peak']:.1f} m, back {rec}, aided>3sigma {x['lies']}, "
+                    f"last {x['last']:.0f} s"
+                )
+            print(
+                f"  {p:8s} clean p95 {row['clean_p95']:.2f} m (aided>3sigma {row['clean_lies']}) | "
+                + " | ".join(cells)
+            )
+        print("  refused:", res["refused"], flush=True)
+    if a.json:
+        print(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
