@@ -222,21 +222,9 @@ def test_a_forged_fix_stream_between_the_receivers_fixes_is_refused(demo, lead_s
         while forged_fixes and pk.kind == "imu" and t_rel >= forged_fixes[0][0]:
             eng.handle("gnss_fix", "main", forged_fixes.pop(0)[1])
         if pk.kind == "gnss_fix" and AT_S <= t_rel < AT_S + 30.0:
-            s = sim.truth.trajectory.state_at(msg.t + 0.5)
-            drift = 1.0 * (t_rel - AT_S)
-            r_m, _ = earth.radii(s.llh[0])
-            forged = GnssFix(
-                t=msg.t + 0.5,
-                lat_deg=math.degrees(s.llh[0] + drift / (r_m + s.llh[2])),
-                lon_deg=math.degrees(s.llh[1]),
-                height_m=float(s.llh[2]),
-                vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps + np.array([0.0, 1.0, 0.0])),
-                pos_std_enu_m=(1.0, 1.0, 1.0),
-                vel_std_enu_mps=(0.1, 0.1, 0.1),
-            )
             if lead_s == 0.0:
                 eng.handle(pk.kind, pk.sensor_id, msg)
-                eng.handle(pk.kind, pk.sensor_id, forged)
+                eng.handle(pk.kind, pk.sensor_id, forged_at(sim, msg.t + 0.5, 1.0 * (t_rel - AT_S)))
                 return False
             if not forged_fixes and t_rel == AT_S:  # the whole stream, each lead_s early
                 forged_fixes.extend(
