@@ -296,6 +296,24 @@ def _moved(lat_rad: float, lon_rad: float, h: float, north_m: float, east_m: flo
     return lat_rad + north_m / (r_m + h), lon_rad + east_m / ((r_n + h) * math.cos(lat_rad))
 
 
+def forged_init(traj, t: float, north_m: float) -> InitialNav:
+    """The InitialNav of an ``init_burst``: the true state at ``t`` moved ``north_m`` north,
+    claiming 1 cm / 0.01 m/s / 0.01 deg."""
+    s = traj.state_at(t)
+    lat, lon = _moved(s.llh[0], s.llh[1], s.llh[2], north_m)
+    return InitialNav(
+        t=t,
+        lat_deg=math.degrees(lat),
+        lon_deg=math.degrees(lon),
+        height_m=float(s.llh[2]),
+        vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps),
+        rpy_deg=tuple(earth.rpy_msg_deg(s.rpy_rad)),
+        pos_std_enu_m=(0.01,) * 3,
+        vel_std_enu_mps=(0.01,) * 3,
+        rpy_std_deg=(0.01,) * 3,
+    )
+
+
 def _shift_fix(msg: GnssFix, north_m: float) -> GnssFix:
     lat, lon = _moved(math.radians(msg.lat_deg), math.radians(msg.lon_deg), msg.height_m, north_m)
     return msg.model_copy(update={"lat_deg": math.degrees(lat), "lon_deg": math.degrees(lon)})
@@ -380,25 +398,7 @@ class Injector:
         if self.kind == "init_burst" and pk.kind == "imu" and self.start_s <= t_rel < self.start_s + 2.5:
             for j in range(2):  # two per 10 ms sample: 500 in 2.5 s at 100 Hz
                 ti = msg.t + 0.5 * msg.dt_s * j
-                s = traj.state_at(ti)
-                lat, lon = _moved(s.llh[0], s.llh[1], s.llh[2], float(self.arg))
-                out.append(
-                    (
-                        "init",
-                        "",
-                        InitialNav(
-                            t=ti,
-                            lat_deg=math.degrees(lat),
-                            lon_deg=math.degrees(lon),
-                            height_m=float(s.llh[2]),
-                            vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps),
-                            rpy_deg=tuple(earth.rpy_msg_deg(s.rpy_rad)),
-                            pos_std_enu_m=(0.01,) * 3,
-                            vel_std_enu_mps=(0.01,) * 3,
-                            rpy_std_deg=(0.01,) * 3,
-                        ),
-                    )
-                )
+                out.append(("init", "", forged_init(traj, ti, float(self.arg))))
         if self.kind == "drift" and pk.kind == self.aiding and self.start_s <= t_rel < self.end_s:
             last["forge"] = (msg, t_rel)
         forge = last.get("forge")

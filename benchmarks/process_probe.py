@@ -38,9 +38,12 @@ import zenoh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from hardening import forged_init  # noqa: E402  (the init_burst's InitialNav)
 
 from fednav.service import earth, keys  # noqa: E402
-from fednav.service.messages import GnssFix, ImuSample, InitialNav  # noqa: E402
+from fednav.service.messages import GnssFix, ImuSample  # noqa: E402
 from fednav.simulators.processes import free_port, query_status, start_service, wait_idle  # noqa: E402
 from fednav.simulators.scenario import load_scenario  # noqa: E402
 from fednav.simulators.stream import Simulation  # noqa: E402
@@ -84,19 +87,7 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
                     sent += 1
                 if vehicle == "inits" and AT_S <= t_rel < AT_S + 2.5:
                     for j in (0, 1):
-                        t = msg.t + 0.005 * j
-                        s, lat, _ = _moved(traj, t, 20.0)
-                        init = InitialNav(
-                            t=t,
-                            lat_deg=lat,
-                            lon_deg=math.degrees(s.llh[1]),
-                            height_m=float(s.llh[2]),
-                            vel_enu_mps=tuple(float(v) for v in s.vel_enu_mps),
-                            rpy_deg=tuple(earth.rpy_msg_deg(s.rpy_rad)),
-                            pos_std_enu_m=(0.01,) * 3,
-                            vel_std_enu_mps=(0.01,) * 3,
-                            rpy_std_deg=(0.01,) * 3,
-                        )
+                        init = forged_init(traj, msg.t + 0.005 * j, 20.0)
                         forged.put(keys.init(vehicle), init.to_json())
                         sent += 1
             pub.put(key, msg.to_json())
