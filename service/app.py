@@ -18,6 +18,7 @@ import math
 import queue
 import threading
 import time
+import zlib
 from collections import Counter
 from datetime import datetime
 from pathlib import Path
@@ -210,6 +211,21 @@ class OutputSink:
             self.rr.log_truth(vehicle, truth)
 
 
+def health_phase(vehicle: str) -> float:
+    """A vehicle's phase in [0, 1) of the Health period: a stable hash of its name, so that the
+    vehicles of a fleet that started at once publish their Health spread over the period."""
+    return (zlib.crc32(vehicle.encode()) & 0xFFFF) / 65536.0
+
+
+def next_due(due: float, now: float, period: float) -> float:
+    """The first time after ``now`` on the grid ``due + k period`` (a periodic task that keeps its
+    phase, also after a scan that came late)."""
+    due += period
+    if due <= now:
+        due = now + period - (now - due) % period
+    return due
+
+
 class VehicleWorker:
     """One vehicle inside a pool worker: its :class:`~service.vehicle.VehicleLoop` and what the
     service adds (health publication, the raw-fix recording hook, its share of the queue)."""
@@ -230,7 +246,10 @@ class VehicleWorker:
         self.on_retired = None  # (VehicleWorker) -> None, set by the service
         self.next_state = time.monotonic() + config.fleet.handover_period_s
         self.notes = None  # () -> counted non-refusal events (the ROS 2 bridge's), for Health
-        self.next_health = time.monotonic() + config.output.health_period_s
+        # each vehicle's Health at its own phase of the period (a stable hash of its name): a fleet
+        # started at once does not publish every vehicle's Health in the same scan (a burst that
+        # holds the intake for ~0.3 ms per vehicle, the latency tail of every vehicle behind it)
+        self.next_health = time.monotonic() + config.output.health_period_s * health_phase(vehicle)
 
     @property
     def received(self) -> int:
@@ -412,7 +431,7 @@ class PoolWorker:
         self._next_scan = now + 0.05
         for v in list(self.vehicles):
             if now >= v.next_health:
-                v.next_health = now + self.config.output.health_period_s
+                v.next_health = next_due(v.next_health, now, self.config.output.health_period_s)
                 v.publish_health()
             if self.fleet is not None and now >= v.next_state:
                 v.next_state = now + self.config.fleet.handover_period_s

@@ -182,21 +182,28 @@ def rpy_from_msg_deg(rpy_deg) -> np.ndarray:
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product p (x) q, scalar first."""
+    return np.array(quat_mul_f(p, q))
+
+
+def quat_mul_f(p, q) -> tuple[float, float, float, float]:
+    """:func:`quat_mul` of any two 4-sequences, a tuple (the INS's major update on floats)."""
     pw, px, py, pz = p
     qw, qx, qy, qz = q
-    return np.array(
-        [
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ]
+    return (
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
     )
 
 
 def rotvec_to_quat(rv: np.ndarray) -> np.ndarray:
     """Rotation vector (rad) -> unit quaternion, series-safe near zero."""
-    x, y, z = float(rv[0]), float(rv[1]), float(rv[2])
+    return np.array(rotvec_to_quat_f(float(rv[0]), float(rv[1]), float(rv[2])))
+
+
+def rotvec_to_quat_f(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """:func:`rotvec_to_quat` of a rotation vector's components, a tuple."""
     a2 = x * x + y * y + z * z
     if a2 < 1e-16:
         # cos(a/2) and sin(a/2)/a to fourth order
@@ -206,7 +213,7 @@ def rotvec_to_quat(rv: np.ndarray) -> np.ndarray:
         a = math.sqrt(a2)
         c = math.cos(0.5 * a)
         s = math.sin(0.5 * a) / a
-    return np.array([c, s * x, s * y, s * z])
+    return (c, s * x, s * y, s * z)
 
 
 def quat_to_rotvec(q: np.ndarray) -> np.ndarray:

@@ -150,6 +150,7 @@ class VehicleEngine:
                 self._node_imus.setdefault(sid, []).append(p)
         self._sample_pipes = [p for p in self.pipelines if p.wants_imu_samples]
         self._node_truth: dict[tuple[str, int], WireModel] = {}
+        self._imu_keys: dict[str, str] = {}  # IMU sensor id -> its stream key ("imu/<id>")
         #: the vehicle's life: starts, verification, suspicion, resets (service/lifecycle.py)
         self.life = VehicleLife(self)
 
@@ -160,8 +161,10 @@ class VehicleEngine:
     # --- entry point ----------------------------------------------------------------------------
     def handle(self, kind: str, sensor_id: str, msg: WireModel) -> bool:
         """Process one validated event. Returns False when it was rejected (reason counted)."""
-        if kind == "imu" and sensor_id in self._node_imus:
-            return self._on_node_imu(sensor_id, msg)
+        if kind == "imu":
+            if sensor_id in self._node_imus:
+                return self._on_node_imu(sensor_id, msg)
+            return self._imu_sample(sensor_id, msg)
         if kind == "alignment_truth":  # kept for error logging only, like Truth
             self._node_truth[(sensor_id, self._tkey(msg.t))] = msg
             if len(self._node_truth) > 1024:
@@ -174,8 +177,6 @@ class VehicleEngine:
         if verdict.accepted or verdict.reason in ("not_initialised", "imu_gap", "time_jump"):
             self._note_stream(kind, sensor_id, msg.t)
         self._watch_refusals(kind, sensor_id, msg.t, verdict.reason)
-        if kind == "imu":
-            return self._on_imu(msg, verdict)
         life = self.life
         if kind == "gnss_fix" and verdict.in_sequence:
             life.on_fix(msg, f"gnss_fix/{sensor_id}")  # the newest fix, also when not applied (alignment)
@@ -198,6 +199,22 @@ class VehicleEngine:
         else:
             self._schedule(kind, sensor_id, msg)
         return True
+
+    def _imu_sample(self, sensor_id: str, msg: ImuSample) -> bool:
+        """:meth:`handle` of an IMU sample (every message of a JSON IMU stream): the same steps
+        (no time-base watch, which skips the IMU), with the stream's key made once."""
+        verdict = self.rules.decide("imu", sensor_id, msg, self.last_imu_t, self.life.initialised)
+        key = self._imu_keys.get(sensor_id)
+        if key is None:
+            key = self._imu_keys[sensor_id] = f"imu/{sensor_id}" if sensor_id else "imu"
+        reason = verdict.reason
+        if reason is None or reason in ("not_initialised", "imu_gap", "time_jump"):
+            self._note_key(key, msg.t)
+        if reason is None or reason in ("imu_gap", "time_jump"):
+            self._refusals.pop(key, None)  # _watch_refusals of a sample taken
+        else:
+            self._watch_refusals("imu", sensor_id, msg.t, reason)
+        return self._imu_values(msg.t, msg.dt_s, msg.dtheta_rad, msg.dvel_mps, verdict, msg)
 
     def handle_imu_batch(self, sensor_id: str, rows) -> int:
         """The records of an ImuBatch (:mod:`service.imu_batch`; already validated record by record),

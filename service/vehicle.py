@@ -93,7 +93,7 @@ class VehicleLoop:
         if len(payload) > MAX_PAYLOAD_BYTES:
             self.reject("oversize", f"{kind} payload of {len(payload)} bytes")
             return
-        model = sensors.input_message(kind)
+        model = entry.message if entry is not None else sensors.input_message(kind)
         if model is None:
             self.reject("unknown_key", f"no message model for kind {kind!r}")
             return

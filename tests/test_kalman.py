@@ -83,3 +83,48 @@ def test_non_positive_definite_detected():
     np.testing.assert_array_equal(kalman.is_positive_definite(P), [True, False, False])
     with pytest.raises(kalman.NotPositiveDefinite):
         kalman.update(np.zeros((1, 3)), -np.eye(3)[None], np.zeros(1), np.ones((1, 3)), -10 * np.eye(1))
+
+
+@pytest.mark.parametrize("r_shape", ["diag", "matrix", "bank"])
+@pytest.mark.parametrize("masked", [False, True])
+def test_one_member_path_equals_the_bank_path(r_shape, masked):
+    """A bank of one (loosely coupled, transfer alignment) takes its own (n, n) path with LAPACK's
+    solves: every output equals the batched path's for the same member (a bank of two identical
+    members takes the batched path) to rounding."""
+    rng = np.random.default_rng(11)
+    n, m = 15, 6
+    x = rng.normal(size=(1, n))
+    P = _random_spd(rng, n, 0.1)[None]
+    H = rng.normal(size=(m, n))
+    Rm = _random_spd(rng, m, 0.5)
+    R = {"diag": np.diag(Rm).copy(), "matrix": Rm, "bank": Rm[None]}[r_shape]
+    z = rng.normal(size=m)
+    mask = np.array([[True, True, False, True, True, False]]) if masked else None
+    x1, P1, r1 = kalman.update(x, P, z, H, R) if mask is None else kalman.update(x, P, z, H, R, mask=mask)
+    R2 = R if r_shape != "bank" else np.concatenate([R, R])
+    mask2 = None if mask is None else np.concatenate([mask, mask])
+    x2, P2, r2 = kalman.update(np.concatenate([x, x]), np.concatenate([P, P]), z, H, R2, mask=mask2)
+    np.testing.assert_allclose(x1[0], x2[0], rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(P1[0], P2[0], rtol=1e-12, atol=1e-14)
+    for name in ("innovation", "S", "whitened", "standardised", "nis", "K"):
+        np.testing.assert_allclose(getattr(r1, name)[0], getattr(r2, name)[0], rtol=1e-12, atol=1e-14)
+    assert r1.dof[0] == r2.dof[0] == (4 if masked else 6)
+    assert x1.shape == (1, n) and P1.shape == (1, n, n) and r1.S.shape == (1, m, m)
+    if masked:
+        np.testing.assert_array_equal(r1.K[0][:, ~mask[0]], 0.0)
+
+
+def test_one_member_path_refuses_what_the_bank_path_refuses():
+    P = np.eye(3)[None]
+    H = np.ones((1, 3))
+    with pytest.raises(kalman.NotPositiveDefinite):
+        kalman.update(np.zeros((1, 3)), P, np.zeros(1), H, -10.0 * np.eye(1))
+    # a NaN noise is not caught here, as on the bank path (callers screen their inputs): the
+    # result is not finite, never a number that looks usable
+    for B in (1, 2):
+        nan_R = np.full((1, 1), np.nan)
+        x, _, res = kalman.update(np.zeros((B, 3)), np.repeat(P, B, 0), np.zeros(1), H, nan_R)
+        assert not np.isfinite(x).any() and not np.isfinite(res.nis).any()
+    np.testing.assert_array_equal(kalman.is_positive_definite(-np.eye(3)[None]), [False])
+    np.testing.assert_array_equal(kalman.is_positive_definite(np.full((1, 3, 3), np.nan)), [False])
+    np.testing.assert_array_equal(kalman.is_positive_definite(np.eye(3)[None]), [True])

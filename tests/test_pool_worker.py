@@ -96,3 +96,21 @@ def test_items_run_once_in_order_never_two_at_once(inline):
     pw.stop(time.monotonic() + 5.0)
     assert a.finals == b.finals == 1
     assert a.queued == b.queued == 0
+
+
+def test_a_fleets_health_is_spread_over_the_period():
+    """Vehicles that start at once publish Health at their own phase of the period (a stable
+    hash of the name), not all in one scan (a burst of ~0.3 ms per vehicle that holds the intake);
+    a vehicle keeps its phase, also after a late scan."""
+    from fednav.service.app import health_phase, next_due
+
+    names = [f"veh{i:03d}" for i in range(200)]
+    phases = [health_phase(v) for v in names]
+    assert all(0.0 <= p < 1.0 for p in phases)
+    assert health_phase("veh007") == health_phase("veh007")
+    per_scan = Counter(int(p / 0.05) for p in phases)  # 20 scans of 50 ms in a 1 s period
+    assert len(per_scan) == 20 and max(per_scan.values()) <= 3 * 200 / 20
+    # on time, late by less than a period, late by several: the next due time is on the grid
+    assert next_due(10.3, 10.31, 1.0) == pytest.approx(11.3)
+    assert next_due(10.3, 11.5, 1.0) == pytest.approx(12.3)
+    assert next_due(10.3, 14.3, 1.0) == pytest.approx(15.3)

@@ -241,12 +241,17 @@ def test_arrival_time_is_the_ingress_timestamp():
         def __init__(self, age_s):
             self.t = datetime.now(UTC) - timedelta(seconds=age_s)
 
-        def get_time(self):
-            return self.t
+        def get_time_as_ntp64(self):
+            return SimpleNamespace(as_secs_f64=self.t.timestamp)
 
     now = time.monotonic()
     assert abs((now - Intake.arrival(SimpleNamespace(timestamp=Ts(0.25)))) - 0.25) < 0.05
     assert abs(Intake.arrival(SimpleNamespace(timestamp=None)) - time.monotonic()) < 0.05
     assert abs(Intake.arrival(SimpleNamespace(timestamp=Ts(-5.0))) - time.monotonic()) < 0.05  # clock ahead
+    # a real Zenoh timestamp: its NTP64 seconds are the UNIX time its datetime gives
+    import zenoh
+
+    real = zenoh.Timestamp.parse_rfc3339("2026-11-28T12:00:00.250000000Z/ea5965af401ccd66e2833a89035a3cb8")
+    assert real.get_time_as_ntp64().as_secs_f64() == pytest.approx(real.get_time().timestamp(), abs=1e-6)
     cfg = make_config(outputs_prefix="fednav")  # the service's session stamps samples at ingress
     assert json.loads(cfg.get_json("timestamping/enabled")) == {"router": True, "peer": True, "client": True}

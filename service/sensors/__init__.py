@@ -152,10 +152,12 @@ def parse_key(chunks: list[str]) -> tuple[str, str] | None:
 
 def input_message(kind: str) -> type[WireModel] | None:
     """The wire model of an input kind: a sensor, or ``init``/``truth``/``alignment_truth``."""
+    s = REGISTRY.get(kind) or registry().get(kind)  # (every message asks: no import per call)
+    if s is not None:
+        return s.message
     from fednav.service.messages import CONTROL_MESSAGES
 
-    s = registry().get(kind)
-    return s.message if s is not None else CONTROL_MESSAGES.get(kind)
+    return CONTROL_MESSAGES.get(kind)
 
 
 def csv_kinds() -> list[str]:

@@ -166,7 +166,7 @@ def floored_variances(std: np.ndarray, minimum: np.ndarray | float) -> tuple[np.
     raised. A sensor message cannot claim more precision than the model admits (one fix with a
     1e-9 m sigma must not pin the filter)."""
     std = np.asarray(std, dtype=float)
-    lo = np.broadcast_to(np.asarray(minimum, dtype=float), std.shape)
+    lo = np.asarray(minimum, dtype=float)  # a scalar or std's shape: numpy broadcasts it
     return np.square(np.maximum(std, lo)), int(np.count_nonzero(std < lo))
 
 
