@@ -492,21 +492,26 @@ class Pipeline(ABC):
     def solution(self, est: Estimate | None = None) -> Solution:
         est = est or self.estimate()
         nav, P = est.nav, est.P9
-        sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None))
-        rpy = nav.rpy_rad
+        sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None)).tolist()  # Python floats, as float(v) gives
+        # roll, pitch, heading: earth.mat_nb_to_rpy of the entries of earth.quat_to_mat it reads
+        # (the same arithmetic on floats, without the matrix)
+        w, x, y, z = nav.q_nb.tolist()
+        c21, c20, c22 = 2 * (y * z + w * x), 2 * (x * z - w * y), 1 - 2 * (x * x + y * y)
+        c01, c11 = 2 * (x * y - w * z), 1 - 2 * (x * x + z * z)
+        rpy = (math.atan2(-c20, c22), math.asin(max(-1.0, min(1.0, c21))), math.atan2(-c01, c11))
         # attitude sigma: roll/pitch/heading from the misalignment sigmas (small-angle reading)
-        rpy_std = np.degrees(np.array([max(sd[6], sd[7]), max(sd[6], sd[7]), sd[8]]))
+        level = math.degrees(max(sd[6], sd[7]))
         return Solution(
             t=nav.t,
             pipeline=self.name,
             lat_deg=math.degrees(nav.lat_rad),
             lon_deg=(math.degrees(nav.lon_rad) + 180.0) % 360.0 - 180.0,
             height_m=nav.h_m,
-            vel_enu_mps=tuple(nav.vel_enu_mps.tolist()),  # tolist: Python floats, as float(v) gives
+            vel_enu_mps=tuple(nav.vel_enu_mps.tolist()),
             rpy_deg=tuple(earth.rpy_msg_deg(rpy)),
-            pos_std_enu_m=tuple(sd[0:3].tolist()),
-            vel_std_enu_mps=tuple(sd[3:6].tolist()),
-            rpy_std_deg=tuple(rpy_std.tolist()),
+            pos_std_enu_m=tuple(sd[0:3]),
+            vel_std_enu_mps=tuple(sd[3:6]),
+            rpy_std_deg=(level, level, math.degrees(sd[8])),
             gyro_bias_dph=tuple((nav.gyro_bias_rps / earth.DPH).tolist()),
             accel_bias_ug=tuple((nav.accel_bias_mps2 / earth.UG).tolist()),
             status=self.current_status(nav.t),

@@ -83,6 +83,25 @@ def _groups(rows: int) -> np.ndarray:
     return g
 
 
+@lru_cache(maxsize=16)
+def _plain_rows(n_states: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """(H, sigma floors) of a fix's ``rows`` rows (3: position, 6: and velocity) with the antenna
+    at the IMU, as the general path builds them (the attitude columns hold the skew of a zero
+    offset); read-only, shared."""
+    H = np.zeros((rows, n_states))
+    H[:3, em.POS] = np.eye(3)
+    H[:3, em.ATT] = earth.skew(np.zeros(3))
+    mins = [MIN_POS_STD_M] * 3
+    if rows == 6:
+        H[3:, em.VEL] = np.eye(3)
+        H[3:, em.ATT] = earth.skew(np.zeros(3))
+        mins += [MIN_VEL_STD_MPS] * 3
+    mins_a = np.array(mins)
+    H.flags.writeable = False
+    mins_a.flags.writeable = False
+    return H, mins_a
+
+
 MIN_POS_STD_M = 0.005
 MIN_VEL_STD_MPS = 0.001
 MIN_WHITE_FRACTION = 0.2
@@ -180,6 +199,13 @@ class GnssFixModel:
         return c_nb @ l_b, c_nb @ np.cross(np.asarray(wib_b_rps, dtype=float), l_b)
 
     def __call__(self, nav: NavState, msg: GnssFix, ctx: ModelContext) -> Measurement | None:
+        if (
+            self.gm_sigma is None
+            and not self.estimate_lever_arm
+            and msg.speed_mps is None
+            and not self.lever_arm_b_m.any()
+        ):
+            return self._at_imu(nav, msg, ctx)
         lat, lon = math.radians(msg.lat_deg), math.radians(msg.lon_deg)
         r_m, r_n = earth.radii(nav.lat_rad)
         dl_pos, dl_vel = self.antenna_offsets(nav, ctx.wib_b_rps, self.lever_arm(ctx))
@@ -249,3 +275,34 @@ class GnssFixModel:
         H, R = np.vstack(Hs), np.diag(var)
         groups = _groups(len(z))
         return Measurement(z, H, R, tuple(labels), groups=groups, group_ids=FIX_GROUPS, floored=floored)
+
+    def _at_imu(self, nav: NavState, msg: GnssFix, ctx: ModelContext) -> Measurement | None:
+        """:meth:`__call__` of a position or 3-D velocity fix with the antenna at the IMU and no
+        private block (every fix of a plain configuration): the same rows and the same arithmetic
+        (the zero lever-arm offsets added as the general path adds them, the same H), without the
+        general path's array building."""
+        lat, lon = math.radians(msg.lat_deg), math.radians(msg.lon_deg)
+        r_m, r_n = earth.radii(nav.lat_rad)
+        h = nav.h_m
+        vel_fix = msg.vel_enu_mps
+        dt = ctx.dt_late_s
+        c0, c1, c2 = (0.0, 0.0, 0.0) if vel_fix is None else (v * dt for v in vel_fix)
+        z = [
+            (earth.wrap_pi(nav.lon_rad - lon) * (r_n + h) * math.cos(nav.lat_rad) + 0.0) - c0,
+            ((nav.lat_rad - lat) * (r_m + h) + 0.0) - c1,
+            ((h - msg.height_m) + 0.0) - c2,
+        ]
+        std = msg.pos_std()
+        if vel_fix is not None:
+            ve, vn, vu = nav.vel_enu_mps.tolist()
+            fe, fn, fu = vel_fix
+            z += [(ve + 0.0) - fe, (vn + 0.0) - fn, (vu + 0.0) - fu]
+            std = (*std, *msg.vel_std())
+        if not all(map(math.isfinite, z)):
+            return None
+        m = len(z)
+        H, mins = _plain_rows(ctx.n_states, m)
+        var, floored = floored_variances(np.array(std, dtype=float), mins)
+        return Measurement(
+            np.array(z), H, np.diag(var), LABELS[:m], groups=_groups(m), group_ids=FIX_GROUPS, floored=floored
+        )
