@@ -382,49 +382,34 @@ class QueryServer:
         self._thread.start()
 
     def _run(self) -> None:
-        if len(self._qs) == 1:  # block in the channel's recv (Zenoh releases the GIL while it
-            # waits): polling every 10 ms took the GIL from the intake 100 times a second
-            handler = self._qs[0].handler
-            while not self._stop.is_set():
-                try:
-                    query = handler.recv()
-                except zenoh.ZError:  # closed by stop()
-                    return
-                self._reply(query)
-            return
         while not self._stop.is_set():
             got = False
             for q in self._qs:
                 query = q.try_recv()
                 while query is not None:
                     got = True
-                    self._reply(query)
+                    try:
+                        for key, payload, encoding in self._answer(query.key_expr):
+                            query.reply(key, payload, encoding=zenoh.Encoding(encoding))
+                    except Exception as exc:  # a bad query must not kill the server
+                        try:
+                            query.reply_err(str(exc))
+                        except zenoh.ZError:
+                            pass
+                    finally:
+                        query.drop()
                     query = q.try_recv()
             if not got:
                 self._stop.wait(0.01)
 
-    def _reply(self, query) -> None:
-        try:
-            for key, payload, encoding in self._answer(query.key_expr):
-                query.reply(key, payload, encoding=zenoh.Encoding(encoding))
-        except Exception as exc:  # a bad query must not kill the server
-            try:
-                query.reply_err(str(exc))
-            except zenoh.ZError:
-                pass
-        finally:
-            query.drop()
-
     def stop(self) -> None:
         self._stop.set()
-        if len(self._qs) != 1:
-            self._thread.join(timeout=5.0)
-        for q in self._qs:  # closes the channels: a blocked recv ends
+        self._thread.join(timeout=5.0)
+        for q in self._qs:
             try:
                 q.undeclare()
             except zenoh.ZError:
                 pass
-        self._thread.join(timeout=5.0)
 
 
 def intersects(key: str, key_expr: zenoh.KeyExpr) -> bool:
