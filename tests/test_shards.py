@@ -56,7 +56,7 @@ def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
     status answers once per vehicle, and each shard writes its own complete recording."""
     import zenoh
 
-    from fednav.simulators.processes import Proc, free_port, query_status, start_service
+    from fednav.simulators.processes import Proc, free_port, query_status, start_service, wait_idle
 
     from .plain_zenoh import client as zenoh_client
 
@@ -96,6 +96,8 @@ def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
             "fleet",
         )
         assert gen.wait(timeout=120) == 0, gen.output()
+        for v in names:  # every vehicle's messages run (a slow machine's service lags its input)
+            wait_idle(port, vehicle=v, timeout_s=60)
         replies = {}
         for v in names:
             replies[v] = []
