@@ -184,6 +184,12 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary))
     else:
         print(f"published {result['messages']} messages in {result['wall_s']:.2f} s ({rate:.0f} msg/s)")
+    if result.get("drained") is False:
+        print(
+            "fednav-replay: the service did not confirm the end of the stream in time: "
+            "the last messages may not have reached it",
+            file=sys.stderr,
+        )
     return 0
 
 

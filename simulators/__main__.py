@@ -152,6 +152,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fednav-sim: {exc}", file=sys.stderr)
             return 3
         print(f"fednav-sim: published {stats['messages']} messages in {stats['wall_s']:.1f} s", flush=True)
+        if stats["drained"] is False:
+            print(
+                "fednav-sim: the service did not confirm the end of the stream in time: "
+                "the last messages may not have reached it",
+                file=sys.stderr,
+            )
         return 0
     from fednav.service.config import ConfigError
     from fednav.simulators.evaluate import evaluate, format_table

@@ -239,7 +239,11 @@ def main(argv: list[str] | None = None) -> int:
             batch_period_s=max(period, 1.0 / args.fix_rate) if math.isfinite(period) else 0.1,
             log=log,
         )
-        time.sleep(0.5)
+        from fednav.simulators.publisher import drain, status_keys
+
+        names = vehicle_names(args.vehicles, args.stem)
+        if drain(session, status_keys(f"{args.prefix}/{v}/x" for v in names)) is None:
+            time.sleep(0.5)  # no fednav service answers: let the transmission queues empty a little
     if args.log:
         np.save(args.log, np.array(log, dtype=float).reshape(-1, 3))
     print(

@@ -3,6 +3,10 @@
 Reliable delivery with blocking congestion control (a fast publisher slows down instead of
 dropping); the first message waits for a matched subscriber. ``speed`` paces publication in
 wall-clock time (2 = twice real time); 0 publishes as fast as the receiver keeps up.
+
+Nothing is lost at the end: before the session closes, :func:`drain` waits until what was put
+has left this process (see there); closing with messages still queued in Zenoh's transmission
+queue or the socket loses them.
 """
 
 from __future__ import annotations
@@ -21,8 +25,57 @@ from fednav.service.transport.zenoh_io import make_config
 DEFAULT_IMU_BATCH = 10
 
 
+#: longest wait (s) at the end of a stream for the receiver to take what is still queued
+DRAIN_TIMEOUT_S = 300.0
+
+
 class MatchTimeout(RuntimeError):
     pass
+
+
+def status_keys(published: Iterable[str]) -> list[str]:
+    """The service status queryables (``{prefix}/{vehicle}/service/status``) of the vehicles whose
+    keys were published: the keys :func:`drain` queries."""
+    out = {}
+    for key in published:
+        chunks = key.split("/", 2)
+        if len(chunks) == 3:
+            out[f"{chunks[0]}/{chunks[1]}/service/status"] = None
+    return list(out)
+
+
+def drain(session: zenoh.Session, keys: list[str], timeout_s: float = DRAIN_TIMEOUT_S) -> bool | None:
+    """Wait until everything this session put has reached the service(s) serving ``keys``.
+
+    A put returns once its message is queued in this process; a receiver that is behind leaves
+    messages in Zenoh's transmission queue and the sockets, and closing the session then loses
+    them (a simulator at ``--speed 0`` against a loaded service lost half its stream). Zenoh has no
+    flush, so each key is queried at the data's own priority with blocking congestion control: the
+    query travels the same links in the same queue behind the data, and the service's status
+    queryable can only see it once every message before it has been read off the link (into the
+    service's intake channel). (A querier's matching status cannot tell beforehand whether a
+    service serves the key: its declaration waits behind the same backlog.) True: every service
+    answered; False: one did not answer in ``timeout_s``; None: every query ended without a reply
+    (no fednav service serves the keys: nothing to wait for)."""
+    deadline = time.monotonic() + timeout_s
+    answered = unanswered = 0
+    for key in keys:  # the first waits for the backlog; the others then answer at once
+        left = deadline - time.monotonic()
+        if left <= 0:
+            unanswered += 1
+            continue
+        t0 = time.monotonic()
+        replies = session.get(
+            key, timeout=left, congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA
+        )
+        if any(reply.ok is not None for reply in replies):
+            answered += 1
+        elif time.monotonic() - t0 >= left - 0.05:  # no reply before the timeout: a service is stuck
+            unanswered += 1
+        # else: finished without a reply, nobody serves the key (no fednav service for it)
+    if answered + unanswered == 0:
+        return None
+    return unanswered == 0
 
 
 def session_config(
@@ -52,13 +105,18 @@ def publish_stream(
     match_timeout_s: float = 30.0,
     linger_s: float = 0.5,
     imu_batch: int = DEFAULT_IMU_BATCH,
+    drain_timeout_s: float = DRAIN_TIMEOUT_S,
 ) -> dict:
     """Publish (key, message) pairs in order; returns counts and timing.
 
     ``imu_batch`` N > 1: consecutive IMU samples of a key go out as one ImuBatch of N samples
     (:mod:`service.imu_batch`, binary, encoding ``application/octet-stream;fednav.ImuBatch/1``),
     published when its last sample is due; every other message goes out at its own time, so an
-    aiding message still precedes the IMU samples after it. N = 1: one JSON ImuSample each."""
+    aiding message still precedes the IMU samples after it. N = 1: one JSON ImuSample each.
+
+    At the end, :func:`drain` waits (at most ``drain_timeout_s``) for the service(s) to take what
+    is still queued; with no fednav service on the keys, a ``linger_s`` pause instead. The result's
+    ``drained``: True, False (a service did not answer in time: the tail may be lost) or None."""
     session = zenoh.open(session_config(connect=connect, listen=listen, zenoh_config=zenoh_config))
     pubs: dict[str, zenoh.Publisher] = {}
     batches: dict[str, list[ImuSample]] = {}
@@ -109,9 +167,11 @@ def publish_stream(
             if pending:
                 pubs[key].put(imu_batch_codec.encode_samples(pending))
         wall = time.monotonic() - (wall0 or time.monotonic())
-        time.sleep(linger_s)  # let the transmission queues drain before the session closes
+        drained = drain(session, status_keys(pubs), drain_timeout_s) if pubs else None
+        if drained is None:  # no fednav service: let the transmission queues empty a little
+            time.sleep(linger_s)
     finally:
         for p in pubs.values():
             p.undeclare()
         session.close()
-    return {"messages": n, "wall_s": wall}
+    return {"messages": n, "wall_s": wall, "drained": drained}

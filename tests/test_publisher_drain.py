@@ -1,0 +1,139 @@
+"""The publisher's end of stream: nothing still queued is lost when its session closes.
+
+A receiver slower than a ``--speed 0`` publisher leaves the stream's tail in Zenoh's transmission
+queue and the sockets when the publisher is done; ``publish_stream`` waits for the service's
+status queryable to see a query sent behind that tail (``publisher.drain``) before it closes.
+The receiver here is a plain Zenoh peer with a small channel read slowly, and a status queryable.
+"""
+
+import threading
+import time
+
+import pytest
+import zenoh
+
+from fednav.service.config import ZenohConfig
+from fednav.service.messages import ImuSample
+from fednav.service.transport.zenoh_io import make_config
+from fednav.simulators.processes import free_port
+from fednav.simulators.publisher import publish_stream, status_keys
+
+N = 3000
+
+
+def imu_stream(vehicle: str = "v1"):
+    for k in range(N):
+        yield (
+            f"fednav/{vehicle}/sensors/imu/imu0",
+            ImuSample(
+                t=1000.0 + 0.005 * k, dt_s=0.005, dtheta_rad=(0.0, 0.0, 0.0), dvel_mps=(0.0, 0.0, 0.049)
+            ),
+        )
+
+
+class SlowReceiver:
+    """A peer listening on ``port``: its subscriber's channel holds 16 samples and is read at
+    ~0.3 ms a sample (far slower than the publisher), its status queryable answers at once."""
+
+    def __init__(self, port: int, answer: bool = True, serve_status: bool = True):
+        self.session = zenoh.open(make_config(ZenohConfig(mode="peer"), listen=[f"tcp/127.0.0.1:{port}"]))
+        self.sub = self.session.declare_subscriber("fednav/v1/sensors/**", zenoh.handlers.FifoChannel(16))
+        self.queries = 0
+        self.held: list[zenoh.Query] = []  # a stuck service: queries kept, never answered
+        if serve_status:
+            self.qbl = self.session.declare_queryable("fednav/v1/service/status", self._status)
+        self._answer = answer
+        self.got = 0
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _status(self, query: zenoh.Query) -> None:
+        self.queries += 1
+        if self._answer:
+            query.reply(query.key_expr, b"{}")
+        else:  # (a query dropped unanswered ends at once, without a reply)
+            self.held.append(query)
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            s = self.sub.handler.try_recv()
+            if s is None:
+                time.sleep(0.001)
+                continue
+            self.got += 1
+            time.sleep(0.0003)
+
+    def count_when_quiet(self, quiet_s: float = 1.0, timeout_s: float = 60.0) -> int:
+        last, since = -1, time.monotonic()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.got != last:
+                last, since = self.got, time.monotonic()
+            elif time.monotonic() - since > quiet_s:
+                break
+            time.sleep(0.05)
+        return self.got
+
+    def close(self) -> None:
+        self._stop.set()
+        self._t.join(timeout=5)
+        self.held.clear()
+        self.session.close()
+
+
+def publish_to(rx_options: dict, **options) -> tuple[dict, float, SlowReceiver]:
+    """Publish the stream at full speed to a SlowReceiver(**rx_options); the publisher's result,
+    how long it took, and the receiver (closed; its counts kept)."""
+    port = free_port()
+    rx = SlowReceiver(port, **rx_options)
+    try:
+        t0 = time.monotonic()
+        out = publish_stream(
+            imu_stream(), speed=0.0, connect=[f"tcp/127.0.0.1:{port}"], imu_batch=1, **options
+        )
+        took = time.monotonic() - t0
+        got_at_return = rx.got
+        rx.count_when_quiet()
+        return out, took, got_at_return
+    finally:
+        rx.close()
+
+
+@pytest.mark.integration
+def test_the_tail_reaches_a_slow_receiver():
+    out, took, got_at_return = publish_to({})
+    assert out["messages"] == N and out["drained"] is True
+    # the publisher returned only once the receiver had taken (nearly) all: it closes after the
+    # query, which waits behind the data; at most its channel's 16 were still unread
+    assert got_at_return >= N - 16 - 1, (got_at_return, took)
+
+
+@pytest.mark.integration
+def test_all_is_received_and_asked_once():
+    port = free_port()
+    rx = SlowReceiver(port)
+    try:
+        publish_stream(imu_stream(), speed=0.0, connect=[f"tcp/127.0.0.1:{port}"], imu_batch=1)
+        assert rx.count_when_quiet() == N
+        assert rx.queries == 1
+    finally:
+        rx.close()
+
+
+@pytest.mark.integration
+def test_a_receiver_without_a_status_queryable_is_not_waited_for():
+    out, _, _ = publish_to({"serve_status": False})
+    assert out["drained"] is None  # nobody to ask: the old linger, no claim
+
+
+@pytest.mark.integration
+def test_a_service_that_does_not_answer_is_reported():
+    out, took, _ = publish_to({"answer": False}, drain_timeout_s=2.0)
+    assert out["drained"] is False
+    assert 2.0 <= took < 30.0
+
+
+def test_status_keys_one_per_vehicle_in_order():
+    keys = ["fednav/a/sensors/imu/x", "fednav/b/sensors/gnss/y", "fednav/a/init", "odd"]
+    assert status_keys(keys) == ["fednav/a/service/status", "fednav/b/service/status"]
