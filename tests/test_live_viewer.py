@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -74,10 +75,15 @@ def test_live_stream_reaches_the_viewer_and_equals_the_file(tmp_path):
         time.sleep(0.5)  # let the receiver drain its socket before it is stopped
         receiver.send_signal(signal.SIGINT)
         try:
-            receiver.wait(timeout=60)
+            receiver.wait(timeout=30)
         except subprocess.TimeoutExpired:
+            # seen in 3 of ~12 fresh-clone suite runs on a slow machine, never alone or under CPU
+            # load: the receiver (Rerun's binary, not ours) outlived SIGINT by more than 60 s.
+            # It writes what arrives as it arrives (a SIGKILL'd receiver's file reads back equal:
+            # checked), so it is killed and its file still compared below: lost data still fails
             receiver.kill()
-            raise
+            receiver.wait(timeout=30)
+            warnings.warn("rerun --save did not exit within 30 s of SIGINT; killed", stacklevel=1)
     # our own file must verify; the receiver's is a raw stream without the RRD footer (that is how
     # `rerun --save` writes what it receives), so it is read back, not verified
     res = subprocess.run(
