@@ -81,9 +81,14 @@ def test_live_stream_reaches_the_viewer_and_equals_the_file(tmp_path):
             # load: the receiver (Rerun's binary, not ours) outlived SIGINT by more than 60 s.
             # It writes what arrives as it arrives (a SIGKILL'd receiver's file reads back equal:
             # checked), so it is killed and its file still compared below: lost data still fails
+            try:  # what the receiver's signal state was, for the next one who looks into it
+                status = Path(f"/proc/{receiver.pid}/status").read_text().splitlines()
+                state = "; ".join(ln for ln in status if ln.startswith(("State", "Threads", "Sig", "Shd")))
+            except OSError:
+                state = "?"
             receiver.kill()
             receiver.wait(timeout=30)
-            warnings.warn("rerun --save did not exit within 30 s of SIGINT; killed", stacklevel=1)
+            warnings.warn(f"rerun --save did not exit within 30 s of SIGINT; killed ({state})", stacklevel=1)
     # our own file must verify; the receiver's is a raw stream without the RRD footer (that is how
     # `rerun --save` writes what it receives), so it is read back, not verified
     res = subprocess.run(
