@@ -185,8 +185,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     import zenoh
 
+    from fednav.service import keys
     from fednav.service.config import ZenohConfig
     from fednav.service.transport.zenoh_io import make_config
+    from fednav.simulators.publisher import drain
     from fednav.simulators.scenario import ScenarioError, load_scenario
 
     try:
@@ -199,7 +201,12 @@ def main(argv: list[str] | None = None) -> int:
     with zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[args.connect])) as s:
         samples = ros_samples(sc, seed, cfg, twist=not args.no_twist)
         n = publish(s, samples, attachment=args.carrier == "rmw_zenoh", speed=args.speed)
+        # what is still queued reaches the service before the session closes (publisher.drain);
+        # every vehicle's status: the service maps ROS topics to a fednav vehicle of its own
+        drained = drain(s, [f"{keys.DEFAULT_PREFIX}/*/service/status"])
     print(f"published {n} ROS 2 samples")
+    if drained is False:
+        print("ros2_publish: the service did not confirm the end of the stream in time", file=sys.stderr)
     return 0
 
 
