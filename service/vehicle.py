@@ -25,7 +25,7 @@ from pydantic import ValidationError
 from fednav.service import imu_batch, sensors
 from fednav.service.config import ServiceConfig
 from fednav.service.engine import VehicleEngine
-from fednav.service.messages import Health, PipelineHealth, WireModel
+from fednav.service.messages import Health, ImuSample, PipelineHealth, WireModel, decode_imu_json
 
 log = logging.getLogger("fednav.service")
 
@@ -97,6 +97,11 @@ class VehicleLoop:
         if model is None:
             self.reject("unknown_key", f"no message model for kind {kind!r}")
             return
+        if model is ImuSample:  # the commonest message: msgspec, pydantic only for what it refuses
+            msg = decode_imu_json(payload)
+            if msg is not None:
+                self._handle(kind, sensor_id, msg, wall)
+                return
         try:
             msg = model.model_validate_json(payload)
         except ValidationError as err:
