@@ -47,9 +47,10 @@ def _service_config(tmp_path, extra: str = "") -> str:
 class Publisher:
     """Plain Zenoh publishers (reliable, blocking) that wait for the service's subscriber."""
 
-    def __init__(self, session: zenoh.Session):
+    def __init__(self, session: zenoh.Session, match_wait_s: float = 10.0):
         self.session = session
         self.pubs: dict[str, zenoh.Publisher] = {}
+        self.match_wait_s = match_wait_s
 
     def put(self, key: str, payload: bytes) -> None:
         p = self.pubs.get(key)
@@ -57,7 +58,7 @@ class Publisher:
             p = self.pubs[key] = self.session.declare_publisher(
                 key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
             )
-            deadline = time.monotonic() + 10
+            deadline = time.monotonic() + self.match_wait_s
             while not p.matching_status.matching and time.monotonic() < deadline:
                 time.sleep(0.01)
         p.put(payload)
