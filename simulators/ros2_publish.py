@@ -182,6 +182,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--no-twist", action="store_true", help="publish no Twist (a receiver without a velocity topic)"
     )
+    ap.add_argument(
+        "--vehicle",
+        default="*",
+        help="the fednav vehicle the service feeds from these topics: the end-of-stream check asks "
+        "its status (default: every vehicle's)",
+    )
     args = ap.parse_args(argv)
     import zenoh
 
@@ -191,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     from fednav.simulators.publisher import drain
     from fednav.simulators.scenario import ScenarioError, load_scenario
 
+    if args.vehicle != "*" and not keys.valid_name(args.vehicle):
+        print(f"ros2_publish: --vehicle {args.vehicle!r} is not a valid vehicle name", file=sys.stderr)
+        return 2
     try:
         sc = load_scenario(args.scenario)
     except ScenarioError as exc:
@@ -202,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
         samples = ros_samples(sc, seed, cfg, twist=not args.no_twist)
         n = publish(s, samples, attachment=args.carrier == "rmw_zenoh", speed=args.speed)
         # what is still queued reaches the service before the session closes (publisher.drain);
-        # every vehicle's status: the service maps ROS topics to a fednav vehicle of its own
-        drained = drain(s, [f"{keys.DEFAULT_PREFIX}/*/service/status"])
+        # by default every vehicle's status: the service maps the topics to a vehicle of its own
+        drained = drain(s, [f"{keys.DEFAULT_PREFIX}/{args.vehicle}/service/status"])
     print(f"published {n} ROS 2 samples")
     if drained is False:
         print("ros2_publish: the service did not confirm the end of the stream in time", file=sys.stderr)
