@@ -7,7 +7,8 @@ each from its own plain Zenoh session, with the attacks from a second session of
 
 - ``clean``: the stream as it is (the reference: its 95th percentile of the horizontal error);
 - ``burst``: 50 forged IMU samples (20 rad/s about x) slipped between the genuine ones at 70 s;
-- ``inits``: 500 InitialNav in 2.5 s from 70 s, 20 m north, claiming 1 cm / 0.01 m/s / 0.01 deg;
+- ``inits``: 500 InitialNav in 2.5 s from 70 s, 20 m north, claiming 1 cm / 0.01 m/s / 0.01 deg,
+  stamped at the newest Solution the attacker sees on the bus (current from the service's view);
 - ``drift``: a forged fix stream under the receiver's key, half a period after each genuine fix,
   drifting 1 m/s north for 30 s from 70 s and claiming 1 m.
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import queue
 import signal
 import sys
 import tempfile
@@ -45,6 +47,7 @@ from hardening import forged_init  # noqa: E402  (the init_burst's InitialNav)
 from fednav.service import earth, keys  # noqa: E402
 from fednav.service.messages import GnssFix, ImuSample  # noqa: E402
 from fednav.simulators.processes import free_port, query_status, start_service, wait_idle  # noqa: E402
+from fednav.simulators.publisher import drain  # noqa: E402
 from fednav.simulators.scenario import load_scenario  # noqa: E402
 from fednav.simulators.stream import Simulation  # noqa: E402
 from tests.plain_zenoh import client  # noqa: E402  (the tests' plain client: no fednav code)
@@ -70,6 +73,38 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
     traj = sim.truth.trajectory
     burst: list[ImuSample] = []
     sent = 0
+    # the InitialNav attacker watches the vehicle's Solutions on the bus and stamps its messages
+    # at their times: current from the service's view, however far the service runs behind the
+    # sensors' session (stamped from the sensors' stream instead, they arrived tens of seconds
+    # of stream time ahead of the IMU the service had reached, all refused `future`: the attack
+    # never reached the filter)
+    seen = queue.Queue()
+    watch = attack = None  # (the subscriber kept: an undeclared subscriber's callback stops)
+    if vehicle == "inits":
+        watch = attacker.declare_subscriber(
+            keys.nav(vehicle, "lc", "solution"),
+            lambda sample: seen.put(json.loads(sample.payload.to_bytes())["t"]),
+        )
+        sent_inits = [0]
+
+        def attack_inits() -> None:
+            """At each Solution seen in [AT_S, AT_S + 2.5 s) of the vehicle's time, the 20
+            InitialNav (5 ms apart) up to the next one: 500 in 2.5 s, as the vehicle sees them."""
+            deadline = time.monotonic() + 600.0
+            while sent_inits[0] < 500 and time.monotonic() < deadline:
+                try:
+                    t = seen.get(timeout=1.0)
+                except queue.Empty:
+                    continue
+                if t - sc.t0_gps_s >= AT_S + 2.5:
+                    break
+                if t - sc.t0_gps_s >= AT_S:
+                    for j in range(20):
+                        forged.put(keys.init(vehicle), forged_init(traj, t + 0.005 * j, 20.0).to_json())
+                        sent_inits[0] += 1
+
+        attack = threading.Thread(target=attack_inits, daemon=True)
+        attack.start()
     try:
         for key, msg in sim:
             t_rel = msg.t - sc.t0_gps_s
@@ -85,11 +120,6 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
                 if burst and burst[0].t < msg.t + msg.dt_s:  # just before the genuine sample
                     forged.put(k_imu, burst.pop(0).to_json())
                     sent += 1
-                if vehicle == "inits" and AT_S <= t_rel < AT_S + 2.5:
-                    for j in (0, 1):
-                        init = forged_init(traj, msg.t + 0.005 * j, 20.0)
-                        forged.put(keys.init(vehicle), init.to_json())
-                        sent += 1
             pub.put(key, msg.to_json())
             if vehicle == "drift" and isinstance(msg, GnssFix) and AT_S <= t_rel < AT_S + 30.0:
                 t = msg.t + 0.5
@@ -105,6 +135,12 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
                 )
                 forged.put(k_fix, fake.to_json())
                 sent += 1
+        if attack is not None:  # the service may reach the attack's time only after the stream
+            attack.join()
+            sent += sent_inits[0]
+            watch.undeclare()
+        for session in (genuine, attacker):  # what is still queued reaches the service first
+            drain(session, [keys.service(vehicle, "status")])
     finally:
         genuine.close()
         attacker.close()
