@@ -69,3 +69,13 @@ def test_zenoh_errors_lose_their_rust_source_paths():
     assert zenoh_error_text(exc) == (
         "Can not create a new TCP listener bound to tcp/127.0.0.1:1: [Address already in use (os error 98)]"
     )
+
+
+def test_ros2_publisher_refuses_a_vehicle_name_that_is_no_key_chunk(capsys):
+    from fednav.simulators.ros2_publish import main as ros2_main
+
+    from .scenario_utils import SCENARIOS
+
+    assert ros2_main([str(SCENARIOS / "demo_aircraft.toml"), "--vehicle", "a/b"]) == 2
+    err = _err(capsys)
+    assert "--vehicle 'a/b' is not a valid vehicle name" in err and err.count("\n") == 1

@@ -114,3 +114,33 @@ def test_a_fleets_health_is_spread_over_the_period():
     assert next_due(10.3, 10.31, 1.0) == pytest.approx(11.3)
     assert next_due(10.3, 11.5, 1.0) == pytest.approx(12.3)
     assert next_due(10.3, 14.3, 1.0) == pytest.approx(15.3)
+
+
+def test_health_latency_figures_are_the_windows_percentiles():
+    """Health reads the latency window once and both percentiles in one call: the same figures as
+    numpy's percentile of the window (the median and the 99th, linear interpolation)."""
+    import numpy as np
+
+    from fednav.service.vehicle import VehicleLoop
+
+    class Sink:
+        def on_estimate(self, *a):
+            pass
+
+        def on_output(self, *a, **k):
+            pass
+
+        def on_truth(self, *a):
+            pass
+
+    loop = VehicleLoop("v1", ServiceConfig(), Sink(), latency_window=500)
+    assert loop.health().latency_ms == {"p50": 0.0, "p99": 0.0, "max": 0.0}  # nothing yet
+    rng = np.random.default_rng(3)
+    values = rng.exponential(0.004, 700)
+    for v in values:
+        loop.latency_s.append(float(v))
+    window = values[-500:] * 1e3
+    lat = loop.health().latency_ms
+    assert lat["p50"] == float(np.percentile(window, 50))
+    assert lat["p99"] == float(np.percentile(window, 99))
+    assert lat["max"] == float(window.max())
