@@ -239,10 +239,10 @@ def main(argv: list[str] | None = None) -> int:
             batch_period_s=max(period, 1.0 / args.fix_rate) if math.isfinite(period) else 0.1,
             log=log,
         )
-        from fednav.simulators.publisher import drain, status_keys
+        from fednav.simulators.publisher import drain
 
         names = vehicle_names(args.vehicles, args.stem)
-        if drain(session, status_keys(f"{args.prefix}/{v}/x" for v in names)) is None:
+        if drain(session, [keys.service(v, "status", args.prefix) for v in names]) is None:
             time.sleep(0.5)  # no fednav service answers: let the transmission queues empty a little
     if args.log:
         np.save(args.log, np.array(log, dtype=float).reshape(-1, 3))

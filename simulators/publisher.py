@@ -4,9 +4,9 @@ Reliable delivery with blocking congestion control (a fast publisher slows down 
 dropping); the first message waits for a matched subscriber. ``speed`` paces publication in
 wall-clock time (2 = twice real time); 0 publishes as fast as the receiver keeps up.
 
-Nothing is lost at the end: before the session closes, :func:`drain` waits until what was put
-has left this process (see there); closing with messages still queued in Zenoh's transmission
-queue or the socket loses them.
+Nothing is lost at the end: before the session closes, :func:`drain` waits until the service
+has received what was put (see there); closing with messages still queued in Zenoh's
+transmission queue or the socket loses them.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from collections.abc import Iterable
 import zenoh
 
 from fednav.service import imu_batch as imu_batch_codec
+from fednav.service import keys as fkeys
 from fednav.service.config import ZenohConfig
 from fednav.service.messages import ImuSample, WireModel
 from fednav.service.transport.zenoh_io import make_config
@@ -39,8 +40,8 @@ def status_keys(published: Iterable[str]) -> list[str]:
     out = {}
     for key in published:
         chunks = key.split("/", 2)
-        if len(chunks) == 3:
-            out[f"{chunks[0]}/{chunks[1]}/service/status"] = None
+        if len(chunks) == 3 and fkeys.valid_name(chunks[1]):
+            out[fkeys.service(chunks[1], "status", chunks[0])] = None
     return list(out)
 
 
