@@ -72,6 +72,26 @@ def test_innovations_twice_the_claimed_spread_fail_and_recover_after_the_window(
     assert after[-1] is False and not c.is_failing("gnss_fix/main")
 
 
+def test_a_streams_record_outlives_a_restart_of_the_filter():
+    """After ``clear`` (the filter restarted), a stream whose new window is too short to be tested
+    is as consistent as its last tested window was; a stream never tested is not; a window tested
+    after the restart decides again."""
+    c = InnovationConsistency()
+    rng = np.random.default_rng(6)
+    assert c.is_consistent("gnss_fix/main") is False  # never tested
+    _feed(c, rng, 1.0, 30.0)
+    for k in range(10):  # a second stream, overconfident: failing when the filter restarts
+        c.add("gnss_fix/aux", T0 + 20.0 + k, float(np.sum((3.0 * rng.standard_normal(6)) ** 2)), 6)
+    assert c.is_consistent("gnss_fix/main") and c.is_failing("gnss_fix/aux")
+    c.clear()
+    assert c.add("gnss_fix/main", T0 + 31.0, 60.0, 6) is None  # 6 rows, untested: its record
+    assert c.is_consistent("gnss_fix/main") and not c.is_failing("gnss_fix/main")
+    assert c.is_consistent("gnss_fix/aux") is False and c.is_consistent("star/main") is False
+    for k in range(4):  # tested again: the new window decides (60 / 6 = 10x the claimed variance)
+        c.add("gnss_fix/main", T0 + 32.0 + k, 60.0, 6)
+    assert c.is_failing("gnss_fix/main") and not c.is_consistent("gnss_fix/main")
+
+
 def test_a_small_excess_is_not_a_failure_however_many_rows():
     """Significant but not material (sigmas 10 % too small, 24 rows at 10 Hz): not a failure."""
     c = InnovationConsistency()

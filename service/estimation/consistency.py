@@ -68,9 +68,17 @@ class InnovationConsistency:
         self.min_ratio = min_ratio
         self._z = NormalDist().inv_cdf(1.0 - p_fa)
         self._streams: dict[str, _Window] = {}
+        #: per stream, the verdict of its last tested window (True: consistent), kept over
+        #: :meth:`clear`: whether a sensor's rows are as good as they claim is the sensor's
+        #: record, which a restart of the filter does not change
+        self._record: dict[str, bool] = {}
 
     def clear(self) -> None:
-        """Forget every window (a filter restarted: its new innovations start a new history)."""
+        """Forget every window (a filter restarted: its new innovations start a new history); each
+        stream's record (its last tested verdict) stays."""
+        for key, w in self._streams.items():
+            if w.dof >= self.min_dof:
+                self._record[key] = not w.failing
         self._streams.clear()
 
     def add(self, key: str, t: float, q: float, dof: int) -> bool | None:
@@ -109,9 +117,13 @@ class InnovationConsistency:
         return w is not None and w.failing
 
     def is_consistent(self, key: str) -> bool:
-        """Whether stream ``key`` has been tested (enough rows in its window) and passed."""
+        """Whether stream ``key``'s window has been tested (enough rows) and passed; while the
+        window is too short to be tested (after a restart of the filter), whether its last tested
+        window before the restart passed (False for a stream never tested)."""
         w = self._streams.get(key)
-        return w is not None and w.dof >= self.min_dof and not w.failing
+        if w is not None and w.dof >= self.min_dof:
+            return not w.failing
+        return self._record.get(key, False)
 
     def failing(self) -> list[str]:
         """The streams whose latest test failed."""
