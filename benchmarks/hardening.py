@@ -34,7 +34,8 @@ after the end at which the error is under that percentile and from which on, to 
 run, the 95th percentile of the error is within 5 % of it, i.e. the run is as good as the clean
 one again; ``never``: not before the last 10 s of the run); the RMS over the last 60 s (clean in
 brackets); the epochs reported ``aided`` while the horizontal error exceeded 3x the reported
-horizontal sigma (clean in brackets, same span); the status timeline from the start (s after it).
+horizontal sigma or the height error 3x the vertical sigma (clean in brackets, same span); the
+status timeline from the start (s after it).
 """
 
 from __future__ import annotations
