@@ -24,6 +24,7 @@ import numpy as np
 
 from fednav.service import keys
 from fednav.service.app import OutputSink
+from fednav.service.blas import one_blas_thread
 from fednav.service.config import ServiceConfig, recording_kinds
 from fednav.service.transport.rerun_sink import RerunSink
 from fednav.service.vehicle import VehicleLoop
@@ -111,6 +112,7 @@ def record(
 
 
 def main(argv: list[str] | None = None) -> int:
+    one_blas_thread()
     ap = argparse.ArgumentParser(prog="fednav-record", description=__doc__.split("\n\n")[0])
     ap.add_argument("scenario", help="a scenario file or the name of a shipped one (e.g. seed000_faults)")
     ap.add_argument("-o", "--out", type=Path, required=True, help="the .rrd to write")

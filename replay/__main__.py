@@ -25,6 +25,7 @@ import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from fednav.service.blas import one_blas_thread
 from fednav.service.imu_batch import batch_size_arg
 from fednav.service.messages import WireModel
 
@@ -118,6 +119,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    one_blas_thread()
     if args.zenoh_config and not Path(args.zenoh_config).is_file():
         print(f"fednav-replay: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
         return 1

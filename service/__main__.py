@@ -10,6 +10,7 @@ import threading
 from pathlib import Path
 
 from fednav.service import config as config_mod
+from fednav.service.blas import one_blas_thread
 
 EXAMPLES = """examples:
   fednav-service --config service/configs/example.toml --rrd recordings/run.rrd
@@ -106,6 +107,7 @@ def _usage_error(args: argparse.Namespace) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    one_blas_thread()
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
     problem = _usage_error(args)
     if problem:

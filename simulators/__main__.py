@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from fednav.service.blas import one_blas_thread
 from fednav.service.imu_batch import batch_size_arg
 
 SCENARIO_HELP = (
@@ -108,6 +109,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     rest = sys.argv[1:] if argv is None else argv
+    one_blas_thread()
     if rest and rest[0] in ("rinex2raw", "eval-rinex"):  # real RINEX data (docs/real_rinex.md)
         from fednav.simulators.rinex_eval import cli
 
