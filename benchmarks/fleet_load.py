@@ -14,7 +14,7 @@ subscriber of every Solution in this process. Printed per case:
 - service CPU (cores, from /proc over the publishing window), CPU per vehicle, RSS and RSS per
   vehicle (RSS at the end minus RSS of the idle service).
 
-Usage: .venv/bin/python benchmarks/fleet_load.py [--vehicles 50 100 200] [--duration 30]
+Usage: .venv/bin/python benchmarks/fleet_load.py [--vehicles 50 100 200] [--duration 30] [--option LINE]
            [--modes batch json] [--record off on] [--workers 2] [--shards 1] [--json]
 """
 
@@ -79,7 +79,14 @@ def service_config(tmp: Path, workers: int | None, record: bool, extra: str = ""
 
 
 def run_case(
-    n: int, mode: str, record: bool, duration: float, workers: int | None, shards: int, tmp: Path
+    n: int,
+    mode: str,
+    record: bool,
+    duration: float,
+    workers: int | None,
+    shards: int,
+    tmp: Path,
+    options: str = "",
 ) -> dict:
     import zenoh
 
@@ -89,7 +96,7 @@ def run_case(
     from fednav.simulators.processes import Proc, free_port, start_service
 
     port = free_port()
-    cfg = service_config(tmp, workers, record)
+    cfg = service_config(tmp, workers, record, options)
     rrd = tmp / f"fleet_{n}_{mode}.rrd" if record else None
     extra = ["--shards", str(shards)] if shards > 1 else []
     svc = start_service(port, config=cfg, rrd=rrd, extra=extra)
@@ -218,6 +225,13 @@ def main() -> int:
         "--workers", type=int, default=None, help="[intake] workers (default: the service's, 0 = inline)"
     )
     ap.add_argument("--shards", type=int, default=1)
+    ap.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        help="a top-level line of the service's TOML configuration, repeatable "
+        "(e.g. --option 'rrd_flush_interval_s = 5.0')",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     results = []
@@ -225,7 +239,16 @@ def main() -> int:
         for mode in args.modes:
             for rec in args.record:
                 for n in args.vehicles:
-                    r = run_case(n, mode, rec == "on", args.duration, args.workers, args.shards, Path(d))
+                    r = run_case(
+                        n,
+                        mode,
+                        rec == "on",
+                        args.duration,
+                        args.workers,
+                        args.shards,
+                        Path(d),
+                        "".join(o + "\n" for o in args.option),
+                    )
                     results.append(r)
                     if not args.json:
                         lat = r["latency_ms"]

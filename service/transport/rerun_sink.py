@@ -286,6 +286,9 @@ class RerunSink:
         self._optimize_on_close = optimize_on_close
         self._clock = clock
         self._lock = threading.RLock()
+        self._send_lock = threading.Lock()  # one send at a time, in the order the rows were taken
+        self._flush_wake: threading.Event | None = None  # set when a background flusher runs
+        self._flush_everything = False
         self._closed = not self.enabled
         self._series: dict[str, _Series] = {}
         self._rows = 0
@@ -331,6 +334,7 @@ class RerunSink:
         self._rec.set_sinks(*sinks)
         self._stop_flusher = threading.Event()
         if background_flush and flush_interval_s > 0:
+            self._flush_wake = threading.Event()
             threading.Thread(target=self._flusher, name="fednav-rerun-flush", daemon=True).start()
         if recording_name:
             self._rec.send_recording_name(recording_name)
@@ -841,6 +845,8 @@ class RerunSink:
             finally:
                 self._closed = True
                 self._stop_flusher.set()
+                if self._flush_wake is not None:
+                    self._flush_wake.set()
                 try:
                     self._rec.disconnect()
                 except Exception as exc:
@@ -1099,23 +1105,42 @@ class RerunSink:
     def _maybe_flush(self) -> None:
         if self._bp_pending and self._clock() - self._bp_sent_at >= BLUEPRINT_INTERVAL_S:
             self._send_vehicle_blueprint()
-        if self._rows >= self._max_rows:
-            self._flush_locked()
-            self._sdk_flush_start()
-        elif self._clock() - self._last_flush >= self._flush_interval_s:
-            self._flush_locked(everything=False)
-            self._sdk_flush_start()
+        everything = self._rows >= self._max_rows
+        if not everything and self._clock() - self._last_flush < self._flush_interval_s:
+            return
+        if self._flush_wake is not None:
+            # a background flusher sends, not the logging thread (the service's intake): a fleet's
+            # flush (one chunk per entity: thousands) would hold every vehicle's next message
+            self._flush_everything |= everything
+            self._flush_wake.set()
+            return
+        self._flush_locked(everything=everything)
+        self._sdk_flush_start()
 
     def _flusher(self) -> None:
         # Rows wait in memory at most ~flush_interval_s even when no logging call comes (input stopped):
-        # what a kill -9 can lose. The thread ends at close().
-        while not self._stop_flusher.wait(self._flush_interval_s / 4):
+        # what a kill -9 can lose. Woken early by a logging call when a flush is due. The rows are
+        # taken under the sink's lock and sent outside it (under the send lock, taken before the
+        # sink's lock is released, so that close() sends its rows after these). Ends at close().
+        wake = self._flush_wake
+        while not self._stop_flusher.is_set():
+            wake.wait(self._flush_interval_s / 4)
+            wake.clear()
             with self._lock:
                 if self._closed:
                     return
-                if self._rows and self._clock() - self._last_flush >= self._flush_interval_s:
-                    self._flush_locked(everything=False)
-                    self._sdk_flush_start()
+                everything, self._flush_everything = self._flush_everything, False
+                if not self._rows or (
+                    not everything and self._clock() - self._last_flush < self._flush_interval_s
+                ):
+                    continue
+                series = self._take_locked(everything)
+                self._send_lock.acquire()
+            try:
+                self._send(series)
+                self._sdk_flush_start()
+            finally:
+                self._send_lock.release()
 
     def _sdk_flush_start(self) -> None:
         """Start writing what the SDK holds to the file (not waited for): kill -9 then loses at most
@@ -1128,6 +1153,12 @@ class RerunSink:
     def _flush_locked(self, everything: bool = True) -> None:
         """Send the buffered rows: all of them, or (``everything`` False) those of the fast streams
         and of the slow streams whose oldest row waited ``slow_flush_interval_s``."""
+        series = self._take_locked(everything)
+        with self._send_lock:
+            self._send(series)
+
+    def _take_locked(self, everything: bool) -> dict:
+        """The rows :meth:`_flush_locked` sends, taken out of the buffer (lock held)."""
         now = self._clock()
         if everything or self._slow_interval_s <= self._flush_interval_s:
             series, self._series = self._series, {}
@@ -1139,6 +1170,9 @@ class RerunSink:
                     series[path] = self._series.pop(path)
                     self._rows -= len(s.rows)
         self._last_flush = now
+        return series
+
+    def _send(self, series: dict) -> None:
         for path, s in series.items():
             rows = s.rows
             if not rows:
