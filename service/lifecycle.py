@@ -762,8 +762,8 @@ class VehicleLife:
         if ref is False or ref is None:
             if counted:
                 return  # no reference here: the pipeline's own screening is the check
-            if p.last_aiding_t == t and p.last_screened_t != t:
-                life.agreeing += 1
+            if p.last_nav_aiding_t == t and p.last_screened_t != t:
+                life.agreeing += 1  # (an attitude or a height alone verifies no position)
             elif p.last_screened_t == t:
                 life.agreeing = 0
         else:
@@ -787,7 +787,7 @@ class VehicleLife:
                 else:
                     self._reset_from_reference(p, ref[2], t)
                 return
-            if p.last_aiding_t == t and not counted:
+            if p.last_nav_aiding_t == t and not counted:
                 life.agreeing += 1
         if life.agreeing >= VERIFY_EPOCHS:
             life.verified, life.reason = True, None

@@ -54,3 +54,27 @@ def test_lost_positive_definiteness_is_recovered(monkeypatch):
     first_aided = next(i for i, s in enumerate(sols) if s.status == "aided")
     assert any(s.status == "unaided" for s in sols[first_aided:])  # restarted: unaided until aided
     assert sols[-1].status == "aided"  # and the filter went on
+
+
+def test_a_star_tracker_alone_does_not_keep_a_gnss_outage_aided():
+    """During a GNSS outage the star tracker still aids the attitude, but the position is
+    free-inertial: the loosely coupled and federated solutions say ``coasting``, not ``aided``
+    (before: ``aided`` for the whole outage, its star updates counted as aiding)."""
+    base = shortened("demo_product.toml", 120.0)
+    gnss = dict(base.gnss.model_dump())
+    gnss["outages"] = [[65.0, 95.0]]
+    sc = base.model_copy(update={"gnss": type(base.gnss).model_validate(gnss)})
+    cfg = service_config(sc)
+    sink = CollectingSink(keep_solutions=True)
+    eng = VehicleEngine("v1", cfg, sink)
+    for key, msg in Simulation(sc, seed=2):
+        pk = keys.parse_input(key)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+    t0 = sc.t0_gps_s
+    for name in ("lc", "fed"):
+        sols = sink.records[name].solutions
+        during = [s.status for s in sols if 70.0 <= s.t - t0 <= 94.0]
+        after = [s.status for s in sols if 100.0 <= s.t - t0]
+        assert during and set(during) == {"coasting"}, (name, sorted(set(during)))
+        assert "aided" in after, (name, sorted(set(after)))
+    assert eng.pipelines[0].updates > 0  # the star updates still counted as updates

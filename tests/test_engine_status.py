@@ -299,3 +299,32 @@ def test_warnings_name_a_time_base_mismatch_and_a_pipeline_without_input(caplog)
     unaided = [m for m in lines if "pipeline tc has had no aiding" in m]
     assert len(unaided) == 1 and "gnss_raw" in unaided[0], lines
     assert eng.pipelines[1].status == "unaided"
+
+
+def test_attitude_or_height_alone_is_not_aided():
+    """An update observing neither horizontal position nor velocity (a star tracker's attitude
+    rows, a height alone) counts, but neither makes the pipeline aided nor keeps it from coasting."""
+    from fednav.service.pipelines.base import observes_horizontal
+
+    p = LooselyCoupled(
+        LooselyCoupledConfig(name="lc"), service_config(shortened("demo_aircraft.toml", 5.0)).imu, 0.1
+    )
+    p.start(_nav(), STD)
+    n = 15
+    attitude = np.zeros((3, n))
+    attitude[:, 6:9] = np.eye(3)
+    height = np.zeros((1, n))
+    height[0, 2] = 1.0
+    fix = np.zeros((6, n))
+    fix[:, 0:6] = np.eye(6)
+    assert not observes_horizontal(attitude) and not observes_horizontal(height)
+    assert observes_horizontal(fix)
+    assert not observes_horizontal(fix, [False, False, True, False, False, True])  # only the up rows
+    p.mark_aided(1.0, attitude)
+    p.mark_aided(1.5, height)
+    assert p.status == "unaided" and p.updates == 2
+    for t in (2.0, 3.0, 4.0):
+        p.mark_aided(t, fix)
+    for t in np.arange(4.1, 12.0, 0.1):  # attitude at 10 Hz after the last fix: coasting at 7 s
+        p.mark_aided(float(t), attitude)
+    assert p.current_status(6.9) == "aided" and p.current_status(7.1) == "coasting"

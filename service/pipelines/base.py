@@ -140,6 +140,20 @@ class Estimate:
     P9: np.ndarray
 
 
+#: error-state columns of horizontal position and velocity (east, north: service/ins/error_model.py)
+_HORIZONTAL_COLUMNS = (0, 1, 3, 4)
+
+
+def observes_horizontal(H: np.ndarray, used: np.ndarray | None = None) -> bool:
+    """Whether an update's rows (``used`` of them) observe horizontal position or velocity: what
+    keeps a horizontal solution from being free-inertial (a star tracker's rows do not)."""
+    Hh = np.asarray(H)
+    Hh = Hh.reshape(-1, Hh.shape[-1])[:, _HORIZONTAL_COLUMNS]
+    if used is not None:
+        Hh = Hh[np.asarray(used, dtype=bool).reshape(-1)]
+    return bool(np.any(Hh != 0.0))
+
+
 class Pipeline(ABC):
     def __init__(self, name: str, imu: ImuModel, major_interval_s: float):
         self.bank: InsFilterBank | None = None  # built by ``initialise``
@@ -149,7 +163,9 @@ class Pipeline(ABC):
         self.updates = 0
         self.reinitialisations = 0
         self.screened: Counter = Counter()  # observations refused by screening, by reason
-        self.last_aiding_t: float | None = None
+        self.last_aiding_t: float | None = None  # any aiding update
+        #: the last update that observed horizontal position or velocity (:meth:`mark_aided`)
+        self.last_nav_aiding_t: float | None = None
         self.last_screened_t: float | None = None
         self.aiding_period_s: float | None = None  # the interval between the last two aidings
         self.aided_since_start = False
@@ -183,12 +199,20 @@ class Pipeline(ABC):
     default_coast_after_s: float = 3.0
 
     # --- status: the pipeline's own, derived from what happened to it ------------------------------
-    def mark_aided(self, t: float) -> None:
-        """An aiding update was applied at t."""
-        if self.last_aiding_t is not None and t > self.last_aiding_t:
-            self.aiding_period_s = t - self.last_aiding_t
+    def mark_aided(self, t: float, H: np.ndarray | None = None, used: np.ndarray | None = None) -> None:
+        """An aiding update was applied at t. ``H`` (rows x error states, the navigation error
+        states first: service/ins/error_model.py) and ``used`` (its rows the update took), when
+        given: an update that observes neither horizontal position nor horizontal velocity (a star
+        tracker's attitude, a height alone) counts as an update, but the horizontal solution stays
+        free-inertial, so it does not make the pipeline ``aided`` nor keep it from ``coasting``
+        (:meth:`current_status`)."""
         self.last_aiding_t = t
         self.updates += 1
+        if H is not None and not observes_horizontal(H, used):
+            return
+        if self.last_nav_aiding_t is not None and t > self.last_nav_aiding_t:
+            self.aiding_period_s = t - self.last_nav_aiding_t
+        self.last_nav_aiding_t = t
         self.aided_since_start = True
 
     def mark_screened(self, t: float, reason: str, rows: int = 1) -> None:
@@ -361,7 +385,9 @@ class Pipeline(ABC):
         verified by the vehicle's own aiding, or screening refused aiding recently, or a stream's
         innovations were larger than the filter claims recently: estimation/consistency.py), ``unaided``
         (never aided since the start), ``coasting`` (aided before, nothing for longer than
-        :meth:`coast_after_s`), ``aided``."""
+        :meth:`coast_after_s`), ``aided``; "aided" means by an update that observed horizontal
+        position or velocity (:meth:`mark_aided`: a star tracker alone leaves the position
+        free-inertial)."""
         if self.bank is None or self.lost:
             return "initialising"
         if self.failed:
@@ -376,7 +402,7 @@ class Pipeline(ABC):
             return "degraded"  # innovations larger than the filter claims: its sigmas understate
         if not self.aided_since_start:
             return "unaided"
-        if self.last_aiding_t is None or t - self.last_aiding_t > window:
+        if self.last_nav_aiding_t is None or t - self.last_nav_aiding_t > window:
             return "coasting"
         return "aided"
 
@@ -394,7 +420,7 @@ class Pipeline(ABC):
             self.reinitialisations += 1
         self.aided_since_start = False
         self.failed = self.lost = False
-        self.last_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
+        self.last_aiding_t = self.last_nav_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
         self.consistency.clear()  # (the streams' fault episodes stay, as in :meth:`restarted`)
         self._refused_from = None
 

@@ -236,7 +236,7 @@ class _CorePipeline(Pipeline):
         self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.passed)
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
-            self.mark_aided(bank.t)
+            self.mark_aided(bank.t, meas.H, upd.decision.used)
         isolated = int(np.count_nonzero(upd.decision.isolated))
         if isolated:
             self.mark_screened(bank.t, "fault_test", isolated)

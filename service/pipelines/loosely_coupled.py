@@ -173,7 +173,7 @@ class LooselyCoupled(Pipeline):
         bank.feedback(bank.x[0].copy())
         self.last_nis = float(res.nis[0])
         self.nis_history.append((nav.t, kind, self.last_nis, int(res.dof[0])))
-        self.mark_aided(nav.t)
+        self.mark_aided(nav.t, meas.H, ~refused)
         if self._reported and kind == "gnss_fix":
             self._add_states(nav.t, outputs)
         return outputs
