@@ -706,7 +706,8 @@ class ServiceConfig(Model):
         le=3600,
         description="Recording a fleet: each vehicle's solutions, raw fixes and health are recorded at "
         "most once per this many seconds of sensor time (0: every one). A pipeline's status change is "
-        "always recorded; Zenoh outputs are never decimated. 1.0 records 200 vehicles (docs/SCALING.md)",
+        "always recorded; Zenoh outputs are never decimated. A fleet: 1.0 with rrd_flush_interval_s = 5 "
+        "(what it costs per vehicle: docs/SCALING.md)",
     )
     rrd_optimize: bool = Field(
         False, description="Compact the recording when the service stops (rerun rrd optimize, ~10x smaller)"
