@@ -511,3 +511,31 @@ def test_alignment_error_series_carry_axis_labels_and_colours():
     assert s["wing2.lever_x"] == ("x error", paths.AXIS_COLOURS[0])
     assert s["wing2.flexure_z_p3s"] == ("z +3σ", paths.AXIS_COLOURS[2])
     assert s["wing2.misalignment_y_m3s"][1] == paths.AXIS_COLOURS[1]
+
+
+def test_a_due_flush_is_sent_by_the_flusher_not_the_logging_thread(tmp_path):
+    """The logging call that finds a flush due only wakes the background flusher: a fleet's flush
+    (a chunk per entity) must not run in the service's intake thread; every row is in the file."""
+    path = tmp_path / "bg.rrd"
+    now = [0.0]
+    sink = RerunSink(path, recording_id="bg", flush_interval_s=1.0, clock=lambda: now[0])
+    senders: list[str] = []
+    send = sink._send
+
+    def spy(series):
+        if series:
+            senders.append(threading.current_thread().name)
+        send(series)
+
+    sink._send = spy
+    for k in range(50):
+        now[0] = 0.1 * k  # five flushes due over the run
+        sink.log_errors("v", "p", T0 + 0.1 * k, {"east_m": float(k)})
+    deadline = threading.Event()
+    for _ in range(100):  # the flusher wakes within a quarter of the interval of wall time
+        if senders:
+            break
+        deadline.wait(0.05)
+    assert senders and set(senders) == {"fednav-rerun-flush"}, senders
+    sink.close()
+    assert inspect_rrd(path)["pipelines"]["p"]["error_epochs"] == 50
