@@ -18,7 +18,7 @@ from fednav.simulators.fleet import vehicle_names
 from fednav.simulators.fleet_watch import FleetWatch
 from fednav.simulators.processes import Proc, free_port
 
-from .scenario_utils import wait_until
+from .scenario_utils import split_zids, wait_until
 
 #: the services are polled every 0.2 s
 _wait = functools.partial(wait_until, poll_s=0.2)
@@ -34,9 +34,20 @@ def _router(port: int) -> Proc:
     return r
 
 
-def _service(port: int, cfg) -> Proc:
-    """A service in client mode behind the router (no listener of its own)."""
-    args = [sys.executable, "-m", "fednav.service", "--config", str(cfg), "--no-record"]
+def _service(port: int, cfg, zid: str, tmp_path) -> Proc:
+    """A service in client mode behind the router (no listener of its own), under Zenoh id ``zid``."""
+    zc = tmp_path / f"zenoh-{zid}.json5"
+    zc.write_text(f'{{ id: "{zid}" }}\n')
+    args = [
+        sys.executable,
+        "-m",
+        "fednav.service",
+        "--config",
+        str(cfg),
+        "--no-record",
+        "--zenoh-config",
+        str(zc),
+    ]
     p = Proc(args + ["--connect", f"tcp/127.0.0.1:{port}"], "fednav-service")
     assert p.wait_for("fednav-service ready", timeout=60), p.output()
     return p
@@ -59,7 +70,8 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
     bus = FleetWatch(port)
     names = vehicle_names(N)
     try:
-        a, b = _service(port, cfg), _service(port, cfg)
+        ids = split_zids(vehicle_names(N), 3)
+        a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
         procs += [a, b]
         gen = Proc(
             [
@@ -90,6 +102,7 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
         served = sorted(v for vs in asg.values() for v in vs)
         assert served == names, asg
         members = sorted(asg)
+        assert members == sorted(ids[:2]), asg  # the ids set in their Zenoh configs
         for z, vs in asg.items():  # the assignment is the rendezvous one over the live services
             assert sorted(vs) == sorted(v for v in names if fleet.owner(v, members) == z), asg
         wall_settled = time.monotonic()
@@ -121,7 +134,7 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
             assert e.size >= 2, (v, e)
             assert e.max() < bound, (v, e.max(), bound)
         # a new service joins and takes its share back, again handed over
-        c = _service(port, cfg)
+        c = _service(port, cfg, ids[2], tmp_path)
         procs.append(c)
         t_join = time.monotonic()
         # joined: it listens 1.5 handover periods before its token, then serves its share (its
