@@ -9,11 +9,18 @@ gives the same figure for a whole service, Zenoh and threads included, so the di
 transport's and the scheduling's share) and a digest of every serialised output, so that a change
 of the hot path can show its outputs are byte-identical.
 
+With ``--record``, the output sink also records to a Rerun file as the service does (its default
+recording options, ``rrd_vehicle_interval_s`` 1 s as a fleet is advised to record), its flushes due
+by scenario time (in-process the messages come faster than real time; a wall clock would batch many
+seconds into one flush) and sent in the loop's thread: the CPU is then the process's
+(``time.process_time``: Rerun's own threads included), and the figure with recording minus the one
+without is what recording a vehicle costs.
+
 With ``--pace-ms``, the thread sleeps after every ``--burst`` messages, as a service's worker idles
 between arrivals: its own CPU for the same work (``time.thread_time``) shows what idling costs.
 
 Usage: .venv/bin/python benchmarks/vehicle_cost.py [--duration 120] [--imu-batch 10] [--repeat 3]
-           [--vehicles 1] [--pace-ms 0 --burst 1] [--profile]
+           [--vehicles 1] [--pace-ms 0 --burst 1] [--record] [--profile]
 """
 
 from __future__ import annotations
@@ -22,7 +29,9 @@ import argparse
 import cProfile
 import hashlib
 import pstats
+import tempfile
 import time
+from pathlib import Path
 
 
 class _Publishers:
@@ -45,6 +54,7 @@ def run(
     vehicles: int = 1,
     pace_s: float = 0.0,
     burst: int = 1,
+    record: bool = False,
 ) -> dict:
     from fednav.service import keys
     from fednav.service.app import OutputSink
@@ -57,28 +67,53 @@ def run(
     inputs = []
     for it in items:
         parsed = keys.parse_input(f"{keys.DEFAULT_PREFIX}/veh000/{it.suffix}")
-        inputs.append((parsed.kind, parsed.sensor_id, it.payload))
+        inputs.append((it.t, parsed.kind, parsed.sensor_id, it.payload))
     config = ServiceConfig.model_validate(
         {"vehicles": ["*"], "pipelines": [{"name": "lc", "kind": "loosely_coupled"}]}
     )
     pubs = _Publishers()
-    sink = OutputSink(keys.DEFAULT_PREFIX, pubs, None)
-    loops = [VehicleLoop(f"veh{i:03d}", config, sink) for i in range(vehicles)]
+    now = [items[0].t if items else 0.0]  # the scenario time of the message being processed
+    rr = tmp = None
+    if record:
+        from fednav.service.transport.rerun_sink import RerunSink
+
+        tmp = tempfile.TemporaryDirectory(prefix="vehicle_cost_")
+        c = config
+        rr = RerunSink(
+            str(Path(tmp.name) / "cost.rrd"),
+            flush_interval_s=c.rrd_flush_interval_s,
+            decimation=c.rrd_decimation,
+            slow_flush_interval_s=c.rrd_slow_flush_interval_s,
+            clock=lambda: now[0],
+            background_flush=False,
+        )
+    sink = OutputSink(keys.DEFAULT_PREFIX, pubs, rr, vehicle_interval_s=1.0 if record else 0.0)
+    on_fix = sink.log_fix if rr is not None else None
+    loops = [VehicleLoop(f"veh{i:03d}", config, sink, on_fix=on_fix) for i in range(vehicles)]
+    # recording: the process's CPU (the background flusher and Rerun's threads are part of the cost)
+    clock = time.process_time if record else time.thread_time
     prof = cProfile.Profile() if profile else None
     if prof is not None:
         prof.enable()
     cpu = 0.0
-    c0 = time.thread_time()
+    c0 = clock()
     n = 0
-    for kind, sensor_id, payload in inputs:  # vehicles interleaved message by message, as in a fleet
+    for t, kind, sensor_id, payload in inputs:  # vehicles interleaved message by message, as in a fleet
+        now[0] = t
         for loop in loops:
             loop.process(kind, sensor_id, payload)
             n += 1
             if pace_s > 0.0 and n % burst == 0:  # idle between bursts, as a paced service is
-                cpu += time.thread_time() - c0
+                cpu += clock() - c0
                 time.sleep(pace_s)
-                c0 = time.thread_time()
-    cpu += time.thread_time() - c0
+                c0 = clock()
+    if rr is not None:
+        rr.close()  # what is still buffered is sent and written: part of the cost
+    cpu += clock() - c0
+    rrd_bytes = 0
+    if tmp is not None:
+        rrd_bytes = sum(f.stat().st_size for f in Path(tmp.name).iterdir())
+        tmp.cleanup()
     loop = loops[0]
     if prof is not None:
         prof.disable()
@@ -90,6 +125,7 @@ def run(
         "outputs": pubs.n,
         "cpu_ms_per_vehicle_s": 1e3 * cpu / duration_s / vehicles,
         "digest": pubs.digest.hexdigest()[:16],
+        "rrd_kb_per_vehicle_min": rrd_bytes / 1e3 / vehicles / (duration_s / 60.0),
     }
 
 
@@ -109,20 +145,28 @@ def main() -> int:
         "counted): the cost of the same work done by a thread that idles between messages",
     )
     ap.add_argument("--burst", type=int, default=1, help="messages between two --pace-ms sleeps")
+    ap.add_argument(
+        "--record", action="store_true", help="also record to a Rerun file as a fleet service does"
+    )
     ap.add_argument("--profile", action="store_true", help="one run under cProfile, its top functions")
     args = ap.parse_args()
     if args.profile:
-        run(args.duration, args.imu_batch, profile=True, vehicles=args.vehicles)
+        run(args.duration, args.imu_batch, profile=True, vehicles=args.vehicles, record=args.record)
         return 0
-    run(min(args.duration, 10.0), args.imu_batch)  # warm-up: lazy imports, schema builds, caches
+    run(
+        min(args.duration, 10.0), args.imu_batch, record=args.record
+    )  # warm-up: lazy imports, schema builds, caches
     pace = {"pace_s": args.pace_ms * 1e-3, "burst": args.burst}
     runs = [
-        run(args.duration, args.imu_batch, vehicles=args.vehicles, **pace) for _ in range(max(1, args.repeat))
+        run(args.duration, args.imu_batch, vehicles=args.vehicles, record=args.record, **pace)
+        for _ in range(max(1, args.repeat))
     ]
     best = min(r["cpu_ms_per_vehicle_s"] for r in runs)
     r = runs[0]
     digests = {x["digest"] for x in runs}
     inputs = f"ImuBatch of {args.imu_batch}" if args.imu_batch > 1 else "JSON"
+    if args.record:
+        inputs += f", recorded ({r['rrd_kb_per_vehicle_min']:.0f} kB per vehicle-minute)"
     if args.pace_ms > 0.0:
         inputs += f", idle {args.pace_ms:g} ms after every {args.burst} message(s)"
     print(

@@ -539,3 +539,29 @@ def test_a_due_flush_is_sent_by_the_flusher_not_the_logging_thread(tmp_path):
     assert senders and set(senders) == {"fednav-rerun-flush"}, senders
     sink.close()
     assert inspect_rrd(path)["pipelines"]["p"]["error_epochs"] == 50
+
+
+def test_entities_flushed_together_keep_their_own_times_and_values(tmp_path):
+    """One flush sends many entities; those whose rows share times share their time columns
+    (made once per flush): each entity reads back with its own times and values, whether its rows'
+    times equal another entity's or not."""
+    path = tmp_path / "shared.rrd"
+    now = [0.0]
+    sink = RerunSink(
+        path, recording_id="shared", flush_interval_s=5.0, clock=lambda: now[0], background_flush=False
+    )
+    offsets = {"a": 0.0, "b": 0.0, "c": 0.05}  # a and b at the same times, c between them
+    for k in range(30):
+        now[0] = 0.1 * k  # the 5 s flush interval: everything goes in the final flush at close
+        for i, (v, off) in enumerate(offsets.items()):
+            sink.log_errors(v, "p", T0 + 0.1 * k + off, {"east_m": 100.0 * i + k, "north_m": -100.0 * i - k})
+    sink.close()
+    _, series = read_series(path)
+    for i, (v, off) in enumerate(offsets.items()):
+        for name, sign in (("east_m", 1.0), ("north_m", -1.0)):
+            ent = [e for e in series if e.startswith(f"/{v}/") and e.endswith(f"/{name}")]
+            assert len(ent) == 1, (v, name, sorted(series))
+            s = series[ent[0]]
+            want_t = np.array([seconds_to_ns(T0 + 0.1 * k + off) for k in range(30)], dtype=np.int64)
+            np.testing.assert_array_equal(s.t_ns, want_t)
+            np.testing.assert_array_equal(s.values, sign * (100.0 * i + np.arange(30)))
