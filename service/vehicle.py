@@ -47,13 +47,19 @@ class RateLimitedLog:
             log.warning("%s: %s", reason, text)
 
 
+#: the messages over which a vehicle's Health latency percentiles are taken (the most recent)
+LATENCY_WINDOW = 2000
+
+
 class VehicleLoop:
     """A vehicle's engine with its counters (Health): ``received`` counts samples (an ImuBatch of
     N records is N received), ``accepted`` those the engine took, ``counters`` every refusal by
     reason. ``on_fix(vehicle, sensor_id, fix)`` is called for every accepted GNSS fix (the
     recording's raw-fix layer)."""
 
-    def __init__(self, vehicle: str, config: ServiceConfig, sink, on_fix=None, latency_window: int = 2000):
+    def __init__(
+        self, vehicle: str, config: ServiceConfig, sink, on_fix=None, latency_window: int = LATENCY_WINDOW
+    ):
         self.vehicle = vehicle
         self.config = config
         self.counters: Counter = Counter()
