@@ -59,7 +59,7 @@ def run(
     from fednav.service import keys
     from fednav.service.app import OutputSink
     from fednav.service.config import ServiceConfig
-    from fednav.service.vehicle import VehicleLoop
+    from fednav.service.vehicle import VehicleLoop, tune_gc
     from fednav.simulators.fleet import fleet_scenario, variant_items
 
     data = fleet_scenario("demo_aircraft", 200.0, 10.0, duration_s)
@@ -71,6 +71,7 @@ def run(
     config = ServiceConfig.model_validate(
         {"vehicles": ["*"], "pipelines": [{"name": "lc", "kind": "loosely_coupled"}]}
     )
+    tune_gc()  # as the service after its start
     pubs = _Publishers()
     now = [items[0].t if items else 0.0]  # the scenario time of the message being processed
     rr = tmp = None

@@ -176,12 +176,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         svc.stop()
         return 2
-    import gc
+    from fednav.service.vehicle import tune_gc
 
-    # the long-lived objects of the start (modules, configuration, sessions) leave the collector's
-    # generations, and young collections run less often: the hot path allocates many small arrays
-    gc.freeze()
-    gc.set_threshold(50_000, 50, 100)
+    tune_gc()
     if args.shard:
         print(READY_TEXT.format(i=shard[0], k=shard[1]), flush=True)
     if supervisor is not None and not supervisor.start():
