@@ -34,16 +34,9 @@ from pathlib import Path
 
 
 def make_inputs(path: Path, seconds: float, imu_batch: int) -> None:
-    from fednav.service import keys
-    from fednav.simulators.fleet import fleet_scenario, variant_items
+    from vehicle_cost import vehicle_inputs  # benchmarks/, beside this script
 
-    data = fleet_scenario("demo_aircraft", 200.0, 10.0, seconds)
-    items, _ = variant_items(data, 1, 0.0, imu_batch, False, keys.DEFAULT_PREFIX)
-    inputs = []
-    for it in items:
-        parsed = keys.parse_input(f"{keys.DEFAULT_PREFIX}/veh000/{it.suffix}")
-        inputs.append((it.t, parsed.kind, parsed.sensor_id, it.payload))
-    path.write_bytes(pickle.dumps(inputs))
+    path.write_bytes(pickle.dumps(vehicle_inputs(seconds, imu_batch)))
 
 
 def run_loop(path: Path, seconds: float) -> None:

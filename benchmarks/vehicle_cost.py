@@ -47,6 +47,22 @@ class _Publishers:
         self.n += 1
 
 
+def vehicle_inputs(duration_s: float, imu_batch: int) -> list[tuple[float, str, str, bytes]]:
+    """(sensor time, kind, sensor id, payload) of every message ``fednav-sim fleet`` publishes for
+    one vehicle over ``duration_s``: the demo aircraft, 200 Hz IMU (ImuBatches of ``imu_batch``
+    samples, or JSON per sample when 1), 10 Hz fixes."""
+    from fednav.service import keys
+    from fednav.simulators.fleet import fleet_scenario, variant_items
+
+    data = fleet_scenario("demo_aircraft", 200.0, 10.0, duration_s)
+    items, _ = variant_items(data, 1, 0.0, imu_batch, False, keys.DEFAULT_PREFIX)
+    inputs = []
+    for it in items:
+        parsed = keys.parse_input(f"{keys.DEFAULT_PREFIX}/veh000/{it.suffix}")
+        inputs.append((it.t, parsed.kind, parsed.sensor_id, it.payload))
+    return inputs
+
+
 def run(
     duration_s: float,
     imu_batch: int,
@@ -60,20 +76,14 @@ def run(
     from fednav.service.app import OutputSink
     from fednav.service.config import ServiceConfig
     from fednav.service.vehicle import VehicleLoop, tune_gc
-    from fednav.simulators.fleet import fleet_scenario, variant_items
 
-    data = fleet_scenario("demo_aircraft", 200.0, 10.0, duration_s)
-    items, _ = variant_items(data, 1, 0.0, imu_batch, False, keys.DEFAULT_PREFIX)
-    inputs = []
-    for it in items:
-        parsed = keys.parse_input(f"{keys.DEFAULT_PREFIX}/veh000/{it.suffix}")
-        inputs.append((it.t, parsed.kind, parsed.sensor_id, it.payload))
+    inputs = vehicle_inputs(duration_s, imu_batch)
     config = ServiceConfig.model_validate(
         {"vehicles": ["*"], "pipelines": [{"name": "lc", "kind": "loosely_coupled"}]}
     )
     tune_gc()  # as the service after its start
     pubs = _Publishers()
-    now = [items[0].t if items else 0.0]  # the scenario time of the message being processed
+    now = [inputs[0][0] if inputs else 0.0]  # the scenario time of the message being processed
     rr = tmp = None
     if record:
         from fednav.service.transport.rerun_sink import RerunSink
