@@ -45,12 +45,13 @@ again, ``aiding_still_refused``: reset at the next reference whatever the check 
 pipeline is ``degraded`` and checked like an unverified one.
 
 Reset: the whole state, with an honest covariance (:meth:`VehicleLife._fix_state`): velocity from
-the reference, attitude from gravity and the GNSS track, position from the pipeline's last
-verified estimate (a checkpoint kept at output epochs) carried to now when the moment of the
-corruption is known, else the reference's; the biases and the sensors' own states (receiver
-clock, DVL offset and scale, ...) kept. Without GNSS the checkpoint carried with its own velocity
-is the reference. Every transition is said on the pipeline's Faults (subsystem ``lifecycle``) and
-counted in Health notes.
+the reference, attitude from gravity and the GNSS track (after a contested IMU key: from the
+last verified state carried over the gap, as the INS's last interval may hold a forged sample),
+position from the pipeline's last verified estimate (a checkpoint kept at output epochs) carried
+to now when the moment of the corruption is known, else the reference's; the biases and the
+sensors' own states (receiver clock, DVL offset and scale, ...) kept. Without GNSS the checkpoint
+carried with its own velocity is the reference. Every transition is said on the pipeline's
+Faults (subsystem ``lifecycle``) and counted in Health notes.
 
 Reset requests (an InitialNav on a running vehicle, a hand-over): rate-limited, floored, checked
 against the latest fix and the verified estimate, then weighed against each verified pipeline's
@@ -839,6 +840,21 @@ class VehicleLife:
             att = np.maximum(att, np.radians(alignment.MOTION_ATT_STD_DEG))
             nav = alignment.nav_at_fix(fix, est.nav.rpy_rad, t)
             std = InitStd(std.pos_enu_m, std.vel_enu_mps, att)
+        life = self.lives[p.name]
+        if life.stage == SUSPECT and life.reason == "imu_contested":
+            # the INS's input was contested: its last interval (the specific force the tilts come
+            # from above) may hold a forged sample. The last verified state before the contest,
+            # carried to now with its turn rate and its attitude sigmas grown over the gap, is the
+            # attitude to restart from (found on the demo, seed 12: a reset 0.1 s after a burst of
+            # forged samples levelled from such an interval was 6.6 deg off in roll against a 2 deg
+            # sigma; the federated filter's fault test then refused the star tracker, the one
+            # sensor that could correct it, to the end of the run)
+            carried = self._carried_checkpoint(p, t, level=False)
+            if carried is not None:
+                nav.q_nb = carried[0].q_nb.copy()
+                std = InitStd(
+                    std.pos_enu_m, std.vel_enu_mps, carried[2].att_rad, pos_from_fix=std.pos_from_fix
+                )
         if np.all(np.isfinite(est.nav.gyro_bias_rps)) and np.all(np.isfinite(est.nav.accel_bias_mps2)):
             nav.gyro_bias_rps = est.nav.gyro_bias_rps.copy()
             nav.accel_bias_mps2 = est.nav.accel_bias_mps2.copy()

@@ -130,9 +130,10 @@ def _burst(jitter_s: float | None):
 def test_an_imu_burst_is_recovered_whole_state(demo, pace, jitter):
     """Forged samples taken between genuine ones corrupt the attitude by radians. The contested
     IMU key makes every pipeline suspect; the first fix that disagrees resets it (position from
-    its last verified state carried over the gap, velocity from the fix, attitude from gravity and
-    the GNSS track) or, when the genuine samples came back as a run behind the forged ones (a
-    time jump), every pipeline restarts at once from its last verified state. Before this, 10x
+    its last verified state carried over the gap, velocity from the fix, attitude from that state
+    carried too: the INS's last interval may hold a forged sample) or, when the genuine samples
+    came back as a run behind the forged ones (a time jump), every pipeline restarts at once from
+    its last verified state. Before this, 10x
     left the solution 6 km off for the rest of the run."""
     sc, clean = demo
     eng, rec = _run(sc, _burst(jitter))
@@ -406,3 +407,52 @@ def test_a_forged_imu_burst_arriving_long_before_the_sensors_stream_is_recovered
         # the last 10 s: the height within 2.5 of its sigmas whatever the status (the clean run's
         # within ~1; before, the step's height had carried it 3.5 sigmas off for good)
         assert max(row[4] for row in rec[-100:]) < 2.5, (name, max(row[4] for row in rec[-100:]))
+
+
+def test_a_reset_after_a_contested_imu_starts_from_an_attitude_within_its_sigmas(monkeypatch):
+    """A reset while the INS's input is contested takes its attitude from the last verified state
+    carried over the gap, not levelled from the INS's last interval, which may hold a forged sample
+    (the demo, seed 12, hardening: levelled 6.6 deg off in roll against a 2 deg sigma; the federated
+    filter's fault test then refused the star tracker's rows to the end of the run, 144.7 s 'not
+    recovered'). The main job's scenario as benchmarks/hardening.py probes it (seed 12, a burst at
+    10x at 140 s): each reset's roll, pitch and heading within 3 of the sigmas it claims."""
+    from fednav.service.lifecycle import VehicleLife
+
+    seed, at_s = 12, 140.0
+    sc = shortened("demo_product.toml", 150.0)
+    starts = []
+    original = VehicleLife._start_one
+
+    def spy(self, p, nav, std, event, verified, reason=None, refs=None):
+        starts.append((p.name, event, nav.t, nav.rpy_rad.copy(), np.array(std.att_rad, dtype=float)))
+        return original(self, p, nav, std, event, verified, reason, refs)
+
+    monkeypatch.setattr(VehicleLife, "_start_one", spy)
+    rng = np.random.default_rng(seed + 1000)
+    queue: list = []
+    eng = VehicleEngine("v1", service_config(sc), Sink())
+    sim = Simulation(sc, seed=seed)
+    for key, msg in sim:
+        pk = keys.parse_input(key)
+        if pk.kind == "imu":
+            while queue and queue[0][0] < msg.t:
+                eng.handle("imu", pk.sensor_id, queue.pop(0)[2])
+            if abs(msg.t - sc.t0_gps_s - at_s) < 0.005 and not queue:
+                forged = [
+                    msg.model_copy(update={"t": msg.t + 0.005 + 0.01 * k, "dtheta_rad": (0.2, 0.0, 0.0)})
+                    for k in range(50)
+                ]
+                queue.extend(
+                    sorted(
+                        ((f.t + rng.uniform(-0.01, 0.01), k, f) for k, f in enumerate(forged)),
+                        key=lambda x: x[:2],
+                    )
+                )
+        eng.handle(pk.kind, pk.sensor_id, msg)
+    assert eng.notes["suspect:fed:imu_contested"] >= 1, eng.notes
+    traj = sim.truth.trajectory
+    resets = [s for s in starts if s[1] == "reset"]
+    assert {s[0] for s in resets} >= {"lc", "fed"}, starts
+    for name, _, t, rpy, att in resets:
+        err = (rpy - traj.state_at(t).rpy_rad + math.pi) % (2.0 * math.pi) - math.pi
+        assert np.all(np.abs(err) < 3.0 * att), (name, t - sc.t0_gps_s, np.degrees(err), np.degrees(att))
