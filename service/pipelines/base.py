@@ -150,8 +150,8 @@ def observes_horizontal(H: np.ndarray, used: np.ndarray | None = None) -> bool:
         if not u.all():
             Hh = Hh[u]
     # error-state columns 0, 1 (east, north position) and 3, 4 (east, north velocity:
-    # service/ins/error_model.py), as basic slices and
-    # count_nonzero, 2-5 us a call against 12-16 with fancy indexing and np.any (every update)
+    # service/ins/error_model.py), as basic slices and count_nonzero: 2-5 us a call against 12-16
+    # with fancy indexing and np.any (every update)
     return bool(np.count_nonzero(Hh[:, 0:2]) or np.count_nonzero(Hh[:, 3:5]))
 
 
