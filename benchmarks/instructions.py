@@ -15,7 +15,13 @@ agreed to within 0.05 % (30.83-30.84 M per vehicle-second).
 
 Needs valgrind (``apt-get install valgrind``); a run takes ~1.5 min on the project's machine.
 
-Usage: .venv/bin/python benchmarks/instructions.py [--seconds 2 12] [--imu-batch 10]
+``--mhss``: the same count for the tightly coupled pipeline with MHSS integrity of
+``benchmarks/mhss_bank.py`` (12 satellites, 79 filters, 100 Hz IMU, 10 Hz pseudoranges and range
+rates), driven directly as that benchmark drives it: instructions per second of data, with the
+digest of every Integrity message and of the final state and covariance.
+
+Usage: .venv/bin/python benchmarks/instructions.py [--seconds 2 12] [--imu-batch 10] [--imu-hz 200]
+           [--without KIND ...] [--mhss]
 Before/after: run it once with PYTHONPATH pointing at the other tree's package.
 """
 
@@ -33,10 +39,74 @@ import tempfile
 from pathlib import Path
 
 
-def make_inputs(path: Path, seconds: float, imu_batch: int) -> None:
+def make_inputs(
+    path: Path, seconds: float, imu_batch: int, without: tuple[str, ...] = (), imu_hz: float = 200.0
+) -> None:
     from vehicle_cost import vehicle_inputs  # benchmarks/, beside this script
 
-    path.write_bytes(pickle.dumps(vehicle_inputs(seconds, imu_batch)))
+    inputs = [m for m in vehicle_inputs(seconds, imu_batch, imu_hz) if m[1] not in without]
+    path.write_bytes(pickle.dumps(inputs))
+
+
+def make_mhss_inputs(path: Path, seconds: float) -> None:
+    import mhss_bank  # benchmarks/, beside this script
+
+    traj, msgs = mhss_bank.make_inputs(seconds)
+    path.write_bytes(pickle.dumps((traj, msgs)))
+
+
+def run_mhss(path: Path, seconds: float) -> None:
+    """The measured process for ``--mhss``: ``mhss_bank.bench_pipeline``'s loop over the first
+    ``seconds`` of the inputs, every Integrity message and the final state digested."""
+    import mhss_bank as mb
+    import numpy as np
+
+    from fednav.service import earth
+    from fednav.service.config import ImuModel, TightlyCoupledConfig
+    from fednav.service.ins.mechanisation import NavState
+    from fednav.service.pipelines.base import InitStd
+    from fednav.service.pipelines.tightly_coupled import TightlyCoupled
+
+    traj, msgs = pickle.loads(path.read_bytes())
+    p = TightlyCoupled(TightlyCoupledConfig(name="tc"), ImuModel(), 0.1)
+    s0 = traj.state_at(mb.T0)
+    nav = NavState(
+        mb.T0,
+        s0.llh[0],
+        s0.llh[1],
+        s0.llh[2],
+        s0.vel_enu_mps.copy(),
+        earth.mat_to_quat(earth.rpy_to_mat_nb(s0.rpy_rad)),
+    )
+    p.initialise(nav, InitStd(np.full(3, 5.0), np.full(3, 0.2), np.radians([0.05, 0.05, 0.2])))
+    dth = [tuple(r) for r in traj.dtheta_rad]
+    dv = [tuple(r) for r in traj.dvel_mps]
+    digest = hashlib.sha256()
+    n = 0
+    for k in range(1, len(traj.t_s)):
+        if traj.t_s[k] - mb.T0 > seconds:
+            break
+        p.push_imu(dth[k], dv[k], traj.dt_s, float(traj.t_s[k]))
+        if k in msgs:
+            p.sync()
+            for out in p.apply("gnss_raw", "main", msgs[k], 0.0):
+                digest.update(out.to_json())
+                n += 1
+    est = p.estimate()
+    digest.update(np.asarray(est.P9).tobytes())
+    nav = est.nav
+    digest.update(
+        np.hstack(
+            [
+                [nav.t, nav.lat_rad, nav.lon_rad, nav.h_m],
+                nav.vel_enu_mps,
+                nav.q_nb,
+                nav.gyro_bias_rps,
+                nav.accel_bias_mps2,
+            ]
+        ).tobytes()
+    )
+    print(f"outputs {n} digest {digest.hexdigest()[:16]}", flush=True)
 
 
 def run_loop(path: Path, seconds: float) -> None:
@@ -74,10 +144,19 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, nargs=2, default=(2.0, 12.0), help="the two scenario lengths")
     ap.add_argument("--imu-batch", type=int, default=10, help="samples per ImuBatch, 1 = JSON (default 10)")
+    ap.add_argument("--mhss", action="store_true", help="the tightly coupled MHSS pipeline of mhss_bank.py")
+    ap.add_argument("--imu-hz", type=float, default=200.0, help="IMU rate (default 200)")
+    ap.add_argument(
+        "--without",
+        nargs="+",
+        default=(),
+        metavar="KIND",
+        help="leave these input kinds out (e.g. gnss_fix: what the fix epochs cost is the difference)",
+    )
     ap.add_argument("--_run", nargs=2, help=argparse.SUPPRESS)  # internal: INPUTS SECONDS
     args = ap.parse_args()
     if args._run:
-        run_loop(Path(args._run[0]), float(args._run[1]))
+        (run_mhss if args.mhss else run_loop)(Path(args._run[0]), float(args._run[1]))
         return 0
     valgrind = shutil.which("valgrind")
     if valgrind is None:
@@ -86,12 +165,16 @@ def main() -> int:
     short, long_ = sorted(args.seconds)
     with tempfile.TemporaryDirectory(prefix="instructions_") as tmp:
         inputs = Path(tmp) / "inputs.pkl"
-        make_inputs(inputs, long_ + 1.0, args.imu_batch)
+        if args.mhss:
+            make_mhss_inputs(inputs, max(long_ + 1.0, 20.0))
+        else:
+            make_inputs(inputs, long_ + 1.0, args.imu_batch, tuple(args.without), args.imu_hz)
         env = dict(os.environ, PYTHONHASHSEED="0", OPENBLAS_NUM_THREADS="1")
         procs = [
             subprocess.Popen(
                 [valgrind, "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable, __file__]
-                + ["--_run", str(inputs), str(s)],
+                + ["--_run", str(inputs), str(s)]
+                + (["--mhss"] if args.mhss else []),
                 env=env,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
@@ -108,9 +191,16 @@ def main() -> int:
             return 1
         counts.append(int(m.group(1)))
     per_s = (counts[1] - counts[0]) / (long_ - short)
-    inputs_text = f"ImuBatch of {args.imu_batch}" if args.imu_batch > 1 else "JSON"
+    if args.mhss:
+        what = "tightly coupled + MHSS (12 satellites, 79 filters)"
+    else:
+        what = "one vehicle, " + (f"ImuBatch of {args.imu_batch}" if args.imu_batch > 1 else "JSON")
+        if args.imu_hz != 200.0:
+            what += f", IMU at {args.imu_hz:g} Hz"
+        if args.without:
+            what += ", without " + ", ".join(args.without)
     print(
-        f"one vehicle, {inputs_text}: {per_s / 1e6:.2f} M instructions per vehicle-second "
+        f"{what}: {per_s / 1e6:.2f} M instructions per vehicle-second "
         f"({counts[0]:,} at {short:g} s, {counts[1]:,} at {long_:g} s); {outs[1][0].strip()}"
     )
     return 0

@@ -47,14 +47,16 @@ class _Publishers:
         self.n += 1
 
 
-def vehicle_inputs(duration_s: float, imu_batch: int) -> list[tuple[float, str, str, bytes]]:
+def vehicle_inputs(
+    duration_s: float, imu_batch: int, imu_hz: float = 200.0, fix_hz: float = 10.0
+) -> list[tuple[float, str, str, bytes]]:
     """(sensor time, kind, sensor id, payload) of every message ``fednav-sim fleet`` publishes for
     one vehicle over ``duration_s``: the demo aircraft, 200 Hz IMU (ImuBatches of ``imu_batch``
-    samples, or JSON per sample when 1), 10 Hz fixes."""
+    samples, or JSON per sample when 1), 10 Hz fixes (other rates: ``imu_hz``, ``fix_hz``)."""
     from fednav.service import keys
     from fednav.simulators.fleet import fleet_scenario, variant_items
 
-    data = fleet_scenario("demo_aircraft", 200.0, 10.0, duration_s)
+    data = fleet_scenario("demo_aircraft", imu_hz, fix_hz, duration_s)
     items, _ = variant_items(data, 1, 0.0, imu_batch, False, keys.DEFAULT_PREFIX)
     inputs = []
     for it in items:
