@@ -52,7 +52,9 @@ clock, DVL offset and scale, ...) kept. After a contested IMU key (the moment of
 known): the last verified state carried over the gap, whole (velocity, attitude, biases, clock
 and their correlations), when the reference agrees with it; else as above with the attitude of
 that carried state (the INS's last interval may hold a forged sample). Without GNSS the carried
-checkpoint is the reference. Every transition is said on the pipeline's
+checkpoint is the reference. A tightly coupled pipeline's satellite exclusions survive the reset
+(a satellite is re-admitted only after its health tests pass against the new filter for
+``readmit_after_s``: ``MhssMonitor.restart``). Every transition is said on the pipeline's
 Faults (subsystem ``lifecycle``) and counted in Health notes.
 
 Reset requests (an InitialNav on a running vehicle, a hand-over): rate-limited, floored, checked

@@ -526,3 +526,17 @@ def test_bank_arrays_stay_valid_until_the_second_update_after():
     kept = P0.copy()
     bank.update(z, H, r_var, row_sat)
     np.testing.assert_array_equal(P0, kept)
+
+
+def test_exclusion_book_health_clock_restarts_when_time_goes_back():
+    """A satellite's run of healthy epochs is measured on the vehicle's time: a new time base
+    (time going back) restarts it instead of keeping the satellite out until the old time returns."""
+    from fednav.service.estimation.integrity.monitor import ExclusionBook
+
+    book = ExclusionBook(readmit_after_s=5.0)
+    book.exclude("C03", 100.0)
+    assert book.observe(101.0, {"C03": True}) == []
+    assert book.observe(10.0, {"C03": True}) == []  # a new time base: the clock restarts at 10 s
+    assert book.observe(14.0, {"C03": True}) == []
+    assert book.observe(15.0, {"C03": True}) == ["C03"]
+    assert "C03" not in book

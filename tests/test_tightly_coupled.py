@@ -265,6 +265,51 @@ def test_excluded_satellite_is_readmitted_after_the_fault_ends(scenario):
     assert all(last.excluded_now in (None, faulty) for _, _, _, last, _ in log)
 
 
+def test_a_restart_keeps_the_exclusions_until_their_health_check_passes(scenario):
+    """A 60 m step on one satellite from 20 s to the end; the pipeline restarted at 30 s (a reset
+    on a running vehicle, as recovery does), readmit_after_s = 5: the satellite stays excluded
+    through the restart and after it (its fault goes on), excluded once, never used again. Before
+    the fix the restart cleared the exclusions: the faulty satellite was back in the next epoch."""
+    traj, epochs = scenario
+    faulty = "C25"
+    cfg = TightlyCoupledConfig(name="tc", readmit_after_s=5.0)
+    step = [(faulty, lambda t: 60.0 if t >= 20.0 else 0.0)]
+    p, log = run(traj, epochs, cfg, step, hook=_reset_at(traj, 30.0))
+    assert p.reinitialisations == 1
+    excl_t = [t for t, _, _, last, _ in log if last.excluded_now == faulty]
+    assert len(excl_t) == 1 and 20.0 <= excl_t[0] <= 20.5
+    after = [(t, out, last) for t, out, _, last, _ in log if t > excl_t[0]]
+    assert any(t > 30.0 for t, _, _ in after)
+    for t, out, last in after:
+        assert faulty not in last.used, f"{faulty} used again at {t:.1f} s"
+        assert out.excluded == [faulty]
+        assert not last.readmitted
+    # a fault that ended (20-30 s) and a restart at 33 s, while its health clock runs: re-admitted
+    # when its 5 s of health are complete (35-40 s, as without the restart), not at the restart
+    step = [(faulty, lambda t: 60.0 if 20.0 <= t < 30.0 else 0.0)]
+    p, log = run(traj, epochs, cfg, step, hook=_reset_at(traj, 33.0))
+    assert p.reinitialisations == 1
+    back_t = [t for t, _, _, last, _ in log if faulty in last.readmitted]
+    assert len(back_t) == 1 and 35.0 - 1e-6 <= back_t[0] <= 40.0
+    assert all(faulty not in last.used for t, _, _, last, _ in log if 20.5 <= t < back_t[0])
+
+
+def _reset_at(traj, t_rel: float):
+    """A hook of :func:`run` that restarts the pipeline from the true state at ``t_rel`` (a reset
+    on a running vehicle, as recovery does)."""
+    done = []
+
+    def hook(k, p):
+        t = float(traj.t_s[k])
+        if not done and t - T0 >= t_rel:
+            s = traj.state_at(t)
+            nav = NavState(t, *s.llh, s.vel_enu_mps.copy(), earth.mat_to_quat(earth.rpy_to_mat_nb(s.rpy_rad)))
+            p.start(nav, InitStd(np.full(3, 5.0), np.full(3, 0.1), np.radians([0.05, 0.05, 0.2])))
+            done.append(t)
+
+    return hook
+
+
 def test_setting_and_rising_satellites_rebuild_the_bank(scenario):
     """A satellite disappears at 30 s and comes back at 40 s (as when setting/rising): the bank
     shrinks and grows (exact rebuilds), no detection, PLs still bound the error."""

@@ -98,8 +98,12 @@ class TightlyCoupled(Pipeline):
     def initialise(self, nav: NavState, std: InitStd) -> None:
         private = self.model.private_states
         self._P0 = P0 = initial_covariance(std, self.imu, private)
+        restart = self.bank is not None
         self.bank = MhssInsBank(nav, P0, self.imu.noise(), self.major_interval_s, private, self.depth)
-        self.monitor.reset()
+        if restart:  # a reset on a running vehicle: the exclusions stay (MhssMonitor.restart)
+            self.monitor.restart()
+        else:
+            self.monitor.reset()
         self.clock_initialised = False
         self.last = None
 

@@ -155,7 +155,7 @@ class ExclusionBook:
             if not ok:
                 e.healthy_since = None
                 continue
-            if e.healthy_since is None:
+            if e.healthy_since is None or t < e.healthy_since:  # (a new time base restarts it)
                 e.healthy_since = t
             if t - e.healthy_since >= self.readmit_after_s - 1e-9:
                 ready.append(sid)
@@ -361,6 +361,17 @@ class MhssMonitor:
 
     def restart_windows(self) -> None:
         """Covariance recovery: the residual windows restart; exclusions are kept."""
+        self.residual.clear()
+
+    def restart(self) -> None:
+        """A restart of the filter on a running vehicle (a reset, a re-initialisation): the
+        residual windows restart (they were taken against the old filter) and the exclusions are
+        kept with their health clocks: a satellite is re-admitted only once its health tests have
+        passed for ``readmit_after_s``, the tests after the restart taken against the new filter
+        (a failed one restarts its clock, as always). A satellite's fault does not depend on the
+        navigation state: clearing the book let an excluded satellite back in at the next epoch
+        without its check (the demo's C03 at a reset 30 s after its ramp fault ended; during a
+        live fault it would have been the faulty satellite)."""
         self.residual.clear()
 
     def epoch(self, bank, meas: Measurement, t: float) -> EpochResult:
