@@ -294,6 +294,38 @@ def test_a_restart_keeps_the_exclusions_until_their_health_check_passes(scenario
     assert all(faulty not in last.used for t, _, _, last, _ in log if 20.5 <= t < back_t[0])
 
 
+def test_a_suspect_state_does_not_judge_an_excluded_satellites_health(scenario):
+    """A 60 m step on one satellite for 20-30 s (readmit_after_s = 5); from 31 to 32 s the INS is
+    300 m off and the pipeline unverified (as while suspect), then restarted from the truth: the
+    health tests against the wrong state do not restart the satellite's health clock, so it is
+    re-admitted as without the episode (before 37 s), not 5 s after it."""
+    traj, epochs = scenario
+    faulty = "C25"
+    cfg = TightlyCoupledConfig(name="tc", readmit_after_s=5.0)
+    step = [(faulty, lambda t: 60.0 if 20.0 <= t < 30.0 else 0.0)]
+    _, log0 = run(traj, epochs, cfg, step)
+    back0 = [t for t, _, _, last, _ in log0 if faulty in last.readmitted]
+    assert len(back0) == 1 and back0[0] < 36.0
+    reset = _reset_at(traj, 32.0)
+    state = {}
+
+    def suspect_episode(k, p):
+        t = float(traj.t_s[k]) - T0
+        if t >= 31.0 and "off" not in state:
+            p.bank.ins.state.lat_rad += 300.0 / 6.4e6
+            p.mark_unverified("imu_contested")
+            state["off"] = t
+        reset(k, p)
+        if t >= 32.0 and "back" not in state:
+            p.mark_verified()
+            state["back"] = t
+
+    p, log = run(traj, epochs, cfg, step, hook=suspect_episode)
+    assert p.reinitialisations == 1
+    back = [t for t, _, _, last, _ in log if faulty in last.readmitted]
+    assert len(back) == 1 and back[0] < 36.0, back
+
+
 def _reset_at(traj, t_rel: float):
     """A hook of :func:`run` that restarts the pipeline from the true state at ``t_rel`` (a reset
     on a running vehicle, as recovery does)."""

@@ -145,7 +145,8 @@ class TightlyCoupled(Pipeline):
         x0, P0 = bank.x[0].copy(), bank.P[0].copy()
         self.note_refusal(nav.t, self.refuses_epoch(meas, x0, P0))  # a suspect state?
         try:
-            res = self.last = self.monitor.epoch(bank, meas, msg.t)
+            # an unverified or suspect state cannot judge an excluded satellite's health
+            res = self.last = self.monitor.epoch(bank, meas, msg.t, judge_health=self.unverified is None)
         except NotPositiveDefinite:
             # numerical health: never continue on a broken P (docs/DESIGN.md reliability rules)
             self.recover_covariance()

@@ -371,29 +371,37 @@ class MhssMonitor:
         (a failed one restarts its clock, as always). A satellite's fault does not depend on the
         navigation state: clearing the book let an excluded satellite back in at the next epoch
         without its check (the demo's C03 at a reset 30 s after its ramp fault ended; during a
-        live fault it would have been the faulty satellite)."""
+        live fault it would have been the faulty satellite). While the new state is not verified
+        the health is not judged at all (``epoch(judge_health=False)``)."""
         self.residual.clear()
 
-    def epoch(self, bank, meas: Measurement, t: float) -> EpochResult:
+    def epoch(self, bank, meas: Measurement, t: float, judge_health: bool = True) -> EpochResult:
         """One GNSS epoch on ``bank`` (an :class:`~service.estimation.integrity.ins_bank.MhssInsBank`).
 
         ``meas``: rows of the usable satellites grouped by satellite (``groups``/``group_ids``),
         pseudorange rows labelled ``<id>.pr``. Updates the bank, feeds the main correction back,
         excludes a faulty satellite when it can. Raises ``NotPositiveDefinite`` (bank unchanged
         since the update) when the main covariance lost positive definiteness.
+
+        ``judge_health`` False (the pipeline's state is suspect or not yet verified: tests against
+        it say nothing of a satellite): the excluded satellites' health is not judged at this
+        epoch, their clocks neither advanced by a pass nor restarted by a failure, and none is
+        re-admitted.
         """
         cfg = self.settings
         mh = bank.mhss
         ids, groups = meas.group_ids, meas.groups
         r_var = meas.r_var
         # 1. re-admission tests of excluded satellites against the current main filter
-        health: dict[str, bool] = {}
-        for g, sid in enumerate(ids):
-            if sid in self.book:
-                sel = groups == g
-                std = residual_test(mh.x[0], mh.P[0], meas.z[sel], meas.H[sel], r_var[sel])
-                health[sid] = bool(np.all(np.abs(std) <= self.k_single))
-        readmitted = tuple(self.book.observe(t, health))
+        readmitted: tuple[str, ...] = ()
+        if judge_health:
+            health: dict[str, bool] = {}
+            for g, sid in enumerate(ids):
+                if sid in self.book:
+                    sel = groups == g
+                    std = residual_test(mh.x[0], mh.P[0], meas.z[sel], meas.H[sel], r_var[sel])
+                    health[sid] = bool(np.all(np.abs(std) <= self.k_single))
+            readmitted = tuple(self.book.observe(t, health))
         # 2. the used set; a change rebuilds the bank
         used = tuple(sid for sid in ids if sid not in self.book)
         if set(used) != set(mh.sats):
