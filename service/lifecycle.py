@@ -54,7 +54,7 @@ and their correlations), when the reference agrees with it; else as above with t
 that carried state (the INS's last interval may hold a forged sample). Without GNSS the carried
 checkpoint is the reference. A tightly coupled pipeline's satellite exclusions survive the reset
 (a satellite is re-admitted only after its health tests pass against the new filter for
-``readmit_after_s``: ``MhssMonitor.restart``). Every transition is said on the pipeline's
+``readmit_after_s``: ``MhssMonitor.restart_windows``). Every transition is said on the pipeline's
 Faults (subsystem ``lifecycle``) and counted in Health notes.
 
 Reset requests (an InitialNav on a running vehicle, a hand-over): rate-limited, floored, checked

@@ -100,8 +100,8 @@ class TightlyCoupled(Pipeline):
         self._P0 = P0 = initial_covariance(std, self.imu, private)
         restart = self.bank is not None
         self.bank = MhssInsBank(nav, P0, self.imu.noise(), self.major_interval_s, private, self.depth)
-        if restart:  # a reset on a running vehicle: the exclusions stay (MhssMonitor.restart)
-            self.monitor.restart()
+        if restart:  # a reset on a running vehicle: the exclusions stay (restart_windows)
+            self.monitor.restart_windows()
         else:
             self.monitor.reset()
         self.clock_initialised = False

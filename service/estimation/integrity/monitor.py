@@ -360,19 +360,15 @@ class MhssMonitor:
         self.residual.clear()
 
     def restart_windows(self) -> None:
-        """Covariance recovery: the residual windows restart; exclusions are kept."""
-        self.residual.clear()
-
-    def restart(self) -> None:
-        """A restart of the filter on a running vehicle (a reset, a re-initialisation): the
-        residual windows restart (they were taken against the old filter) and the exclusions are
-        kept with their health clocks: a satellite is re-admitted only once its health tests have
-        passed for ``readmit_after_s``, the tests after the restart taken against the new filter
-        (a failed one restarts its clock, as always). A satellite's fault does not depend on the
-        navigation state: clearing the book let an excluded satellite back in at the next epoch
-        without its check (the demo's C03 at a reset 30 s after its ramp fault ended; during a
-        live fault it would have been the faulty satellite). While the new state is not verified
-        the health is not judged at all (``epoch(judge_health=False)``)."""
+        """A restart of the filter on a running vehicle (a covariance recovery, a reset, a
+        re-initialisation): the residual windows restart (they were taken against the old filter)
+        and the exclusions are kept with their health clocks: a satellite is re-admitted only
+        once its health tests have passed for ``readmit_after_s``, the tests after the restart
+        taken against the new filter (a failed one restarts its clock, as always), and none while
+        the new state is not verified (``epoch(judge_health=False)``). A satellite's fault does
+        not depend on the navigation state: clearing the book at a reset let an excluded
+        satellite back in at the next epoch without its check (the demo's C03 at a reset 30 s
+        after its ramp fault ended; during a live fault it would have been the faulty one)."""
         self.residual.clear()
 
     def epoch(self, bank, meas: Measurement, t: float, judge_health: bool = True) -> EpochResult:
