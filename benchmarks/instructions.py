@@ -61,24 +61,8 @@ def run_mhss(path: Path, seconds: float) -> None:
     import mhss_bank as mb
     import numpy as np
 
-    from fednav.service import earth
-    from fednav.service.config import ImuModel, TightlyCoupledConfig
-    from fednav.service.ins.mechanisation import NavState
-    from fednav.service.pipelines.base import InitStd
-    from fednav.service.pipelines.tightly_coupled import TightlyCoupled
-
     traj, msgs = pickle.loads(path.read_bytes())
-    p = TightlyCoupled(TightlyCoupledConfig(name="tc"), ImuModel(), 0.1)
-    s0 = traj.state_at(mb.T0)
-    nav = NavState(
-        mb.T0,
-        s0.llh[0],
-        s0.llh[1],
-        s0.llh[2],
-        s0.vel_enu_mps.copy(),
-        earth.mat_to_quat(earth.rpy_to_mat_nb(s0.rpy_rad)),
-    )
-    p.initialise(nav, InitStd(np.full(3, 5.0), np.full(3, 0.2), np.radians([0.05, 0.05, 0.2])))
+    p = mb.make_pipeline(traj)
     dth = [tuple(r) for r in traj.dtheta_rad]
     dv = [tuple(r) for r in traj.dvel_mps]
     digest = hashlib.sha256()
