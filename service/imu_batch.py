@@ -33,6 +33,7 @@ future, gaps, time jumps) are the engine's (:mod:`service.intake_rules`), applie
 
 from __future__ import annotations
 
+import math
 import struct
 
 import numpy as np
@@ -47,6 +48,8 @@ RECORD_FIELDS = 8
 RECORD_BYTES = 8 * RECORD_FIELDS  # 64
 #: samples per batch at most (20 s of a 200 Hz IMU; the payload then is ~256 KiB)
 MAX_SAMPLES = 4096
+#: batches up to this many records are validated by a plain loop first (:func:`validate`)
+SMALL_BATCH = 64
 ENCODING = f"application/octet-stream;fednav.ImuBatch/{VERSION}"
 #: columns of a decoded batch
 T, DT, DTH, DV = 0, 1, slice(2, 5), slice(5, 8)
@@ -122,7 +125,24 @@ def validate(rows: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
 
     Every comparison with a NaN or an infinity is false, so a record that passes the range and
     plausibility tests is finite: the usual all-good batch costs one pass; the per-reason counts
-    are computed only when some record fails."""
+    are computed only when some record fails.
+
+    A batch of up to :data:`SMALL_BATCH` records (a sender's usual batch) is checked first in plain
+    Python, with ImuSample's own arithmetic (``messages._norm``): at ten records the array checks'
+    per-call overhead costs ~3x more than the loop. Only when a record fails there does the
+    vectorised pass name and count the refusals."""
+    n = len(rows)
+    if n <= SMALL_BATCH:
+        for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist():
+            if not (
+                0.0 < dt <= MAX_DT_S
+                and 0.0 <= t <= T_MAX_S
+                and math.sqrt(a0 * a0 + a1 * a1 + a2 * a2) <= MAX_RATE_RPS * dt
+                and math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) <= MAX_SPECIFIC_FORCE_MPS2 * dt
+            ):
+                break
+        else:
+            return np.ones(n, dtype=bool), {}
     with np.errstate(invalid="ignore", over="ignore"):
         t, dt = rows[:, T], rows[:, DT]
         rate = np.sqrt(np.einsum("ij,ij->i", rows[:, DTH], rows[:, DTH]))

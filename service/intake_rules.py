@@ -193,6 +193,24 @@ class AcceptanceRules:
             self.imu_t = t
         return verdict
 
+    def take_imu_in_sequence(self, t: float, dt_s: float, t_ins: float) -> bool:
+        """Whether an IMU interval of a known id is accepted in sequence after the INS time
+        ``t_ins`` (:meth:`decide_imu` would return ACCEPT): if so, recorded exactly as
+        :meth:`decide_imu` records it and True; otherwise False and nothing recorded (the caller
+        then asks :meth:`decide_imu` for the verdict). The fast path of a batch's records."""
+        gap = (t - t_ins) - dt_s
+        intake = self.intake
+        if (
+            t > t_ins
+            and gap <= intake.future_window_s
+            and gap <= intake.max_imu_gap_s
+            and not (self.imu_t == t_ins and t - dt_s < t_ins - OVERLAP_FRACTION * dt_s)
+        ):
+            self._jump = None
+            self.imu_t = t
+            return True
+        return False
+
     def known_sensor(self, kind: str, sensor_id: str) -> bool:
         """Whether ``sensor_id`` is accepted for ``kind`` (adopts the first id of an unlisted kind)."""
         return kind in _NO_ID or self._known_sensor(kind, sensor_id)

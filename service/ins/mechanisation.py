@@ -108,41 +108,50 @@ class Preintegrator:
         self.t_end = t
 
     def push(self, dth, dv, dt: float, t_end: float) -> None:
-        v = self.v
-        th0, th1, th2 = float(dth[0]), float(dth[1]), float(dth[2])
-        v0, v1, v2 = float(dv[0]), float(dv[1]), float(dv[2])
+        self.push6(
+            float(dth[0]), float(dth[1]), float(dth[2]), float(dv[0]), float(dv[1]), float(dv[2]), dt, t_end
+        )
+
+    def push6(
+        self, th0: float, th1: float, th2: float, v0: float, v1: float, v2: float, dt: float, t_end: float
+    ) -> None:
+        """:meth:`push` of one interval given as six floats (the engine's batch records): the
+        state in locals and written back once (every sum in the same order as element by element,
+        so the results are the same to the last bit)."""
+        (al0, al1, al2, be0, be1, be2, nu0, nu1, nu2, sc0, sc1, sc2,
+         S10, S11, S12, S20, S21, S22, S30, S31, S32, S40, S41, S42) = self.v  # fmt: skip
         p0, p1, p2, q0, q1, q2, pdt = self._prev
         # A = alpha_(m-1) + dth_(m-1)/6, N = nu_(m-1) + dv_(m-1)/6, tau = t_(m-1) + dt_(m-1)/6
-        A0, A1, A2 = v[0] + p0 / 6.0, v[1] + p1 / 6.0, v[2] + p2 / 6.0
-        N0, N1, N2 = v[6] + q0 / 6.0, v[7] + q1 / 6.0, v[8] + q2 / 6.0
+        A0, A1, A2 = al0 + p0 / 6.0, al1 + p1 / 6.0, al2 + p2 / 6.0
+        N0, N1, N2 = nu0 + q0 / 6.0, nu1 + q1 / 6.0, nu2 + q2 / 6.0
         tau = self.T + pdt / 6.0
-        c0, c1, c2 = _cross(A0, A1, A2, th0, th1, th2)  # coning
-        v[3] += 0.5 * c0
-        v[4] += 0.5 * c1
-        v[5] += 0.5 * c2
-        s0, s1, s2 = _cross(A0, A1, A2, v0, v1, v2)  # sculling
-        r0, r1, r2 = _cross(N0, N1, N2, th0, th1, th2)
-        v[9] += 0.5 * (s0 + r0)
-        v[10] += 0.5 * (s1 + r1)
-        v[11] += 0.5 * (s2 + r2)
-        v[12] += A0 * dt
-        v[13] += A1 * dt
-        v[14] += A2 * dt
-        v[15] += tau * th0
-        v[16] += tau * th1
-        v[17] += tau * th2
-        v[18] += tau * v0
-        v[19] += tau * v1
-        v[20] += tau * v2
-        v[21] += N0 * dt
-        v[22] += N1 * dt
-        v[23] += N2 * dt
-        v[0] += th0
-        v[1] += th1
-        v[2] += th2
-        v[6] += v0
-        v[7] += v1
-        v[8] += v2
+        # coning A x dth; sculling A x dv + N x dth
+        self.v = [
+            al0 + th0,
+            al1 + th1,
+            al2 + th2,
+            be0 + 0.5 * (A1 * th2 - A2 * th1),
+            be1 + 0.5 * (A2 * th0 - A0 * th2),
+            be2 + 0.5 * (A0 * th1 - A1 * th0),
+            nu0 + v0,
+            nu1 + v1,
+            nu2 + v2,
+            sc0 + 0.5 * ((A1 * v2 - A2 * v1) + (N1 * th2 - N2 * th1)),
+            sc1 + 0.5 * ((A2 * v0 - A0 * v2) + (N2 * th0 - N0 * th2)),
+            sc2 + 0.5 * ((A0 * v1 - A1 * v0) + (N0 * th1 - N1 * th0)),
+            S10 + A0 * dt,
+            S11 + A1 * dt,
+            S12 + A2 * dt,
+            S20 + tau * th0,
+            S21 + tau * th1,
+            S22 + tau * th2,
+            S30 + tau * v0,
+            S31 + tau * v1,
+            S32 + tau * v2,
+            S40 + N0 * dt,
+            S41 + N1 * dt,
+            S42 + N2 * dt,
+        ]
         self._prev = (th0, th1, th2, v0, v1, v2, dt)
         self.T += dt
         self.t_end = t_end
