@@ -203,10 +203,14 @@ class VehicleEngine:
     def _imu_sample(self, sensor_id: str, msg: ImuSample) -> bool:
         """:meth:`handle` of an IMU sample (every message of a JSON IMU stream): the same steps
         (no time-base watch, which skips the IMU), with the stream's key made once."""
-        verdict = self.rules.decide("imu", sensor_id, msg, self.last_imu_t, self.life.initialised)
         key = self._imu_keys.get(sensor_id)
         if key is None:
             key = self._imu_keys[sensor_id] = f"imu/{sensor_id}" if sensor_id else "imu"
+        if not self._sample_pipes and self.rules.known_sensor("imu", sensor_id):
+            (a0, a1, a2), (v0, v1, v2) = msg.dtheta_rad, msg.dvel_mps
+            if self._usual_imu(key, msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2):
+                return True
+        verdict = self.rules.decide("imu", sensor_id, msg, self.last_imu_t, self.life.initialised)
         reason = verdict.reason
         if reason is None or reason in ("not_initialised", "imu_gap", "time_jump"):
             self._note_key(key, msg.t)
@@ -227,52 +231,16 @@ class VehicleEngine:
                 self._watch_refusals("imu", sensor_id, float(r[0]), "unexpected_sensor")
             self.rejected["unexpected_sensor"] += len(rows)
             return 0
-        rules = self.rules
-        decide = rules.decide_imu
+        decide = self.rules.decide_imu
         key = f"imu/{sensor_id}" if sensor_id else "imu"
         refusals = self._refusals
-        streams = self.streams
-        life = self.life
-        major = self.config.major_interval_s - 1e-9
-        rate = self.config.output.solution_rate_hz
-        plain = not self._sample_pipes
+        usual = self._usual_imu if not self._sample_pipes else None
         accepted = 0
         for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist():
-            t_ins = self.last_imu_t
-            # The usual record, in one step: an initialised INS, no aiding due before the record's
-            # end, and in sequence by the rules (taken as decide_imu takes it). Exactly what
-            # decide_imu and _imu_values do with it, without their calls (a third of a fleet
-            # vehicle's cost is its 200 records a second).
-            if (
-                plain
-                and life.initialised
-                and t_ins is not None
-                and not (self.pending and self.pending[0][0] <= t + 1e-9)
-                and rules.take_imu_in_sequence(t, dt, t_ins)
-            ):
-                prev = streams.get(key)
-                streams[key] = (t, t - prev[0] if prev and t > prev[0] else (prev[1] if prev else None))
-                if refusals:
-                    refusals.pop(key, None)
-                if t - t_ins > 1e-12:
-                    # the span over the interval's own length (_imu_values: at GPS-second
-                    # magnitudes rarely exactly 1)
-                    scale = (t - t_ins) / dt
-                    if scale != 1.0:
-                        a0, a1, a2 = a0 * scale, a1 * scale, a2 * scale
-                        v0, v1, v2 = v0 * scale, v1 * scale, v2 * scale
-                    pre = self.pre
-                    pre.push6(a0, a1, a2, v0, v1, v2, t - t_ins, t)
-                    if pre.T >= major:
-                        self._advance_all()
-                self.last_imu_t = self.last_t = t
-                k = math.floor(t * rate + 1e-3)
-                if k > self._last_out_k:
-                    self._last_out_k = k
-                    self.emit_solutions()
+            if usual is not None and usual(key, t, dt, a0, a1, a2, v0, v1, v2):
                 accepted += 1
                 continue
-            verdict = decide(t, dt, t_ins)
+            verdict = decide(t, dt, self.last_imu_t)
             reason = verdict.reason
             if reason is None or reason in ("imu_gap", "time_jump"):
                 self._note_key(key, t)  # _note_stream, the key made once per batch
@@ -281,6 +249,49 @@ class VehicleEngine:
                 self._watch_refusals("imu", sensor_id, t, reason)
             accepted += self._imu_values(t, dt, (a0, a1, a2), (v0, v1, v2), verdict)
         return accepted
+
+    def _usual_imu(
+        self, key: str, t: float, dt: float, a0: float, a1: float, a2: float, v0: float, v1: float, v2: float
+    ) -> bool:
+        """The usual IMU interval of a known id (a JSON sample or a batch's record), in one step:
+        an initialised INS, no aiding due before the interval's end, and in sequence by the rules
+        (:meth:`AcceptanceRules.take_imu_in_sequence`). Taken exactly as :meth:`_imu_sample` /
+        :meth:`handle_imu_batch` with decide_imu and :meth:`_imu_values` take it (the same
+        bookkeeping, the same floats; tests/test_imu_batch.py checks both paths on an irregular
+        stream), without their calls: a third of a fleet vehicle's cost is its 200 intervals a
+        second. Returns False, having changed nothing, when the interval needs the general path
+        (the caller then asks the rules for its verdict). Not for pipelines that take IMU sample
+        objects (``_sample_pipes``): the caller checks."""
+        t_ins = self.last_imu_t
+        if (
+            t_ins is None
+            or not self.life.initialised
+            or (self.pending and self.pending[0][0] <= t + 1e-9)
+            or not self.rules.take_imu_in_sequence(t, dt, t_ins)
+        ):
+            return False
+        streams = self.streams
+        prev = streams.get(key)  # _note_key
+        streams[key] = (t, t - prev[0] if prev and t > prev[0] else (prev[1] if prev else None))
+        if self._refusals:
+            self._refusals.pop(key, None)  # _watch_refusals of a sample taken
+        if t - t_ins > 1e-12:
+            # a short gap stretches the interval over it (_imu_values: the span over the
+            # interval's own length, at GPS-second magnitudes rarely exactly 1)
+            scale = (t - t_ins) / dt
+            if scale != 1.0:
+                a0, a1, a2 = a0 * scale, a1 * scale, a2 * scale
+                v0, v1, v2 = v0 * scale, v1 * scale, v2 * scale
+            pre = self.pre  # _push
+            pre.push6(a0, a1, a2, v0, v1, v2, t - t_ins, t)
+            if pre.T >= self.config.major_interval_s - 1e-9:
+                self._advance_all()
+        self.last_imu_t = self.last_t = t
+        k = math.floor(t * self.config.output.solution_rate_hz + 1e-3)  # _maybe_output
+        if k > self._last_out_k:
+            self._last_out_k = k
+            self.emit_solutions()
+        return True
 
     def _keep_truth(self, msg: Truth) -> None:
         self._truth[self._tkey(msg.t)] = msg

@@ -13,6 +13,7 @@ import pytest
 
 from fednav.service import imu_batch, keys
 from fednav.service.config import from_dict
+from fednav.service.engine import VehicleEngine
 from fednav.service.messages import ImuSample
 from fednav.service.vehicle import VehicleLoop
 from fednav.simulators.evaluate import CollectingSink, service_config
@@ -206,9 +207,11 @@ def _feed(cfg, msgs: list, batch: int, as_json: bool) -> VehicleLoop:
 
 
 @pytest.mark.parametrize("seed", [5, 6])
-def test_batches_of_an_irregular_stream_give_the_same_solutions_and_counts(seed):
-    """The batch path's usual-record step (service/engine.py ``handle_imu_batch``) and the rules'
-    verdicts agree with the per-sample path on every irregularity, to the last bit."""
+def test_the_usual_imu_step_takes_an_irregular_stream_as_the_general_path(seed, monkeypatch):
+    """The one-step path of the usual IMU interval (service/engine.py ``_usual_imu``, taken by
+    JSON samples and batch records) against the general path (the rules' verdict, then
+    ``_imu_values``) on every irregularity: the same solutions to the last bit, the same counts;
+    and batches against JSON samples with the same arrivals."""
     sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
     cfg = service_config(sc)
     msgs = []
@@ -217,17 +220,23 @@ def test_batches_of_an_irregular_stream_give_the_same_solutions_and_counts(seed)
             break
         msgs.append((key, msg))
     msgs = _irregular(msgs, np.random.default_rng(seed))
-    a, b = _feed(cfg, msgs, 7, as_json=True), _feed(cfg, msgs, 7, as_json=False)
-    ra, rb = a.engine.sink.records, b.engine.sink.records
-    assert ra.keys() == rb.keys() and ra
-    for name in ra:
-        sa, sb = ra[name].solutions, rb[name].solutions
-        assert len(sa) == len(sb) > 200
-        assert sa == sb
-    assert a.counters == b.counters
+    runs = [_feed(cfg, msgs, 7, as_json=True), _feed(cfg, msgs, 7, as_json=False)]
+    with monkeypatch.context() as m:
+        m.setattr(VehicleEngine, "_usual_imu", lambda self, *args: False)  # the general path only
+        runs += [_feed(cfg, msgs, 7, as_json=True), _feed(cfg, msgs, 7, as_json=False)]
+    ref = runs[2]
+    assert ref.counters != {}
     for reason in ("duplicate", "time_backwards", "overlap", "imu_gap"):
-        assert a.counters.get(reason, 0) > 0, (reason, a.counters)
-    assert a.accepted == b.accepted
+        assert ref.counters.get(reason, 0) > 0, (reason, ref.counters)
+    for run in (runs[0], runs[1], runs[3]):
+        a, b = ref.engine.sink.records, run.engine.sink.records
+        assert a.keys() == b.keys() and a
+        for name in a:
+            assert len(a[name].solutions) == len(b[name].solutions) > 200
+            assert a[name].solutions == b[name].solutions
+        assert run.counters == ref.counters
+        assert run.accepted == ref.accepted
+        assert run.engine.streams == ref.engine.streams  # each stream's last time and interval
 
 
 @pytest.mark.integration
