@@ -300,6 +300,7 @@ class VehicleWorker:
             if not engine._usable(est):
                 continue
             Pb = np.clip(np.diagonal(p.bank.P[0])[9:15], 0.0, None)
+            monitor = getattr(p, "monitor", None)  # MHSS integrity: its satellite exclusions
             out.append(
                 HandoverState(
                     t=nav.t,
@@ -316,6 +317,7 @@ class VehicleWorker:
                     accel_bias_mps2=tuple(float(v) for v in nav.accel_bias_mps2),
                     bias_std=tuple(float(v) for v in np.sqrt(Pb)),
                     status=status,
+                    excluded=monitor.book.healthy_for(nav.t) if monitor is not None else {},
                 )
             )
         return out
@@ -350,6 +352,15 @@ class VehicleWorker:
         else:  # the engine's lifecycle without a handover transition: a plain start
             self.engine._start(nav, std)
         self.engine.notes[f"handed_over_from:{st.service}"] += 1
+        # each integrity monitor keeps the satellites its pipeline's last state excluded (a faulty
+        # satellite must not come back with the service that takes the vehicle over)
+        for p in self.engine.pipelines:
+            monitor = getattr(p, "monitor", None)
+            own = [s for s in usable if s.pipeline == p.name]
+            excluded = own[0].excluded if own and monitor is not None else {}
+            if excluded:
+                monitor.book.restore(excluded, t_start)
+                self.engine.notes["handover_exclusions"] += len(excluded)
         log.info(
             "vehicle %s handed over from service %s (state %.2f s old, status %s)",
             self.vehicle,

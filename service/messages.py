@@ -704,6 +704,9 @@ class Health(WireModel):
     )
 
 
+SatId = Annotated[str, Field(min_length=1, max_length=16)]
+
+
 class HandoverState(WireModel):
     """A served vehicle's pipeline state for another service of its fleet (``[fleet] sharding =
     'rendezvous'``, key ``{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}``, about 1 Hz): what
@@ -730,6 +733,13 @@ class HandoverState(WireModel):
         description="1-sigma of the gyro (rad/s) and accelerometer (m/s^2) bias estimates"
     )
     status: str = Field(max_length=32, description="The pipeline's status when published")
+    excluded: dict[SatId, Annotated[float, Field(ge=0.0)]] = Field(
+        default_factory=dict,
+        max_length=64,
+        description="Satellites the pipeline's integrity monitor excludes as faulty (MHSS), each with "
+        "the seconds its health tests have passed so far (0: failing): the service taking the "
+        "vehicle over keeps them out until they have passed for the monitor's re-admission time",
+    )
 
     @model_validator(mode="after")
     def _plausible(self):

@@ -136,3 +136,68 @@ def test_hand_over_on_a_running_vehicle_is_a_checked_reset_request():
     assert done == {"far": False, "near": True}
     assert eng.notes["handed_over"] == 1 and p.status == "aided"
     assert [e for *_, e, _ in eng.life.history][-2:] == ["hand_over", "verified"]
+
+
+class _Pubs:
+    """The service's publishers without Zenoh: the Integrity messages kept."""
+
+    def __init__(self):
+        self.integrity = []
+
+    def publish(self, key: str, msg) -> None:
+        if type(msg).__name__ == "Integrity":
+            self.integrity.append(msg)
+
+
+def _worker(cfg):
+    from fednav.service.app import OutputSink, VehicleWorker
+
+    pubs = _Pubs()
+    return VehicleWorker("v1", cfg, OutputSink(keys.DEFAULT_PREFIX, pubs, None), pubs, None, None), pubs
+
+
+@pytest.mark.parametrize("carried", [True, False], ids=["exclusions_carried", "control_without"])
+def test_a_hand_over_keeps_the_satellites_integrity_excluded(carried):
+    """A vehicle handed over to another service of its fleet (app.VehicleWorker.take_over) during
+    a live satellite fault: the MHSS monitor there keeps the satellite the old service's monitor
+    had excluded (HandoverState.excluded, with its health clock), instead of taking the faulty
+    satellite back at its first epoch. The control, the same hand-over without the exclusions,
+    shows what the test guards: the faulty satellite used again at the first epoch, its fault
+    detected anew (here at once: 70 s into its ramp; a smaller fault would stay in longer)."""
+    sc = shortened("demo_product.toml", 125.0)  # its GEO3 ramp fault: 30-110 s
+    cfg = service_config(sc)
+    t_cut = sc.t0_gps_s + 100.0
+    a, _ = _worker(cfg)
+    b, pubs_b = _worker(cfg)
+    states = None
+    for key, msg in Simulation(sc, seed=SEED):
+        pk = keys.parse_input(key)
+        if msg.t <= t_cut:
+            a.loop.process(pk.kind, pk.sensor_id, msg)
+            continue
+        if states is None:  # the old service's last states, through the wire
+            states = {s.pipeline: s for s in a.handover_states("service-a")}
+            book = next(p for p in a.engine.pipelines if getattr(p, "monitor", None)).monitor.book
+            assert book.ids and states["tc_mhss"].excluded.keys() == set(book.ids)
+            excluded = set(book.ids)
+            if not carried:
+                states = {n: s.model_copy(update={"excluded": {}}) for n, s in states.items()}
+            payloads = {n: s.to_json() for n, s in states.items()}
+            b.loop.starter = lambda t, payloads=payloads: b.take_over(payloads, t)
+        if pk.kind == "truth" or msg.t > t_cut + 5.0:
+            continue
+        b.loop.process(pk.kind, pk.sensor_id, msg)
+    assert b.engine.initialised and b.engine.notes["handed_over_from:service-a"] == 1
+    after = [m for m in pubs_b.integrity if m.pipeline == "tc_mhss"]
+    assert len(after) >= 4
+    in_use = [{s.id for s in m.satellites} for m in after]
+    if carried:
+        assert b.engine.notes["handover_exclusions"] == len(excluded)
+        for m, used in zip(after, in_use, strict=True):
+            assert excluded <= set(m.excluded) and not (excluded & used), (m.t, m.excluded, used)
+            assert not m.detected and not m.alarm, m.t  # nothing to detect: the fault never came in
+    else:
+        # the faulty satellite taken back in: the first epoch's filters used it, its fault had to
+        # be detected again (a detection the hand-over caused) and it was excluded again
+        first = after[0]
+        assert first.detected and excluded <= set(first.excluded), first

@@ -540,3 +540,33 @@ def test_exclusion_book_health_clock_restarts_when_time_goes_back():
     assert book.observe(14.0, {"C03": True}) == []
     assert book.observe(15.0, {"C03": True}) == ["C03"]
     assert "C03" not in book
+
+
+def test_exclusion_book_carried_to_another_book_keeps_each_health_clock():
+    """What a hand-over carries (HandoverState.excluded): each excluded satellite with the seconds
+    its health tests have passed; the book that takes them needs only the rest of the
+    re-admission time, and a satellite failing at the hand-over (0 s) the whole of it."""
+    from fednav.service.estimation.integrity.monitor import ExclusionBook
+
+    old = ExclusionBook(readmit_after_s=60.0)
+    old.exclude("C03", 100.0)
+    old.exclude("G07", 100.0)
+    old.observe(110.0, {"C03": True, "G07": False})
+    old.observe(140.0, {"C03": True, "G07": False})
+    carried = old.healthy_for(150.0)
+    assert carried == {"C03": 40.0, "G07": 0.0}
+    new = ExclusionBook(readmit_after_s=60.0)
+    new.restore(carried, 500.0)  # another service, its own time of the hand-over
+    assert new.ids == ["C03", "G07"]
+    assert new.observe(510.0, {"C03": True, "G07": True}) == []
+    assert new.observe(520.0, {"C03": True, "G07": True}) == ["C03"]  # 40 s there + 20 s here
+    assert new.observe(569.0, {"G07": True}) == []
+    assert new.observe(570.0, {"G07": True}) == ["G07"]  # its own 60 s, from 510 s
+    # a satellite excluded here already keeps the clock that has passed less
+    both = ExclusionBook(readmit_after_s=60.0)
+    both.exclude("C03", 480.0)
+    both.observe(490.0, {"C03": True})  # healthy since 490 s here: 10 s at 500 s
+    both.restore({"C03": 40.0}, 500.0)
+    assert both.healthy_for(500.0) == {"C03": 10.0}
+    both.restore({"C03": 0.0}, 500.0)
+    assert both.healthy_for(500.0) == {"C03": 0.0}

@@ -166,6 +166,26 @@ class ExclusionBook:
     def clear(self) -> None:
         self.entries.clear()
 
+    def healthy_for(self, t: float) -> dict[str, float]:
+        """Each excluded satellite with the seconds its health tests have passed at ``t`` (0 while
+        failing): what another service needs to keep it out as long as this one would."""
+        return {
+            sid: 0.0 if e.healthy_since is None else max(0.0, t - e.healthy_since)
+            for sid, e in self.entries.items()
+        }
+
+    def restore(self, healthy_for: dict[str, float], t: float) -> None:
+        """Exclude the satellites of :meth:`healthy_for` (another service's book) at ``t``, their
+        health clocks as far along as they were there (a satellite already excluded here keeps the
+        clock of whichever has passed less)."""
+        for sid, h in healthy_for.items():
+            since = t - h if h > 0.0 else None
+            e = self.entries.get(sid)
+            if e is None:
+                self.entries[sid] = _Excluded(t, since)
+            elif since is None or (e.healthy_since is not None and since > e.healthy_since):
+                e.healthy_since = since
+
 
 @dataclass(frozen=True)
 class ResidualTests:
