@@ -258,8 +258,9 @@ class VehicleEngine:
         (:meth:`AcceptanceRules.take_imu_in_sequence`). Taken exactly as :meth:`_imu_sample` /
         :meth:`handle_imu_batch` with decide_imu and :meth:`_imu_values` take it (the same
         bookkeeping, the same floats; tests/test_imu_batch.py checks both paths on an irregular
-        stream), without their calls: a third of a fleet vehicle's cost is its 200 intervals a
-        second. Returns False, having changed nothing, when the interval needs the general path
+        stream), without the rules' verdict chain, the pending-aiding loop and the stretch as
+        lists: a third of a fleet vehicle's cost was its 200 intervals a second (docs/SCALING.md).
+        Returns False, having changed nothing, when the interval needs the general path
         (the caller then asks the rules for its verdict). Not for pipelines that take IMU sample
         objects (``_sample_pipes``): the caller checks."""
         t_ins = self.last_imu_t
@@ -270,9 +271,7 @@ class VehicleEngine:
             or not self.rules.take_imu_in_sequence(t, dt, t_ins)
         ):
             return False
-        streams = self.streams
-        prev = streams.get(key)  # _note_key
-        streams[key] = (t, t - prev[0] if prev and t > prev[0] else (prev[1] if prev else None))
+        self._note_key(key, t)
         if self._refusals:
             self._refusals.pop(key, None)  # _watch_refusals of a sample taken
         if t - t_ins > 1e-12:
@@ -282,15 +281,9 @@ class VehicleEngine:
             if scale != 1.0:
                 a0, a1, a2 = a0 * scale, a1 * scale, a2 * scale
                 v0, v1, v2 = v0 * scale, v1 * scale, v2 * scale
-            pre = self.pre  # _push
-            pre.push6(a0, a1, a2, v0, v1, v2, t - t_ins, t)
-            if pre.T >= self.config.major_interval_s - 1e-9:
-                self._advance_all()
+            self._push6(a0, a1, a2, v0, v1, v2, t - t_ins, t)
         self.last_imu_t = self.last_t = t
-        k = math.floor(t * self.config.output.solution_rate_hz + 1e-3)  # _maybe_output
-        if k > self._last_out_k:
-            self._last_out_k = k
-            self.emit_solutions()
+        self._maybe_output(t)
         return True
 
     def _keep_truth(self, msg: Truth) -> None:
@@ -458,8 +451,14 @@ class VehicleEngine:
 
     def _push(self, dth, dv, dt, t_end) -> None:
         """One minor-loop step for every pipeline at once (shared preintegration)."""
+        self._push6(
+            float(dth[0]), float(dth[1]), float(dth[2]), float(dv[0]), float(dv[1]), float(dv[2]), dt, t_end
+        )
+
+    def _push6(self, a0, a1, a2, v0, v1, v2, dt, t_end) -> None:
+        """:meth:`_push` of an interval given as six floats."""
         pre = self.pre
-        pre.push(dth, dv, dt, t_end)
+        pre.push6(a0, a1, a2, v0, v1, v2, dt, t_end)
         if pre.T >= self.config.major_interval_s - 1e-9:
             self._advance_all()
 
