@@ -90,6 +90,63 @@ def test_vectorised_validation_names_each_bad_record():
         assert valid == bool(ok[i]), i
 
 
+def test_small_batch_check_agrees_with_the_vectorised_one_at_the_limits(monkeypatch):
+    """A batch of up to SMALL_BATCH records is passed by a plain loop first: whatever it passes,
+    the vectorised check passes too, and a batch it does not pass gets the vectorised verdicts.
+    Records on and one ulp around every limit (interval, time, rate, specific force), NaN and
+    infinities, in random batches."""
+    from fednav.service.messages import MAX_DT_S, MAX_RATE_RPS, MAX_SPECIFIC_FORCE_MPS2, T_MAX_S
+
+    rng = np.random.default_rng(7)
+    base = _rows(1)[0]
+
+    def near(x):
+        return [np.nextafter(x, -np.inf), x, np.nextafter(x, np.inf)]
+
+    edge = []
+    for dt in [*near(MAX_DT_S), np.nextafter(0.0, 1.0), 0.0, 0.005]:
+        edge.append(np.r_[base[0], dt, base[2:]])
+    edge.append(np.r_[base[0], 0.0, np.zeros(6)])  # no interval, no increments: out of range all the same
+    for t in [*near(T_MAX_S), 0.0, -0.0, np.nextafter(0.0, -1.0)]:
+        edge.append(np.r_[t, base[1:]])
+    for col, limit in ((2, MAX_RATE_RPS), (5, MAX_SPECIFIC_FORCE_MPS2)):
+        for norm in near(limit * 0.005):
+            for axis in range(3):  # the whole norm on one axis, and spread over three
+                r = base.copy()
+                r[1] = 0.005
+                r[col : col + 3] = 0.0
+                r[col + axis] = norm
+                edge.append(r)
+            r = base.copy()
+            r[1] = 0.005
+            r[col : col + 3] = norm / np.sqrt(3.0)
+            edge.append(r)
+    for v in (np.nan, np.inf, -np.inf):
+        r = base.copy()
+        r[int(rng.integers(0, 8))] = v
+        edge.append(r)
+    edge = np.array(edge)
+    with monkeypatch.context() as m:
+        m.setattr(imu_batch, "SMALL_BATCH", 0)
+        good = edge[imu_batch.validate(edge)[0]]  # the records the vectorised check passes
+    assert 0 < len(good) < len(edge)
+    all_good = 0
+    for i in range(600):
+        # batches of any records, of good ones only, and of good ones with one record of the
+        # edge set among them (a failing record alone in a batch is the one the loop must see)
+        pool = edge if i % 3 == 0 else good
+        rows = pool[rng.integers(0, len(pool), int(rng.integers(1, imu_batch.SMALL_BATCH + 1)))]
+        if i % 3 == 2:
+            rows[int(rng.integers(0, len(rows)))] = edge[i // 3 % len(edge)]
+        ok, bad = imu_batch.validate(rows)
+        with monkeypatch.context() as m:
+            m.setattr(imu_batch, "SMALL_BATCH", 0)  # the vectorised check only
+            ok_v, bad_v = imu_batch.validate(rows)
+        assert list(ok) == list(ok_v) and bad == bad_v, rows
+        all_good += not bad
+    assert 200 <= all_good < 600  # both paths taken
+
+
 def _loop(cfg=None) -> VehicleLoop:
     sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
     return VehicleLoop("v1", cfg or service_config(sc), CollectingSink())
