@@ -807,7 +807,7 @@ class VehicleLife:
             self.engine.notes[f"suspect:{p.name}:{reason}"] += 1
         self.go(p, "suspect", t, reason)
         life.verified = False
-        p.mark_unverified(reason)
+        p.mark_unverified(reason, suspect=True)
 
     def on_imu_contested(self, t: float, reason: str) -> None:
         """An IMU sample refused as a second publisher's (``CONTESTED_IMU``): samples of that

@@ -175,6 +175,9 @@ class Pipeline(ABC):
         #: why the running state is not verified by the vehicle's own aiding (None: verified);
         #: set by the vehicle's lifecycle (:mod:`service.lifecycle`), reported ``degraded``
         self.unverified: str | None = None
+        #: the state may be corrupt and its covariance does not say so (lifecycle ``suspect``: a
+        #: contested IMU, refused aiding), until it is verified or reset
+        self.suspect = False
         #: lifecycle events of the pipeline's own screening, for the vehicle's lifecycle (e.g.
         #: ``aiding_refused``: a trusted sensor refused so long that the state is suspect)
         self._events: list[str] = []
@@ -230,14 +233,18 @@ class Pipeline(ABC):
         """The INS is lost (IMU gap, time jump): no navigation until the next start."""
         self.lost = True
 
-    def mark_unverified(self, reason: str) -> None:
+    def mark_unverified(self, reason: str, suspect: bool = False) -> None:
         """The running state came from a source the vehicle's own aiding has not confirmed (a
-        hand-over, a reset request) or is suspect: ``degraded`` until :meth:`mark_verified`."""
+        hand-over, a reset request: its covariance says how far it may be off) or is ``suspect``
+        (it may be corrupt and its covariance does not say so): ``degraded`` until
+        :meth:`mark_verified`, or a restart that replaces the suspect state."""
         self.unverified = reason
+        self.suspect = suspect
 
     def mark_verified(self) -> None:
         """The vehicle's own aiding agrees with the running state again."""
         self.unverified = None
+        self.suspect = False
 
     #: a restart from a checkpoint restores every member of the bank as it was (federated locals:
     #: each local's covariance with its private blocks); False: the members restart from the

@@ -145,8 +145,11 @@ class TightlyCoupled(Pipeline):
         x0, P0 = bank.x[0].copy(), bank.P[0].copy()
         self.note_refusal(nav.t, self.refuses_epoch(meas, x0, P0))  # a suspect state?
         try:
-            # an unverified or suspect state cannot judge an excluded satellite's health
-            res = self.last = self.monitor.epoch(bank, meas, msg.t, judge_health=self.unverified is None)
+            # an unverified or suspect state cannot judge an excluded satellite's health, and a
+            # suspect one (possibly corrupt, its covariance not saying so) no satellite's fault
+            res = self.last = self.monitor.epoch(
+                bank, meas, msg.t, judge_health=self.unverified is None, may_exclude=not self.suspect
+            )
         except NotPositiveDefinite:
             # numerical health: never continue on a broken P (docs/DESIGN.md reliability rules)
             self.recover_covariance()

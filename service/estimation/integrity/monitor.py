@@ -391,7 +391,9 @@ class MhssMonitor:
         after its ramp fault ended; during a live fault it would have been the faulty one)."""
         self.residual.clear()
 
-    def epoch(self, bank, meas: Measurement, t: float, judge_health: bool = True) -> EpochResult:
+    def epoch(
+        self, bank, meas: Measurement, t: float, judge_health: bool = True, may_exclude: bool = True
+    ) -> EpochResult:
         """One GNSS epoch on ``bank`` (an :class:`~service.estimation.integrity.ins_bank.MhssInsBank`).
 
         ``meas``: rows of the usable satellites grouped by satellite (``groups``/``group_ids``),
@@ -403,6 +405,14 @@ class MhssMonitor:
         it say nothing of a satellite): the excluded satellites' health is not judged at this
         epoch, their clocks neither advanced by a pass nor restarted by a failure, and none is
         re-admitted.
+
+        ``may_exclude`` False (the pipeline's state is suspect: it may be corrupt, e.g. by a
+        contested IMU, and its covariance does not say so): a detection excludes no satellite.
+        Every test is then taken against an error the satellites do not have; excluding the
+        satellite that best "resolves" it removed good satellites one an epoch (the demo on seed
+        16, an IMU burst at 10x: three in 0.4 s, two left, the solution 5.7 m off for a minute).
+        The detection is reported (``detected``, unresolved: an alarm); the lifecycle verifies the
+        state against the vehicle's own reference or resets it.
         """
         cfg = self.settings
         mh = bank.mhss
@@ -453,7 +463,7 @@ class MhssMonitor:
         res_detected = bool(np.any(res.flagged))
         detected = ss_detected or res_detected
         resolved, excluded_now = not detected, None
-        if detected and cfg.exclusion:
+        if detected and cfg.exclusion and may_exclude:
             r = mh.find_exclusion(tests, p_fa, self.kmd, usev, nf, res.flagged, res.normalised, hmode)
             if r is not None:
                 excluded_now = mh.sats[r]
