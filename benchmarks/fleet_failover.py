@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import signal
 import sys
 import tempfile
 import time
@@ -27,7 +26,7 @@ import numpy as np
 
 from fednav.simulators.fleet import vehicle_names
 from fednav.simulators.fleet_watch import FleetWatch
-from fednav.simulators.processes import Proc, free_port
+from fednav.simulators.processes import Proc, free_port, stop_all
 
 
 def _service(port: int, cfg: Path) -> Proc:
@@ -178,14 +177,7 @@ def run(n: int, imu_rate: float, handover: bool, tmp: Path) -> dict:
         dup_after = sum(watch.duplicates(v, time.monotonic() - 10.0) for v in names)
         out["rejoin"]["duplicate_solutions_last_10_s"] = dup_after
     finally:
-        for p in reversed(procs):
-            if p.p.poll() is None:
-                p.signal(signal.SIGTERM)
-        for p in reversed(procs):
-            try:
-                p.wait(timeout=30)
-            except Exception:
-                p.kill()
+        stop_all(procs)
         watch.close()
     return out
 

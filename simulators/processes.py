@@ -75,6 +75,21 @@ class Proc:
             self.p.wait()
 
 
+def stop_all(procs: list[Proc], timeout: float = 30.0) -> None:
+    """Stop processes started together, the last started first: SIGTERM to every one still
+    running (a stopped one, SIGSTOP, is continued first: it would not act on SIGTERM), then wait
+    for each, killing what does not exit within ``timeout``."""
+    for p in reversed(procs):
+        if p.p.poll() is None:
+            p.signal(signal.SIGCONT)
+            p.signal(signal.SIGTERM)
+    for p in reversed(procs):
+        try:
+            p.wait(timeout=timeout)
+        except Exception:
+            p.kill()
+
+
 def start_service(
     port: int,
     *,

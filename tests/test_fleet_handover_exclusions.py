@@ -24,7 +24,7 @@ import tomllib
 import pytest
 
 from fednav.service import fleet
-from fednav.simulators.processes import Proc, free_port
+from fednav.simulators.processes import Proc, free_port, stop_all
 
 from .scenario_utils import SCENARIOS
 from .test_fleet_sharding import _router, _service, _zid
@@ -235,14 +235,5 @@ def test_a_process_handover_during_a_satellite_fault_keeps_the_satellite_exclude
         assert _wait(lambda: bool(noted()), 10), bus.healths(t_resume)[-1:]
         assert noted()[-1]["notes"].get("handover_exclusions") == len(excluded), noted()[-1]["notes"]
     finally:
-        for p in reversed(procs):
-            if p.p.poll() is None:
-                if p is sim:
-                    p.signal(signal.SIGCONT)  # a stopped process does not act on SIGTERM
-                p.signal(signal.SIGTERM)
-        for p in reversed(procs):
-            try:
-                p.wait(timeout=30)
-            except Exception:
-                p.kill()
+        stop_all(procs)  # the simulator continued first if it is stopped
         bus.close()

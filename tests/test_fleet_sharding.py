@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import functools
 import math
-import signal
 import sys
 import time
 
@@ -16,7 +15,7 @@ import pytest
 from fednav.service import fleet
 from fednav.simulators.fleet import vehicle_names
 from fednav.simulators.fleet_watch import FleetWatch
-from fednav.simulators.processes import Proc, free_port
+from fednav.simulators.processes import Proc, free_port, stop_all
 
 from .scenario_utils import split_zids, wait_until
 
@@ -158,12 +157,5 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
         for v in taken:  # the joining service started them from the survivor's states
             assert f"vehicle {v} handed over from service {_zid(survivor)}" in c.output(), v
     finally:
-        for p in reversed(procs):
-            if p.p.poll() is None:
-                p.signal(signal.SIGTERM)
-        for p in reversed(procs):
-            try:
-                p.wait(timeout=30)
-            except Exception:
-                p.kill()
+        stop_all(procs)
         bus.close()
