@@ -528,3 +528,6 @@ def test_a_suspect_state_excludes_no_satellite(monkeypatch):
     rec = sink.rec["tc_mhss"]
     late = [row[1] for row in rec if row[0] - sc.t0_gps_s >= 155.0]
     assert late and max(late) < 3.0, max(late)
+    # the suspicion ended (reset, then verified by the vehicle's own aiding): exclusions allowed again
+    tc_pipe = next(p for p in eng.pipelines if p.name == "tc_mhss")
+    assert not tc_pipe.suspect and tc_pipe.unverified is None
