@@ -409,7 +409,7 @@ class MhssMonitor:
         ``may_exclude`` False (the pipeline's state is suspect: it may be corrupt, e.g. by a
         contested IMU, and its covariance does not say so): a detection excludes no satellite.
         Every test is then taken against an error the satellites do not have; excluding the
-        satellite that best "resolves" it removed good satellites one an epoch (the demo on seed
+        satellite that best "resolves" it removed good satellites one per epoch (the demo on seed
         16, an IMU burst at 10x: three in 0.4 s, two left, the solution 5.7 m off for a minute).
         The detection is reported (``detected``, unresolved: an alarm); the lifecycle verifies the
         state against the vehicle's own reference or resets it.
