@@ -524,6 +524,12 @@ class Service:
         #: shard (``--shards``, :mod:`service.shards`); None: every served vehicle
         self.shard = shard if shard is not None and shard[1] > 1 else None
         self._shard_cache: dict[str, bool] = {}
+        #: vehicles another shard or fleet member serves, as _route found them: their inputs are
+        #: dropped by the intake before their payload is read (_wanted). Emptied when the fleet's
+        #: membership changes; _foreign_gen keeps a verdict of the old membership out of it
+        self._foreign: set[str] = set()
+        self._foreign_gen = 0
+        self._foreign_lock = threading.Lock()
         self.fleet_view = None
         self._rebalance_due = threading.Event()
         self.retired_vehicles = 0
@@ -604,7 +610,10 @@ class Service:
             else keys.inputs_selector("*", cfg.prefix)
         )
         many = self._deliver_many if inline else None  # inline: drains handed over whole
-        self.intake = zenoh_io.Intake(self.session, selectors, self._deliver, deliver_many=many)
+        wanted = self._wanted if self.shard is not None or self.fleet_view is not None else None
+        self.intake = zenoh_io.Intake(
+            self.session, selectors, self._deliver, deliver_many=many, wanted=wanted
+        )
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
             from fednav.service.transport.ros2 import header_stamp_s
@@ -773,9 +782,13 @@ class Service:
         if not keys.valid_name(vehicle):
             return self._refuse("bad_vehicle_name", vehicle)
         if self.fleet_view is not None:
+            gen = self._foreign_gen  # read before the verdict (see _forget_foreign)
             if not self.fleet_view.mine(vehicle):
+                if self.fleet_view.active:
+                    self._note_foreign(vehicle, gen)
                 return None  # another service of the fleet serves it (validated name first)
         elif self.shard is not None and not self._mine(vehicle):
+            self._note_foreign(vehicle, self._foreign_gen)
             return None  # another shard of this service serves it (validated name first)
         serve_all = "*" in self.config.vehicles
         if not serve_all and vehicle not in self.config.vehicles:
@@ -789,10 +802,33 @@ class Service:
             return None
         return w, (wall, pk.kind, pk.sensor_id, payload)
 
+    def _wanted(self, key: str) -> bool:
+        """The intake's early filter: False only for an input of a vehicle :meth:`_route` found to be
+        another shard's or fleet member's (every other key is routed as before). With S services
+        or shards each receives the whole fleet's inputs to keep 1/S of them; this drops the rest
+        for a key split and a set lookup, before the arrival time, the payload copy and the
+        key's parsing."""
+        parts = key.split("/", 2)
+        return len(parts) < 2 or parts[1] not in self._foreign
+
+    def _note_foreign(self, vehicle: str, gen: int) -> None:
+        with self._foreign_lock:
+            if gen == self._foreign_gen:  # no membership change since the verdict was made
+                if len(self._foreign) > 200_000:
+                    self._foreign.clear()
+                self._foreign.add(vehicle)
+
+    def _forget_foreign(self) -> None:
+        """Ownership changed (a member came or went, this service joined): every verdict goes."""
+        with self._foreign_lock:
+            self._foreign_gen += 1
+            self._foreign.clear()
+
     # --- fleet sharing ([fleet] sharding = "rendezvous") -----------------------------------------
     def _on_member(self, key: str, payload: bytes | None) -> None:
         """A fleet member's token appeared or vanished (Zenoh callback: record, never block)."""
         if self.fleet_view.update(key.rsplit("/", 1)[-1], payload is not None):
+            self._forget_foreign()
             self._rebalance_due.set()
 
     def _on_state(self, key: str, payload: bytes | None) -> None:
@@ -805,6 +841,7 @@ class Service:
             return
         self.liveliness.declare(self._fleet_token)
         self.fleet_view.active = True
+        self._forget_foreign()
         log.info("joined fleet group %s: members %s", self.fleet_group, self.fleet_view.members())
 
     def _rebalance(self) -> None:
@@ -877,6 +914,8 @@ class Service:
         self._health_stop.set()
         self._health_thread.join(timeout=5.0)
         self.intake.stop()
+        if self.intake.unwanted:
+            log.info("intake: %d inputs of vehicles served elsewhere dropped unread", self.intake.unwanted)
         for watch in self._watches:
             watch.stop()
         if self.ros_intake is not None:

@@ -123,3 +123,47 @@ def test_inline_drain_at_shutdown_ends_at_its_deadline_and_counts_the_rest(sessi
     assert 0 < len(ran) < n
     assert intake._left > 0 and len(ran) + intake._left == n, (len(ran), intake._left)
     assert any(f"{intake._left} messages not run at shutdown" in r.getMessage() for r in caplog.records)
+
+
+def test_unwanted_keys_are_dropped_before_delivery_and_counted(sessions):
+    """A sharded or fleet service's early filter: what ``wanted`` refuses never reaches delivery
+    (its payload is not read), is counted, and the rest keep their order."""
+    a, b = sessions
+    got: list[tuple[str, bytes]] = []
+    drained = []
+    intake = Intake(
+        a,
+        ["t/*/**"],
+        lambda w, k, p: got.append((k, p)),
+        deliver_many=lambda items: drained.extend((k, p) for _, k, p in items),
+        wanted=lambda key: key.split("/")[1] != "other",
+    )
+    time.sleep(0.5)
+    mine = b.declare_publisher("t/v1/imu", reliability=zenoh.Reliability.RELIABLE)
+    other = b.declare_publisher("t/other/imu", reliability=zenoh.Reliability.RELIABLE)
+    for i in range(20):
+        mine.put(f"m{i}".encode())
+        other.put(f"o{i}".encode())
+    assert wait_until(lambda: len(drained) == 20 and intake.unwanted == 20, 10.0)
+    intake.stop()
+    assert not got
+    assert drained == [("t/v1/imu", f"m{i}".encode()) for i in range(20)]
+    assert intake.unwanted == 20
+
+
+def test_a_foreign_verdict_of_an_old_membership_is_not_kept():
+    """Service._route notes another member's vehicle for the intake's filter; a membership change
+    between the verdict and the note (a Zenoh callback on another thread) must not leave it
+    there, or a vehicle that became this service's would be dropped for good."""
+    from fednav.service.app import Service
+
+    svc = Service.__new__(Service)
+    svc._foreign, svc._foreign_gen, svc._foreign_lock = set(), 0, threading.Lock()
+    gen = svc._foreign_gen
+    svc._note_foreign("v1", gen)
+    assert not svc._wanted("fednav/v1/imu") and svc._wanted("fednav/v2/imu")
+    gen = svc._foreign_gen  # a verdict made under this membership ...
+    svc._forget_foreign()  # ... which changes before it is noted
+    svc._note_foreign("v2", gen)
+    assert svc._wanted("fednav/v1/imu") and svc._wanted("fednav/v2/imu")
+    assert svc._wanted("") and svc._wanted("fednav")

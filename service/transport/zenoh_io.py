@@ -222,6 +222,7 @@ class Intake:
         capacity: int = 4096,
         order_key: Callable[[bytes], float] | None = None,
         deliver_many: Callable[[list[tuple[float, str, bytes]]], None] | None = None,
+        wanted: Callable[[str], bool] | None = None,
     ):
         self._subs = [
             session.declare_subscriber(
@@ -231,6 +232,10 @@ class Intake:
         ]
         self._deliver = deliver
         self._deliver_many = deliver_many
+        # wanted(key) False: a message this process is known not to serve (another shard's or
+        # fleet member's vehicle), dropped before its arrival time and payload are read
+        self._wanted = wanted
+        self.unwanted = 0
         self._order_key = order_key
         # one subscription, no reordering (the service's own intake): the thread blocks in the
         # channel's recv (Zenoh releases the GIL while it waits) instead of polling; stop()
@@ -259,11 +264,16 @@ class Intake:
         if self._order_key is not None:
             return self._drain_ordered()
         got = False
+        wanted = self._wanted
         for s in self._subs:
             sample = s.try_recv()
             while sample is not None:
                 got = True
-                self._deliver_one(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
+                key = str(sample.key_expr)
+                if wanted is None or wanted(key):
+                    self._deliver_one(self.arrival(sample), key, sample.payload.to_bytes())
+                else:
+                    self.unwanted += 1
                 sample = s.try_recv()
         return got
 
@@ -303,6 +313,7 @@ class Intake:
     def _run_blocking(self) -> None:
         handler = self._handlers[0]
         many = self._deliver_many
+        wanted = self._wanted
         while True:
             if self._abandon.is_set():  # stop()'s deadline passed: what is left is not run
                 self._left = self._count_left(handler)
@@ -311,19 +322,27 @@ class Intake:
                 sample = handler.recv()
             except zenoh.ZError:  # "channel is empty and closed": undeclared by stop()
                 return
+            key = str(sample.key_expr)
+            if wanted is not None and not wanted(key):
+                self.unwanted += 1
+                continue
             if many is None:
-                self._deliver_one(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())
+                self._deliver_one(self.arrival(sample), key, sample.payload.to_bytes())
                 continue
             # with deliver_many: and what else has arrived (at most DRAIN_MAX), handed on together
-            batch = [(self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes())]
-            while len(batch) < DRAIN_MAX:
+            batch = [(self.arrival(sample), key, sample.payload.to_bytes())]
+            for _ in range(DRAIN_MAX - 1):
                 try:
                     sample = handler.try_recv()
                 except zenoh.ZError:
                     break
                 if sample is None:
                     break
-                batch.append((self.arrival(sample), str(sample.key_expr), sample.payload.to_bytes()))
+                key = str(sample.key_expr)
+                if wanted is not None and not wanted(key):
+                    self.unwanted += 1
+                    continue
+                batch.append((self.arrival(sample), key, sample.payload.to_bytes()))
             try:
                 many(batch)
             except Exception:  # routing must survive any one drain
