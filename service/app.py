@@ -710,6 +710,7 @@ class Service:
             fleet_group=self.fleet_group if self.fleet_view is not None else None,
             fleet_members=self.fleet_view.members() if self.fleet_view is not None else [],
             vehicles_moved_away=self.retired_vehicles,
+            inputs_served_elsewhere=getattr(getattr(self, "intake", None), "unwanted", 0),
         )
 
     def _health_loop(self) -> None:

@@ -784,6 +784,12 @@ class ServiceHealth(WireModel):
     vehicles_moved_away: int = Field(
         0, ge=0, description="Vehicles handed to another service of the fleet since the start"
     )
+    inputs_served_elsewhere: int = Field(
+        0,
+        ge=0,
+        description="Inputs of vehicles another shard or fleet member serves, dropped unread by the "
+        "intake since the start (every service of a fleet receives every vehicle's inputs)",
+    )
 
 
 #: input messages that are not sensors: the initial state, truth (simulators), alignment truth;

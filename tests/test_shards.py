@@ -13,6 +13,8 @@ import pytest
 from fednav.service import fleet
 from fednav.simulators.fleet import vehicle_names
 
+from .scenario_utils import wait_until
+
 
 def test_rendezvous_is_balanced_over_1000_vehicles():
     names = vehicle_names(1000)
@@ -75,6 +77,13 @@ def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
             sols.setdefault(v, []).append(json.loads(sample.payload.to_bytes())["t"])
 
     sub = session.declare_subscriber("fednav/*/nav/lc/solution", on_sol)
+    health: dict[str, dict] = {}  # the latest ServiceHealth per shard (Zenoh id)
+
+    def on_health(sample: zenoh.Sample) -> None:
+        with lock:
+            health[str(sample.key_expr).split("/")[2]] = json.loads(sample.payload.to_bytes())
+
+    hsub = session.declare_subscriber("fednav/_services/*/health", on_health)
     n = 8
     names = vehicle_names(n)
     try:
@@ -106,7 +115,13 @@ def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
                     replies[v].append(json.loads(reply.ok.payload.to_bytes()))
         st = query_status(port, names[0])
         assert st is not None
+        # each shard drops the other's vehicles' inputs in its intake, unread, and says how many
+        assert wait_until(
+            lambda: len(health) == 2 and all(h["inputs_served_elsewhere"] > 1000 for h in health.values()),
+            10.0,
+        ), health
     finally:
+        hsub.undeclare()
         sub.undeclare()
         session.close()
         svc.signal(signal.SIGTERM)
