@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(PY) -m fednav.simulators.demo
 
-# every core, at most 4 workers (each file's tests on one worker: module fixtures built once)
+# one worker per core, at most 4 (each file's tests on one worker: module fixtures built once)
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile
 
