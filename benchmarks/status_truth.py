@@ -15,9 +15,14 @@ runs when the error is correlated in time, so a few runs hold them all).
 
 Also the vertical: epochs 'aided' while the height error exceeds 3x the reported vertical sigma.
 ``--scenario NAME`` runs that scenario as it is (its own pipelines, its own faults: e.g.
-``demo_product``, whose 40-55 s GNSS step is part of the scenario) instead of the clean GNSS one.
+``demo_product``, whose 40-55 s GNSS step is part of the scenario) instead of the clean GNSS one;
+``--family underwater`` (or ``demo``, ``ta``) the clean scenario of another family of
+benchmarks/hardening.py. ``--soft-gate-prob P`` (or ``none``) sets ``soft_gate_prob`` of every
+pipeline on the federated core (docs/DESIGN-NOTES.md, "The soft edge of the gate") for a
+side-by-side run. The table also gives the horizontal and vertical RMS over every run.
 
 Usage: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/status_truth.py --seeds 7-15 [--scenario NAME]
+       [--family gnss|demo|ta|underwater] [--soft-gate-prob P|none]
 """
 
 from __future__ import annotations
@@ -73,11 +78,19 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="7-15", help="a range (7-15) or a list (7,9,11)")
     ap.add_argument("--scenario", help="run this scenario as it is (default: the clean GNSS one)")
+    ap.add_argument("--family", default="gnss", choices=sorted(hb.FAMILIES), help="clean scenario of")
+    ap.add_argument("--soft-gate-prob", help="soft_gate_prob of the federated-core pipelines (or none)")
     args = ap.parse_args()
-    sc = hb.gnss_scenario() if args.scenario is None else load_scenario(args.scenario)
-    per: dict[str, list[tuple[int, int, float, float, int, float, float, float, float]]] = {}
+    build, _, start, aiding = hb.FAMILIES[args.family]
+    sc = build() if args.scenario is None else load_scenario(args.scenario)
+    if args.soft_gate_prob is not None:
+        value = None if args.soft_gate_prob.lower() == "none" else float(args.soft_gate_prob)
+        for p in sc.service.get("pipelines", []):
+            if p.get("kind") in ("federated", "centralized", "underwater"):
+                p["soft_gate_prob"] = value
+    per: dict[str, list[tuple]] = {}
     for seed in seeds_of(args.seeds):
-        rec, _, _ = hb.run_case(sc, seed, None, None, hb.FAMILIES["gnss"][2], "gnss_fix")
+        rec, _, _ = hb.run_case(sc, seed, None, None, start, aiding)
         for name, (t, err, sd, st) in rec.items():
             aided = np.array(st) == "aided"
             h, hs = hb._h(err, sd)
@@ -98,6 +111,8 @@ def main() -> int:
                 expected,
                 expected_v,
                 nees_u,
+                float(np.mean(h**2)),
+                float(np.mean(err[:, 2] ** 2)),
             )
             per.setdefault(name, []).append(row)
             print(
@@ -111,10 +126,11 @@ def main() -> int:
     head = (
         "| pipeline | runs 'aided' beyond 3 sigma | epochs (a consistent filter: expected) | max h / sigma_h "
         "| NEES_h mean [min - max] "
-        "| vertical: runs / epochs 'aided' beyond 3 sigma (expected) | max abs(up) / sigma_up | NEES_u mean |"
+        "| vertical: runs / epochs 'aided' beyond 3 sigma (expected) | max abs(up) / sigma_up | NEES_u mean "
+        "| RMS h / up m |"
     )
     print("\n" + head)
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, rows in per.items():
         lies = [r[1] for r in rows]
         nees = [r[3] for r in rows]
@@ -124,7 +140,9 @@ def main() -> int:
             f"({sum(r[6] for r in rows):.0f}) | "
             f"{max(r[2] for r in rows):.2f} | {np.mean(nees):.2f} [{min(nees):.2f} - {max(nees):.2f}] | "
             f"{sum(x > 0 for x in lies_v)} of {len(rows)} / {sum(lies_v)} ({sum(r[7] for r in rows):.0f}) | "
-            f"{max(r[5] for r in rows):.2f} | {np.mean([r[8] for r in rows]):.2f} |"
+            f"{max(r[5] for r in rows):.2f} | {np.mean([r[8] for r in rows]):.2f} | "
+            f"{math.sqrt(np.mean([r[9] for r in rows])):.4f} / "
+            f"{math.sqrt(np.mean([r[10] for r in rows])):.4f} |"
         )
     return 0
 

@@ -659,8 +659,11 @@ class PipelineHealth(WireModel):
     screened: dict[str, int] = Field(
         default_factory=dict,
         description="Observations refused (or sigmas raised) by screening, by reason: innovation_gate, "
-        "fault_test, excluded_satellite, gate_recovery, sigma_floor; and innovations_inconsistent: the "
-        "times a stream's innovations turned larger than the filter claims (status degraded meanwhile)",
+        "fault_test, excluded_satellite, gate_recovery, sigma_floor; doubted_update: updates taken between "
+        "the doubt level and the fault test's threshold, weighed as possibly faulty (federated and "
+        "underwater families: the covariance widened, the correction scaled down); and "
+        "innovations_inconsistent: the times a stream's innovations turned larger than the filter claims "
+        "(status degraded meanwhile)",
     )
 
 

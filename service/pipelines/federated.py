@@ -88,6 +88,7 @@ class _CorePipeline(Pipeline):
         floor_share: float = 0.05,
         report_faults: bool = True,
         model_options: dict[str, dict] | None = None,
+        doubt_prob: float | None = None,
     ):
         super().__init__(name, imu, major_interval_s)
         self.local_names = [s for s, _ in subsystems]
@@ -95,6 +96,8 @@ class _CorePipeline(Pipeline):
         self.reset_mode = reset
         self.master_share = float(master_share)
         self.floor_share = float(floor_share)
+        #: the soft edge of the fault tests (FederatedCore, "Doubtful updates"; None: hard gates)
+        self.doubt_prob = doubt_prob
         self.report_faults = report_faults
         self.channels: dict[str, _Channel] = {}
         for i, (sub_name, kinds) in enumerate(subsystems):
@@ -168,6 +171,7 @@ class _CorePipeline(Pipeline):
             reset=self.reset_mode,
             master_share=self.master_share,
             floor_share=self.floor_share,
+            doubt_prob=self.doubt_prob,
         )
         self.core.start()
         self._epoch_t = None
@@ -237,6 +241,8 @@ class _CorePipeline(Pipeline):
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
             self.mark_aided(bank.t, meas.H, upd.decision.used)
+        if upd.doubt > 0.0:  # (core: "Doubtful updates")
+            self.screened["doubted_update"] += 1
         isolated = int(np.count_nonzero(upd.decision.isolated))
         if isolated:
             self.mark_screened(bank.t, "fault_test", isolated)
@@ -343,6 +349,7 @@ class Federated(_CorePipeline):
             floor_share=cfg.floor_share,
             report_faults=True,
             model_options=model_options(cfg),
+            doubt_prob=cfg.soft_gate_prob,
         )
         self.cfg = cfg
 
@@ -372,6 +379,7 @@ class Centralized(_CorePipeline):
             false_alarm_prob=cfg.false_alarm_prob,
             report_faults=cfg.fault_handling != "none",
             model_options=model_options(cfg),
+            doubt_prob=cfg.soft_gate_prob,
         )
         self.cfg = cfg
         # report per sensor kind (one test each), all owned by the single filter

@@ -91,6 +91,7 @@ class Underwater(_CorePipeline):
             reset=cfg.reset,
             master_share=cfg.master_share if federated else 0.0,
             report_faults=True,
+            doubt_prob=cfg.soft_gate_prob,
         )
         self.cfg = cfg
         self.federated = federated

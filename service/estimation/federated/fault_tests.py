@@ -85,6 +85,8 @@ class FaultTest(ABC):
     """Base of fault tests; ``false_alarm_prob`` is the per-test false-alarm probability alpha."""
 
     name: ClassVar[str]
+    #: the test refuses rows (False: it only flags them for display, every row is taken)
+    refuses: ClassVar[bool] = True
 
     def __init__(self, false_alarm_prob: float = 1e-3):
         if not 0.0 < false_alarm_prob < 0.5:
@@ -114,6 +116,7 @@ class NoFaultHandling(FaultTest):
     """No isolation; the per-observation chi2(1) flags are still computed for display."""
 
     name = "none"
+    refuses = False
 
     def flags(self, standardised, S, nis):
         f, thr, bad = self._per_row(standardised)
