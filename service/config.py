@@ -199,7 +199,7 @@ def _soft_gate(default: float | None):
         description="The soft edge of the fault tests (docs/DESIGN-NOTES.md): an update whose NIS lies "
         "between the chi-square quantile at this probability and the test's own threshold is taken as the "
         "mixture of taking and refusing it; None: the papers' hard gates (the default of the federated "
-        "and centralised families: on their clean GNSS runs it cost 1-2 % of accuracy; 0.01 in the "
+        "and centralised families: on their clean GNSS runs it cost ~1 % of RMS; 0.01 in the "
         "underwater one)",
     )
 

@@ -197,7 +197,7 @@ def test_after_a_usbl_outage_whose_return_jumps_the_status_is_truthful():
 
 def test_the_soft_edge_is_on_by_default_in_the_underwater_family_only():
     """docs/DESIGN-NOTES.md, "The soft edge of the gate": measured over 12 clean seeds per family,
-    it helps the underwater family and costs the GNSS federated families 1-2 % of accuracy."""
+    it helps the underwater family and costs the GNSS federated families ~1 % of RMS."""
     from fednav.service.config import CentralizedConfig, FederatedConfig, ImuModel, UnderwaterConfig
     from fednav.service.pipelines.federated import Centralized, Federated
     from fednav.service.pipelines.underwater import Underwater
