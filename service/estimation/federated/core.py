@@ -145,7 +145,7 @@ class LocalUpdate:
     standardised: np.ndarray
     nis: float
     flagged_only: np.ndarray
-    #: the weight of the fault hypothesis the owner's covariance was widened by (0: none;
+    #: the weight p of the fault hypothesis in the update (0: the Kalman update; 1: refused;
     #: ``FederatedCore`` module docstring, "Doubtful updates")
     doubt: float = 0.0
 
