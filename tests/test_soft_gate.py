@@ -210,3 +210,11 @@ def test_the_soft_edge_is_on_by_default_in_the_underwater_family_only():
     assert Federated(FederatedConfig(name="f", soft_gate_prob=0.02), imu, 0.1).doubt_prob == 0.02
     assert Centralized(CentralizedConfig(name="c"), imu, 0.1).doubt_prob is None
     assert Underwater(UnderwaterConfig(name="u", soft_gate_prob=None), imu, 0.1).doubt_prob is None
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.01, 0.5, 0.9, float("nan")])
+def test_an_absurd_soft_gate_prob_is_a_clear_config_error(bad):
+    from fednav.service import config
+
+    with pytest.raises(config.ConfigError, match="soft_gate_prob"):
+        config.from_dict({"pipelines": [{"kind": "underwater", "name": "u", "soft_gate_prob": bad}]}, "test")
