@@ -21,7 +21,7 @@ rates), driven directly as that benchmark drives it: instructions per second of 
 digest of every Integrity message and of the final state and covariance.
 
 Usage: .venv/bin/python benchmarks/instructions.py [--seconds 2 12] [--imu-batch 10] [--imu-hz 200]
-           [--without KIND ...] [--mhss]
+           [--without KIND ...] [--mhss [--untied]]
 Before/after: run it once with PYTHONPATH pointing at the other tree's package.
 """
 
@@ -55,7 +55,7 @@ def make_mhss_inputs(path: Path, seconds: float) -> None:
     path.write_bytes(pickle.dumps((traj, msgs)))
 
 
-def run_mhss(path: Path, seconds: float) -> None:
+def run_mhss(path: Path, seconds: float, untied: bool = False) -> None:
     """The measured process for ``--mhss``: ``mhss_bank.bench_pipeline``'s loop over the first
     ``seconds`` of the inputs, every Integrity message and the final state digested."""
     import mhss_bank as mb
@@ -63,6 +63,8 @@ def run_mhss(path: Path, seconds: float) -> None:
 
     traj, msgs = pickle.loads(path.read_bytes())
     p = mb.make_pipeline(traj)
+    if untied:  # every cross block computed (the bank after an exclusion; mhss_bank.bench_pipeline)
+        p.bank.mhss.tied = False
     dth = [tuple(r) for r in traj.dtheta_rad]
     dv = [tuple(r) for r in traj.dvel_mps]
     digest = hashlib.sha256()
@@ -129,6 +131,9 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, nargs=2, default=(2.0, 12.0), help="the two scenario lengths")
     ap.add_argument("--imu-batch", type=int, default=10, help="samples per ImuBatch, 1 = JSON (default 10)")
     ap.add_argument("--mhss", action="store_true", help="the tightly coupled MHSS pipeline of mhss_bank.py")
+    ap.add_argument(
+        "--untied", action="store_true", help="with --mhss: every cross block computed (after an exclusion)"
+    )
     ap.add_argument("--imu-hz", type=float, default=200.0, help="IMU rate (default 200)")
     ap.add_argument(
         "--without",
@@ -140,7 +145,10 @@ def main() -> int:
     ap.add_argument("--_run", nargs=2, help=argparse.SUPPRESS)  # internal: INPUTS SECONDS
     args = ap.parse_args()
     if args._run:
-        (run_mhss if args.mhss else run_loop)(Path(args._run[0]), float(args._run[1]))
+        if args.mhss:
+            run_mhss(Path(args._run[0]), float(args._run[1]), args.untied)
+        else:
+            run_loop(Path(args._run[0]), float(args._run[1]))
         return 0
     valgrind = shutil.which("valgrind")
     if valgrind is None:
@@ -158,7 +166,8 @@ def main() -> int:
             subprocess.Popen(
                 [valgrind, "--tool=callgrind", "--callgrind-out-file=/dev/null", sys.executable, __file__]
                 + ["--_run", str(inputs), str(s)]
-                + (["--mhss"] if args.mhss else []),
+                + (["--mhss"] if args.mhss else [])
+                + (["--untied"] if args.untied else []),
                 env=env,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
@@ -176,7 +185,9 @@ def main() -> int:
         counts.append(int(m.group(1)))
     per_s = (counts[1] - counts[0]) / (long_ - short)
     if args.mhss:
-        what = "tightly coupled + MHSS (12 satellites, 79 filters)"
+        what = "tightly coupled + MHSS (12 satellites, 79 filters" + (
+            ", every cross block computed)" if args.untied else ")"
+        )
     else:
         what = "one vehicle, " + (f"ImuBatch of {args.imu_batch}" if args.imu_batch > 1 else "JSON")
         if args.imu_hz != 200.0:

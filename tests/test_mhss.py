@@ -488,16 +488,26 @@ def general_update(bank: MhssBank, z, H, r_var, row_sat):
     return ref, blocks
 
 
+def untied(bank: MhssBank) -> MhssBank:
+    """The same bank running the whole recursion (every cross block computed)."""
+    return MhssBank(bank.sats, bank.x, bank.blocks, bank.depth, bank.h_idx, bank.v_idx, tied=False)
+
+
+@pytest.mark.parametrize("tied", [True, False])
 @pytest.mark.parametrize("general_path", [False, True])
-def test_bank_update_equals_the_general_masked_update(general_path, monkeypatch):
+def test_bank_update_equals_the_general_masked_update(general_path, tied, monkeypatch):
     """Gains in the observed states and the low-rank Joseph products give the general update
     (Cholesky of each member's S, explicit gains, Joseph of every block) to rounding; so does the
-    general path the bank takes when a member's covariance is not positive definite (forced)."""
+    general path the bank takes when a member's covariance is not positive definite (forced);
+    with the cross blocks tied (members only) and with the whole recursion."""
     from fednav.service.estimation.integrity import mhss
 
     if general_path:
         monkeypatch.setattr(mhss, "_masked_gain", lambda *args: None)
     bank, z, H, r_var, row_sat = tc_bank_and_rows()
+    assert bank.tied
+    if not tied:
+        bank = untied(bank)
     ref, blocks = general_update(bank, z, H, r_var, row_sat)
     upd = bank.update(z, H, r_var, row_sat)
     scale = np.abs(blocks).max(axis=(1, 2))[:, None, None]
@@ -509,6 +519,50 @@ def test_bank_update_equals_the_general_masked_update(general_path, monkeypatch)
     np.testing.assert_allclose(upd.whitened, ref.result.whitened, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(upd.nis, ref.result.nis, rtol=1e-9)
     np.testing.assert_array_equal(upd.innovation == 0.0, ref.result.innovation == 0.0)
+
+
+def test_tied_bank_equals_the_whole_recursion_until_an_exclusion_unties_it():
+    """A bank started from one prior computes its members only (module docstring "Tied cross
+    blocks"); its cross blocks, read as the reference members' covariances, equal the whole
+    recursion's to rounding through predictions, updates, a rising and a setting satellite. An
+    exclusion unties it: its restarted sub-subs make the blocks differ from the tie, and from then
+    on it runs the whole recursion, still equal to the untied bank's."""
+    rng = np.random.default_rng(5)
+    tied = MhssBank.initial(np.zeros(N_X), P0, IDS[:6], depth=2, h_idx=H_IDX, v_idx=V_IDX)
+    full = untied(tied)
+    truth = rng.multivariate_normal(np.zeros(N_X), P0)
+    schedule = {3: ("rise", "S6"), 6: ("set", "S1"), 9: ("purge", "S3"), 12: ("rise", "S7")}
+    for k in range(16):
+        for b in (tied, full):
+            b.predict(PHI, Q)
+        truth = PHI @ truth + rng.multivariate_normal(np.zeros(N_X), Q)
+        if k in schedule:
+            what, sid = schedule[k]
+            sats = list(tied.sats) + [sid] if what == "rise" else [s for s in tied.sats if s != sid]
+            purge = [sid] if what == "purge" else []
+            if what == "purge":  # the blocks the tie would claim for the restarted sub-subs are wrong
+                naive = tied.rebuild(sats, purge=purge)
+                naive.tied = True
+                lie = naive.blocks[naive.sub_blocks].copy()
+            tied, full = tied.rebuild(sats, purge=purge), full.rebuild(sats, purge=purge)
+            assert tied.tied == (what != "purge" and k < 9) and not full.tied
+            if what == "purge":
+                assert np.max(np.abs(lie - tied.blocks[tied.sub_blocks])) > 0.1
+        H = rows(tied.sats)
+        z = H @ truth + SIGMA * rng.standard_normal(len(H))
+        for b in (tied, full):
+            b.update(z, H, np.full(len(H), SIGMA**2), np.arange(len(H)))
+            b.shift(b.x[0].copy())
+        np.testing.assert_allclose(tied.x, full.x, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(tied.blocks, full.blocks, rtol=1e-9, atol=1e-9)
+        t_tied, t_full = tied.main_tests(3.0, 3.0), full.main_tests(3.0, 3.0)
+        np.testing.assert_allclose(t_tied.T_h, t_full.T_h, rtol=1e-6)
+        np.testing.assert_allclose(t_tied.hpl, t_full.hpl, rtol=1e-9)
+        for r in range(tied.N):
+            np.testing.assert_allclose(
+                tied.sub_tests(r, 3.0, 3.0).T_v, full.sub_tests(r, 3.0, 3.0).T_v, rtol=1e-6
+            )
+    assert not tied.tied  # a rising satellite after the exclusion does not tie it again
 
 
 def test_bank_update_raises_when_an_innovation_covariance_is_not_positive_definite():

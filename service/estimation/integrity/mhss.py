@@ -36,6 +36,23 @@ T = P_ab - (L_a J_a)(E P_ab), P_ab <- T + (L_a - T E') J_b L_b'. A bank of one f
 ``kalman.gain`` (Cholesky of S, explicit gains, as every other pipeline) and the Joseph product
 of the explicit factors.
 
+Tied cross blocks (issue 21, bank speed)
+----------------------------------------
+The recursion above runs with the very R and Q the gains use, so it is the filters' own model,
+and every member's gain is the optimal one for its own covariance. Then for a parent a and a
+child b (b uses a subset of a's rows, now and in its whole history, and a is optimal for its
+rows), e_a is orthogonal to everything b's estimate is made of, and Cov(e_a, e_b) = P_aa:
+P_0n = P_00 and P_{n,(n,m)} = P_nn, exactly (the predict keeps it: Phi P Phi' + Q on both; the
+update keeps it: P_aa^+ H' = K_a R on the rows b uses). A bank started from one prior
+(:meth:`MhssBank.initial`) therefore computes its members only (79 of 223 blocks for 12
+satellites) and reads each cross block as its reference member's covariance (``tied``). A rebuild
+without a purge keeps the tie (each new cross block is an old one stored in its orientation); an
+exclusion breaks it, because the restarted sub-subs are copies of the new main, which used the
+satellites they now exclude: from then on the bank runs the whole recursion. Under a model that
+differs from the truth the tie holds for the model's covariances, not the true ones (what the
+recursion of ``cross_update`` with the true R shows in tests/test_mhss.py); the bank never knows
+the truth, so nothing it computed changes but the rounding.
+
 Closed loop: only the main filter's correction dx_0 is fed back; every member shifts by it,
 x_i <- x_i - dx_0 (covariances unchanged), so after feedback x_0 = 0 and dx_0n = -x_n.
 
@@ -455,6 +472,7 @@ class MhssBank:
         depth: int,
         h_idx: Sequence[int] = H_IDX,
         v_idx: int = V_IDX,
+        tied: bool = False,
     ):
         self.sats = tuple(sats)
         self.depth = int(depth)
@@ -477,7 +495,8 @@ class MhssBank:
                 f"bank of {N} satellites at depth {depth} needs {B} members and {len(self.pa)} blocks"
             )
         self.x = np.array(x, dtype=float)
-        self.blocks = np.array(blocks, dtype=float)
+        self._blocks = np.array(blocks, dtype=float)
+        self.tied = bool(tied)
         self.n = self.x.shape[1]
         self.sources: np.ndarray | None = None  # after rebuild: old member index of each member
         self._work = _Work()
@@ -498,7 +517,7 @@ class MhssBank:
         members, _, pa, *_ = _layout(N, depth if N > 0 else 0)
         x = np.broadcast_to(np.asarray(x0, dtype=float), (len(members), len(x0))).copy()
         blocks = np.broadcast_to(np.asarray(P0, dtype=float), (len(pa),) + np.shape(P0)).copy()
-        return cls(sats, x, blocks, depth, h_idx, v_idx)
+        return cls(sats, x, blocks, depth, h_idx, v_idx, tied=True)
 
     @property
     def N(self) -> int:
@@ -511,7 +530,26 @@ class MhssBank:
     @property
     def P(self) -> np.ndarray:
         """(B, n, n) member covariances (a view of ``blocks``)."""
-        return self.blocks[: self.B]
+        return self._blocks[: self.B]
+
+    @property
+    def blocks(self) -> np.ndarray:
+        """(B + C, n, n) member covariances then cross blocks (module docstring). A tied bank
+        (module docstring "Tied cross blocks") keeps only its members: reading ``blocks`` writes
+        each cross block as its reference member's covariance first (what the recursion would
+        give, to rounding)."""
+        if self.tied and len(self._blocks) > self.B:
+            B = self.B
+            np.take(self._blocks, self.pa[B:], axis=0, out=self._blocks[B:])
+        return self._blocks
+
+    def _cross_blocks(self, idx) -> np.ndarray:
+        """Cross blocks ``idx`` (indices into ``blocks``) without materialising a tied bank's."""
+        if self.tied:
+            P = self._blocks
+            ref = self.pa[np.asarray(idx)]
+            return np.broadcast_to(P[ref[0]], (len(ref),) + P.shape[1:]) if np.all(ref == ref[0]) else P[ref]
+        return self._blocks[idx]
 
     def member(self, excluded_ids: Sequence[str]) -> int:
         """Index of the member that excludes exactly these satellites."""
@@ -560,7 +598,11 @@ class MhssBank:
                 raise RuntimeError(f"rebuild: no cross-covariance for old members {key}")
         blocks = self.blocks[idx]
         blocks[trans] = np.swapaxes(blocks[trans], 1, 2)
-        out = type(self)(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx)
+        # the tie survives a rebuild without a purge: every new cross block is then an old block
+        # stored in its orientation (or a member's covariance), i.e. its reference member's
+        # covariance; the exclusion's restarted sub-subs (copies of the new main) break it
+        tied = self.tied and not X and not np.any(trans & (src[pa] != src[pb]))
+        out = type(self)(new_sats, self.x[src], blocks, self.depth, self.h_idx, self.v_idx, tied=tied)
         out.sources = src
         return out
 
@@ -568,20 +610,26 @@ class MhssBank:
     def _next_blocks(self) -> np.ndarray:
         """The scratch array the next time or measurement update writes: of two, the one that is not
         ``blocks`` (views of ``blocks`` stay valid until the second update after)."""
-        a = self._work.get("blocks_a", self.blocks.shape)
-        return self._work.get("blocks_b", self.blocks.shape) if a is self.blocks else a
+        a = self._work.get("blocks_a", self._blocks.shape)
+        return self._work.get("blocks_b", self._blocks.shape) if a is self._blocks else a
+
+    def _computed(self) -> int:
+        """How many of the first blocks the recursion computes: the members only when tied."""
+        return self.B if self.tied else len(self._blocks)
 
     def predict(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
-        """Time update of every member and cross block: two batched products, P <- (Phi P) Phi' + Q."""
+        """Time update of every member and cross block: two batched products, P <- (Phi P) Phi' + Q
+        (the members only when tied)."""
         Phi = np.asarray(Phi, dtype=float)
         self.x = self.x @ Phi.T
-        tmp = self._work.get("phi_p", self.blocks.shape)
-        np.matmul(Phi, self.blocks, out=tmp)
+        nb = self._computed()
+        tmp = self._work.get("phi_p", (nb,) + self._blocks.shape[1:])
+        np.matmul(Phi, self._blocks[:nb], out=tmp)
         out = self._next_blocks()
-        np.matmul(tmp, np.ascontiguousarray(Phi.T), out=out)
-        out += Qd
+        np.matmul(tmp, np.ascontiguousarray(Phi.T), out=out[:nb])
+        out[:nb] += Qd
         self._symmetrise_members(out)
-        self.blocks = out
+        self._blocks = out
 
     def _symmetrise_members(self, blocks: np.ndarray) -> None:
         """P <- (P + P') / 2 in place for the member covariances (the first B blocks)."""
@@ -605,16 +653,16 @@ class MhssBank:
         m = len(z)
         keep_b = ~self.excl[:, np.asarray(row_sat, dtype=int)] if self.N else np.ones((B, m), dtype=bool)
         # a bank of one filter (integrity off) takes the plain update of every other pipeline
-        g = _masked_gain(self.x, self.blocks[:B], z, H, r_var, keep_b) if B > 1 else None
+        g = _masked_gain(self.x, self._blocks[:B], z, H, r_var, keep_b) if B > 1 else None
         if g is None:  # general path (raises NotPositiveDefinite when an S is not positive definite)
-            ref = kalman.gain(self.x, self.blocks[:B], z, H, r_var, keep_b)
+            ref = kalman.gain(self.x, self._blocks[:B], z, H, r_var, keep_b)
             self.x = ref.x
-            self.blocks = self._joseph_all(ref.IKH, ref.K, r_var)
+            self._blocks = self._joseph_all(ref.IKH, ref.K, r_var)
             res = ref.result
             return BankUpdate(res.innovation, res.dof, ref.K, ref.IKH, res.whitened, res.nis)
         blocks = self._joseph_observed(g)
         self.x = g.x
-        self.blocks = blocks
+        self._blocks = blocks
         return BankUpdate(g.innovation, g.dof, gain=g)
 
     def _joseph_observed(self, g: _Gain) -> np.ndarray:
@@ -628,10 +676,11 @@ class MhssBank:
             T (I - K_b H)' + K_a R K_b' = T + (L_a - T E') W_b
 
         two (n, s) x (s, n) products per block instead of n x n ones, for all blocks at once (the
-        factors of a and b gathered per block)."""
+        factors of a and b gathered per block; a tied bank's members only, nothing gathered)."""
         n, Wk = self.n, self._work
-        sel, blocks = g.sel, self.blocks
-        nb, s = len(blocks), len(sel)
+        nb = self._computed()
+        sel, blocks = g.sel, self._blocks[:nb]
+        s = len(sel)
         LJ = g.L @ g.J  # K H on the observed columns (B, n, s)
         Wb = g.J @ np.swapaxes(g.L, 1, 2)  # (B, s, n)
         Ps = np.take(blocks, sel, axis=1, out=Wk.get("p_s", (nb, s, n)), mode="clip")  # E P
@@ -639,14 +688,19 @@ class MhssBank:
         X = Wk.get("x", (nb, n, s))
         out = self._next_blocks()
 
-        pa, pb = self.pa, self.pb
-        LJa = np.take(LJ, pa, axis=0, out=Wk.get("lj_a", (nb, n, s)), mode="clip")
+        if self.tied:  # members: a = b, the factors as they are
+            LJa, La, Wbb = LJ, g.L, Wb
+        else:
+            pa, pb = self.pa, self.pb
+            LJa = np.take(LJ, pa, axis=0, out=Wk.get("lj_a", (nb, n, s)), mode="clip")
+            La = np.take(g.L, pa, axis=0, out=Wk.get("l_a", (nb, n, s)), mode="clip")
+            Wbb = np.take(Wb, pb, axis=0, out=Wk.get("w_b", (nb, s, n)), mode="clip")
         np.matmul(LJa, Ps, out=T)
         np.subtract(blocks, T, out=T)
         np.take(T, sel, axis=-1, out=X, mode="clip")
-        np.subtract(np.take(g.L, pa, axis=0, out=LJa, mode="clip"), X, out=X)
-        np.matmul(X, np.take(Wb, pb, axis=0, out=Wk.get("w_b", (nb, s, n)), mode="clip"), out=out)
-        out += T
+        np.subtract(La, X, out=X)
+        np.matmul(X, Wbb, out=out[:nb])
+        out[:nb] += T
         self._symmetrise_members(out)
         return out
 
@@ -658,14 +712,14 @@ class MhssBank:
         IKHt = np.ascontiguousarray(np.swapaxes(IKH, 1, 2))
         Kt = np.ascontiguousarray(np.swapaxes(K, 1, 2))
         KR = K * r_var
-        out = np.empty_like(self.blocks)
-        out[:B] = symmetrise(IKH @ self.blocks[:B] @ IKHt + KR @ Kt)
-        if self.depth >= 1 and N:
+        out = np.empty_like(self._blocks)
+        out[:B] = symmetrise(IKH @ self._blocks[:B] @ IKHt + KR @ Kt)
+        if self.depth >= 1 and N and not self.tied:
             subs = slice(1, 1 + N)
-            out[B : B + N] = IKH[0] @ self.blocks[B : B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
+            out[B : B + N] = IKH[0] @ self._blocks[B : B + N] @ IKHt[subs] + KR[0] @ Kt[subs]
             if self.depth >= 2 and N > 1:
                 mem = self.subsub_members
-                blk = self.blocks[B + N :].reshape(N, N - 1, n, n)
+                blk = self._blocks[B + N :].reshape(N, N - 1, n, n)
                 a, ka = IKH[subs][:, None], KR[subs][:, None]
                 out[B + N :] = (a @ blk @ IKHt[mem] + ka @ Kt[mem]).reshape(-1, n, n)
         return out
@@ -691,13 +745,13 @@ class MhssBank:
                 self.v_idx,
                 kfa_h,
             )
-        B, N = self.B, self.N
+        N = self.N
         return solution_separation(
             self.x[0],
             self.P[0],
             self.x[1 : 1 + N],  # sub-filters: members 1..N; their main blocks: B..B+N-1
-            self.blocks[1 : 1 + N],
-            self.blocks[B : B + N],
+            self.P[1 : 1 + N],
+            self._cross_blocks(self.main_blocks),
             kfa,
             kmd,
             self.h_idx,
@@ -716,7 +770,7 @@ class MhssBank:
             self.P[s],
             self.x[mem],
             self.P[mem],
-            self.blocks[self.sub_blocks[r]],
+            self._cross_blocks(self.sub_blocks[r]),
             kfa,
             kmd,
             self.h_idx,
@@ -778,7 +832,7 @@ class MhssBank:
         Hn = H[rows]
         subs = slice(1, 1 + self.N)
         e = z[rows] - np.einsum("ij,ij->i", Hn, self.x[subs])
-        hph = np.einsum("ij,ijk,ik->i", Hn, self.blocks[subs], Hn)
+        hph = np.einsum("ij,ijk,ik->i", Hn, self.P[subs], Hn)
         return e, np.maximum(hph, 0.0), np.asarray(r_var, dtype=float)[rows]
 
 
