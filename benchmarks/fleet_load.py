@@ -143,11 +143,13 @@ def run_case(
             raise RuntimeError(gen.output())
         c0 = sum(cpu_s(p) for p in pids)
         th0 = thread_cpu_s(svc.p.pid)
+        ths0 = {p: thread_cpu_s(p) for p in pids}
         w0 = time.monotonic()
         assert gen.wait(timeout=duration * 20 + 120) == 0, gen.output()
         w1 = time.monotonic()
         c1 = sum(cpu_s(p) for p in pids)
         th1 = thread_cpu_s(svc.p.pid)
+        ths1 = {p: thread_cpu_s(p) for p in pids}
         rss1 = sum(rss_mb(p) for p in pids)
         time.sleep(1.0)
     finally:
@@ -176,6 +178,8 @@ def run_case(
             k: round((th1.get(k, 0.0) - th0.get(k, 0.0)) / (w1 - w0), 3)
             for k in sorted(th1, key=lambda k: th0.get(k, 0.0) - th1[k])[:6]
         },
+        # every process of the service (shard 0 first): Python's threads against Zenoh's
+        "shards_cores": [_split_threads(ths0[p], ths1[p], w1 - w0) for p in pids],
         "rss_mb": round(rss1, 1),
         "rss_mb_per_vehicle": round((rss1 - rss0) / n, 3),
     }
@@ -187,6 +191,15 @@ def run_case(
         for f in files:
             f.unlink()
     return out
+
+
+def _split_threads(before: dict[str, float], after: dict[str, float], wall_s: float) -> dict[str, float]:
+    """One process's cores over ``wall_s``: in total, in Python's threads (named after the
+    interpreter) and in the rest (Zenoh's runtime: rx-*, tx-*, acc-*, net-*, ...)."""
+    d = {k: (v - before.get(k, 0.0)) / wall_s for k, v in after.items()}
+    py = sum(v for k, v in d.items() if k.startswith("python"))
+    total = sum(d.values())
+    return {"total": round(total, 3), "python": round(py, 3), "other": round(total - py, 3)}
 
 
 def _children(pid: int) -> list[int]:
@@ -262,6 +275,15 @@ def main() -> int:
                             + (
                                 f" | rrd {r['rrd_kb_per_vehicle_min']} kB/vehicle/min"
                                 if "rrd_mb" in r
+                                else ""
+                            )
+                            + (
+                                " | per process, cores (Python + Zenoh's threads): "
+                                + ", ".join(
+                                    f"{c['total']:.2f} ({c['python']:.2f} + {c['other']:.2f})"
+                                    for c in r["shards_cores"]
+                                )
+                                if len(r["shards_cores"]) > 1
                                 else ""
                             ),
                             flush=True,
