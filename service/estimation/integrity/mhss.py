@@ -457,6 +457,11 @@ class MhssBank:
         (layout in the module docstring); use :meth:`initial` or :meth:`rebuild` to make one.
     depth : 0 main only, 1 + sub-filters, 2 + sub-sub filters.
     h_idx, v_idx : horizontal (2) and vertical state indices of the tests.
+    tied : the cross blocks are their reference members' covariances and only the members are
+        computed (module docstring "Tied cross blocks"; :meth:`initial` and :meth:`rebuild` set
+        it). Its cross blocks are then stale until ``blocks`` is read: to run the whole recursion
+        from a tied bank, build a new bank from its ``blocks`` (turning ``tied`` off in place is
+        right only while every block still equals the prior, as right after :meth:`initial`).
 
     Speed (issue 21, ``benchmarks/mhss_bank.py``): :meth:`predict` and :meth:`update` write into
     two arrays they alternate between (and reuse their scratch arrays), so ``blocks``, ``P`` and
@@ -543,13 +548,10 @@ class MhssBank:
             np.take(self._blocks, self.pa[B:], axis=0, out=self._blocks[B:])
         return self._blocks
 
-    def _cross_blocks(self, idx) -> np.ndarray:
-        """Cross blocks ``idx`` (indices into ``blocks``) without materialising a tied bank's."""
-        if self.tied:
-            P = self._blocks
-            ref = self.pa[np.asarray(idx)]
-            return np.broadcast_to(P[ref[0]], (len(ref),) + P.shape[1:]) if np.all(ref == ref[0]) else P[ref]
-        return self._blocks[idx]
+    def _cross_blocks(self, idx: np.ndarray) -> np.ndarray:
+        """Cross blocks ``idx`` (indices into ``blocks``); a tied bank's are read as their reference
+        members' covariances, without materialising the others."""
+        return self._blocks[self.pa[idx] if self.tied else idx]
 
     def member(self, excluded_ids: Sequence[str]) -> int:
         """Index of the member that excludes exactly these satellites."""
