@@ -117,14 +117,11 @@ def make_pipeline(traj) -> TightlyCoupled:
     return p
 
 
-def bench_pipeline(duration_s: float, time_bank: bool = True, untied: bool = False) -> dict:
+def bench_pipeline(duration_s: float, time_bank: bool = True) -> dict:
     """Run the pipeline over ``duration_s`` of data; ``time_bank`` also times the bank's own
-    predict and update calls (``bank_s``); ``untied``: every cross block computed from the start
-    (the bank's cost after an exclusion, mhss.py "Tied cross blocks")."""
+    predict and update calls (``bank_s``)."""
     traj, msgs = make_inputs(duration_s)
     p = make_pipeline(traj)
-    if untied:
-        p.bank.mhss.tied = False  # (all blocks equal at the start: the whole recursion from there)
     dth = [tuple(r) for r in traj.dtheta_rad]
     dv = [tuple(r) for r in traj.dvel_mps]
     dt = traj.dt_s
