@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         if not client:
             listen = list(listen if listen is not None else cfg.zenoh.listen) + [supervisor.socket_endpoint]
+    stop = threading.Event()
     svc = Service(
         cfg,
         rrd=args.rrd,
@@ -155,10 +156,14 @@ def main(argv: list[str] | None = None) -> int:
         zenoh_config_file=args.zenoh_config,
         record=not args.no_record,
         shard=shard,
+        feeds=supervisor.feeds if supervisor is not None else None,
+        # a shard started by --shards: its inputs come from shard 0 on its standard input, and
+        # the end of that pipe (shard 0 stopped or gone) stops it
+        feed_fd=sys.stdin.fileno() if args.shard else None,
+        on_feed_end=stop.set,
     )
     if supervisor is not None and not args.no_record:
         supervisor.rrd = Path(svc.rrd_path)  # each shard's recording beside shard 0's
-    stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:

@@ -518,8 +518,18 @@ class Service:
         zenoh_config_file: str | None = None,
         record: bool = True,
         shard: tuple[int, int] | None = None,
+        feeds: dict | None = None,
+        feed_fd: int | None = None,
+        on_feed_end=None,
     ):
         self.config = config
+        #: shard 0 of local shards: the ShardFeed of each other shard (by index), to which the
+        #: intake hands those shards' vehicles' inputs (service.transport.shard_feed)
+        self.feeds = feeds or {}
+        self._feed_of: dict[str, object | None] = {}
+        #: a shard 1..K-1: its inputs come from shard 0 through this file descriptor, not Zenoh
+        self.feed_fd = feed_fd
+        self._on_feed_end = on_feed_end
         #: (index, count): this process serves only the vehicles that rendezvous hashing gives its
         #: shard (``--shards``, :mod:`service.shards`); None: every served vehicle
         self.shard = shard if shard is not None and shard[1] > 1 else None
@@ -610,10 +620,17 @@ class Service:
             else keys.inputs_selector("*", cfg.prefix)
         )
         many = self._deliver_many if inline else None  # inline: drains handed over whole
-        wanted = self._wanted if self.shard is not None or self.fleet_view is not None else None
-        self.intake = zenoh_io.Intake(
-            self.session, selectors, self._deliver, deliver_many=many, wanted=wanted
-        )
+        local = self.shard is not None and not self.feeds and self.feed_fd is None
+        wanted = self._wanted if local or self.fleet_view is not None else None
+        if self.feed_fd is not None:  # a local shard: shard 0 hands it its vehicles' inputs
+            from fednav.service.transport.shard_feed import FeedIntake
+
+            self.intake = FeedIntake(self.feed_fd, self._deliver, deliver_many=many, on_end=self._on_feed_end)
+        else:
+            forward = self._forward if self.feeds else None
+            self.intake = zenoh_io.Intake(
+                self.session, selectors, self._deliver, deliver_many=many, wanted=wanted, forward=forward
+            )
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
             from fednav.service.transport.ros2 import header_stamp_s
@@ -711,6 +728,8 @@ class Service:
             fleet_members=self.fleet_view.members() if self.fleet_view is not None else [],
             vehicles_moved_away=self.retired_vehicles,
             inputs_served_elsewhere=getattr(getattr(self, "intake", None), "unwanted", 0),
+            inputs_forwarded=sum(f.forwarded for f in self.feeds.values()),
+            inputs_forward_lost=sum(f.lost for f in self.feeds.values()),
         )
 
     def _health_loop(self) -> None:
@@ -789,7 +808,8 @@ class Service:
                     self._note_foreign(vehicle, gen)
                 return None  # another service of the fleet serves it (validated name first)
         elif self.shard is not None and not self._mine(vehicle):
-            self._note_foreign(vehicle, self._foreign_gen)
+            if not self.feeds:  # shard 0 hands its intake's such inputs on instead (_forward)
+                self._note_foreign(vehicle, self._foreign_gen)
             return None  # another shard of this service serves it (validated name first)
         serve_all = "*" in self.config.vehicles
         if not serve_all and vehicle not in self.config.vehicles:
@@ -811,6 +831,25 @@ class Service:
         key's parsing."""
         parts = key.split("/", 2)
         return len(parts) < 2 or parts[1] not in self._foreign
+
+    def _forward(self, key: str):
+        """Shard 0's intake: the feed of the local shard that serves the key's vehicle, or None
+        (this shard's, or a name :meth:`_route` refuses and counts here)."""
+        parts = key.split("/", 3)
+        if len(parts) < 3 or parts[2] in ("nav", "service"):
+            return None  # outputs (the prefix's own, other shards' included): _route ignores them
+        vehicle = parts[1]
+        try:
+            return self._feed_of[vehicle]
+        except KeyError:
+            pass
+        feed = None
+        if keys.valid_name(vehicle) and vehicle not in ("_services", "_fleet"):
+            feed = self.feeds.get(fleet.shard_of(vehicle, self.shard[1]))
+        if len(self._feed_of) > 100_000:
+            self._feed_of.clear()
+        self._feed_of[vehicle] = feed
+        return feed
 
     def _note_foreign(self, vehicle: str, gen: int) -> None:
         with self._foreign_lock:

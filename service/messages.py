@@ -793,6 +793,18 @@ class ServiceHealth(WireModel):
         description="Inputs of vehicles another shard or fleet member serves, dropped unread by the "
         "intake since the start (every service of a fleet receives every vehicle's inputs)",
     )
+    inputs_forwarded: int = Field(
+        0,
+        ge=0,
+        description="Shard 0 of local shards (fednav-service --shards): inputs handed to the other "
+        "shards (each serves the vehicles rendezvous hashing gives it) since the start",
+    )
+    inputs_forward_lost: int = Field(
+        0,
+        ge=0,
+        description="Shard 0: inputs for another shard dropped (that shard dead, restarting or not "
+        "keeping up: its queue full) since the start",
+    )
 
 
 #: input messages that are not sensors: the initial state, truth (simulators), alignment truth;

@@ -2,16 +2,19 @@
 
 ``fednav-service --shards K`` runs shard 0 in this process and starts shards 1..K-1 as child
 processes (``--shard I/K``) of the same command line. Each shard serves the vehicles that
-rendezvous hashing (:mod:`service.fleet`) gives it, so all agree without talking. Shard 0 keeps
-the endpoints of the command line; the children connect to it over a unix socket in a private
+rendezvous hashing (:mod:`service.fleet`) gives it, so all agree without talking. Shard 0 alone
+subscribes to the inputs: it hands each other shard its vehicles' messages through that shard's
+standard input (:mod:`service.transport.shard_feed`), so each message crosses Zenoh once. Shard 0
+keeps the endpoints of the command line; the children connect to it over a unix socket in a private
 directory (only the service's user can open it; the outputs guard of
 :func:`service.transport.zenoh_io.outputs_guard` applies to network links, so the shards publish
 their vehicles' outputs through shard 0), or, when shard 0 is a client of a router, to the same
 router. Each shard writes its own recording (``run.rrd``, ``run.shard1.rrd``, ...).
 
 Shard 0 supervises the children: a child that dies is restarted (at most once per
-``RESTART_BACKOFF_S``), and SIGINT/SIGTERM of shard 0 stop them all cleanly (each drains its
-queue and closes its recording).
+``RESTART_BACKOFF_S``; its vehicles' inputs meanwhile are counted as lost), and SIGINT/SIGTERM of
+shard 0 stop them all cleanly (each runs what its feed still holds and closes its recording). A
+child whose feed ends (shard 0 gone, even killed) stops by itself.
 """
 
 from __future__ import annotations
@@ -64,6 +67,10 @@ class ShardSupervisor:
         self._stopping = threading.Event()
         self._watch: threading.Thread | None = None
         self.restarts = 0
+        from fednav.service.transport.shard_feed import ShardFeed
+
+        #: shard i's inputs, handed over by shard 0's intake (Service(feeds=...))
+        self.feeds = {i: ShardFeed(i) for i in range(1, count)}
 
     def _command(self, i: int) -> list[str]:
         args = [sys.executable, "-m", "fednav.service", *self._argv, "--shard", f"{i}/{self.count}"]
@@ -76,8 +83,16 @@ class ShardSupervisor:
     def _spawn(self, i: int) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         p = subprocess.Popen(
-            self._command(i), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
+            self._command(i),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
         )
+        self.feeds[i].attach(os.dup(p.stdin.fileno()))  # the feed owns its descriptor
+        p.stdin.close()
+        p.stdin = None
         self._procs[i] = p
         ready = self._ready[i] = threading.Event()
         text = READY_TEXT.format(i=i, k=self.count)
@@ -119,6 +134,8 @@ class ShardSupervisor:
 
     def stop(self, timeout_s: float = 60.0) -> None:
         self._stopping.set()
+        for feed in self.feeds.values():  # what waits is written; the end of the pipe stops them
+            feed.close()
         for p in self._procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)

@@ -115,11 +115,16 @@ def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
                     replies[v].append(json.loads(reply.ok.payload.to_bytes()))
         st = query_status(port, names[0])
         assert st is not None
-        # each shard drops the other's vehicles' inputs in its intake, unread, and says how many
+        # shard 0 alone receives the inputs: it hands shard 1 its vehicles' (none lost), and no
+        # shard receives another's vehicles' inputs to drop them
         assert wait_until(
-            lambda: len(health) == 2 and all(h["inputs_served_elsewhere"] > 1000 for h in health.values()),
+            lambda: len(health) == 2
+            and sorted(h["inputs_forwarded"] > 1000 for h in health.values()) == [0, 1],
             10.0,
         ), health
+        for h in health.values():
+            assert h["inputs_forward_lost"] == 0, h
+            assert h["inputs_served_elsewhere"] == 0, h
     finally:
         hsub.undeclare()
         sub.undeclare()
@@ -146,3 +151,45 @@ def test_two_shards_serve_each_vehicle_exactly_once(tmp_path):
         mine = {v for v in names if owners[v] == i}
         assert all(any(e.startswith(f"/{v}/") for e in ents) for v in mine), (path, sorted(ents)[:20])
         assert not any(e.startswith(f"/{v}/") for v in set(names) - mine for e in ents), path
+
+
+def test_a_shard_whose_shard_0_is_killed_stops_cleanly_with_its_recording(tmp_path):
+    """Shard 0 killed outright (SIGKILL: no supervisor left to stop the others): the end of the
+    shard's feed stops it like a signal, and its recording is complete."""
+    import os
+    import time
+
+    from fednav.dashboards.inspect import read_series
+    from fednav.simulators.processes import Proc, free_port, start_service
+
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n')
+    port = free_port()
+    rrd = tmp_path / "run.rrd"
+    svc = start_service(port, config=cfg, rrd=rrd, extra=["--shards", "2"])
+    with open(f"/proc/{svc.p.pid}/task/{svc.p.pid}/children") as f:
+        (child,) = (int(x) for x in f.read().split())
+    names = [v for v in vehicle_names(8) if fleet.shard_of(v, 2) == 1]
+    assert names
+    gen = Proc(
+        [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "8", "--duration", "6"]
+        + ["--speed", "4", "--connect", f"tcp/127.0.0.1:{port}"],
+        "fleet",
+    )
+    assert gen.wait(timeout=120) == 0, gen.output()
+    svc.p.kill()
+    svc.wait(timeout=30)
+    end = time.monotonic() + 60
+    while time.monotonic() < end and os.path.exists(f"/proc/{child}") and _state(child) != "Z":
+        time.sleep(0.2)
+    assert not os.path.exists(f"/proc/{child}") or _state(child) == "Z", "the shard outlived shard 0"
+    _, series = read_series(tmp_path / "run.shard1.rrd")
+    assert any(e.startswith(f"/{names[0]}/") for e in series), sorted(series)[:10]
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "gone"

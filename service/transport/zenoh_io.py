@@ -223,6 +223,7 @@ class Intake:
         order_key: Callable[[bytes], float] | None = None,
         deliver_many: Callable[[list[tuple[float, str, bytes]]], None] | None = None,
         wanted: Callable[[str], bool] | None = None,
+        forward: Callable[[str], object | None] | None = None,
     ):
         self._subs = [
             session.declare_subscriber(
@@ -236,6 +237,10 @@ class Intake:
         # fleet member's vehicle), dropped before its arrival time and payload are read
         self._wanted = wanted
         self.unwanted = 0
+        # forward(key): the ShardFeed (service.transport.shard_feed) of the local shard that serves
+        # the key's vehicle, or None to deliver it here; each feed gets one frame per drain
+        self._forward = forward
+        self._feeds: set = set()
         self._order_key = order_key
         # one subscription, no reordering (the service's own intake): the thread blocks in the
         # channel's recv (Zenoh releases the GIL while it waits) instead of polling; stop()
@@ -265,17 +270,28 @@ class Intake:
             return self._drain_ordered()
         got = False
         wanted = self._wanted
+        forward = self._forward
         for s in self._subs:
             sample = s.try_recv()
             while sample is not None:
                 got = True
                 key = str(sample.key_expr)
-                if wanted is None or wanted(key):
-                    self._deliver_one(self.arrival(sample), key, sample.payload.to_bytes())
-                else:
+                if wanted is not None and not wanted(key):
                     self.unwanted += 1
+                elif forward is not None and (feed := forward(key)) is not None:
+                    feed.add(self.arrival(sample), key, sample.payload.to_bytes())
+                    self._feeds.add(feed)
+                else:
+                    self._deliver_one(self.arrival(sample), key, sample.payload.to_bytes())
                 sample = s.try_recv()
+        self._flush_feeds()
         return got
+
+    def _flush_feeds(self) -> None:
+        if self._feeds:
+            for feed in self._feeds:
+                feed.flush()
+            self._feeds.clear()
 
     def _deliver_one(self, wall: float, key: str, payload: bytes) -> None:
         try:
@@ -314,6 +330,7 @@ class Intake:
         handler = self._handlers[0]
         many = self._deliver_many
         wanted = self._wanted
+        forward = self._forward
         while True:
             if self._abandon.is_set():  # stop()'s deadline passed: what is left is not run
                 self._left = self._count_left(handler)
@@ -322,27 +339,39 @@ class Intake:
                 sample = handler.recv()
             except zenoh.ZError:  # "channel is empty and closed": undeclared by stop()
                 return
-            key = str(sample.key_expr)
-            if wanted is not None and not wanted(key):
-                self.unwanted += 1
-                continue
-            if many is None:
-                self._deliver_one(self.arrival(sample), key, sample.payload.to_bytes())
-                continue
-            # with deliver_many: and what else has arrived (at most DRAIN_MAX), handed on together
-            batch = [(self.arrival(sample), key, sample.payload.to_bytes())]
-            for _ in range(DRAIN_MAX - 1):
-                try:
-                    sample = handler.try_recv()
-                except zenoh.ZError:
-                    break
-                if sample is None:
-                    break
+            if many is None and forward is None:
                 key = str(sample.key_expr)
                 if wanted is not None and not wanted(key):
                     self.unwanted += 1
-                    continue
-                batch.append((self.arrival(sample), key, sample.payload.to_bytes()))
+                else:
+                    self._deliver_one(self.arrival(sample), key, sample.payload.to_bytes())
+                continue
+            # this sample and what else has arrived (at most DRAIN_MAX): ours handed on together
+            # (deliver_many) or one by one, each local shard's as one frame of its feed
+            batch = []
+            for i in range(DRAIN_MAX):
+                if i:
+                    try:
+                        sample = handler.try_recv()
+                    except zenoh.ZError:
+                        break
+                    if sample is None:
+                        break
+                key = str(sample.key_expr)
+                if wanted is not None and not wanted(key):
+                    self.unwanted += 1
+                elif forward is not None and (feed := forward(key)) is not None:
+                    feed.add(self.arrival(sample), key, sample.payload.to_bytes())
+                    self._feeds.add(feed)
+                else:
+                    batch.append((self.arrival(sample), key, sample.payload.to_bytes()))
+            self._flush_feeds()
+            if not batch:
+                continue
+            if many is None:
+                for item in batch:
+                    self._deliver_one(*item)
+                continue
             try:
                 many(batch)
             except Exception:  # routing must survive any one drain
