@@ -193,3 +193,67 @@ def _state(pid: int) -> str:
             return f.read().rsplit(")", 1)[1].split()[0]
     except OSError:
         return "gone"
+
+
+def test_a_killed_shard_is_restarted_and_fed_again(tmp_path):
+    """Shard 1 killed outright mid-run: shard 0 restarts it on a new pipe, counts what it could
+    not hand over meanwhile, and the shard's vehicles get solutions again."""
+    import os
+    import time
+
+    import zenoh
+
+    from fednav.simulators.processes import Proc, free_port, start_service
+
+    from .plain_zenoh import client as zenoh_client
+
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n')
+    port = free_port()
+    svc = start_service(port, config=cfg, extra=["--shards", "2"])
+    with open(f"/proc/{svc.p.pid}/task/{svc.p.pid}/children") as f:
+        (child,) = (int(x) for x in f.read().split())
+    names = vehicle_names(6)
+    theirs = [v for v in names if fleet.shard_of(v, 2) == 1]
+    assert theirs
+    session = zenoh_client(port)
+    sols: dict[str, list[float]] = {}
+    health: dict[str, dict] = {}
+    lock = threading.Lock()
+
+    def on_sol(sample: zenoh.Sample) -> None:
+        with lock:
+            sols.setdefault(str(sample.key_expr).split("/")[1], []).append(time.monotonic())
+
+    def on_health(sample: zenoh.Sample) -> None:
+        with lock:
+            health[str(sample.key_expr).split("/")[2]] = json.loads(sample.payload.to_bytes())
+
+    subs = [
+        session.declare_subscriber("fednav/*/nav/lc/solution", on_sol),
+        session.declare_subscriber("fednav/_services/*/health", on_health),
+    ]
+    try:
+        gen = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "6", "--duration", "30"]
+            + ["--speed", "2", "--connect", f"tcp/127.0.0.1:{port}"],
+            "fleet",
+        )
+        assert wait_until(lambda: all(len(sols.get(v, [])) > 20 for v in theirs), 60.0), sols.keys()
+        os.kill(child, signal.SIGKILL)
+        killed = time.monotonic()
+        lost = lambda: any(h.get("inputs_forward_lost", 0) > 0 for h in health.values())  # noqa: E731
+        assert wait_until(lost, 20.0), health
+        # restarted: its vehicles are served again (from their next InitialNav or fixes)
+        assert wait_until(
+            lambda: all(any(t > killed + 1.0 for t in sols.get(v, [])) for v in theirs), 60.0
+        ), {v: len(sols.get(v, [])) for v in theirs}
+        assert gen.wait(timeout=120) == 0, gen.output()
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+        svc.signal(signal.SIGTERM)
+        rc = svc.wait(timeout=90)
+    assert rc == 0, svc.output()
+    assert "restarting it" in svc.output()
