@@ -70,6 +70,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "recording, run.shardI.rrd): where one process's Python (GIL) is the limit, e.g. one per core",
     )
     ap.add_argument("--shard", help=argparse.SUPPRESS)  # I/K: a shard started by --shards
+    ap.add_argument("--shard-group", help=argparse.SUPPRESS)  # its shards' private handover group
     return ap.parse_args(argv)
 
 
@@ -161,7 +162,10 @@ def main(argv: list[str] | None = None) -> int:
         # the end of that pipe (shard 0 stopped or gone) stops it
         feed_fd=sys.stdin.fileno() if args.shard else None,
         on_feed_end=stop.set,
+        shard_group=supervisor.group if supervisor is not None else args.shard_group,
     )
+    if supervisor is not None:
+        supervisor.states_for = svc.shard_states
     if supervisor is not None and not args.no_record:
         supervisor.rrd = Path(svc.rrd_path)  # each shard's recording beside shard 0's
     signal.signal(signal.SIGINT, lambda *_: stop.set())

@@ -521,6 +521,7 @@ class Service:
         feeds: dict | None = None,
         feed_fd: int | None = None,
         on_feed_end=None,
+        shard_group: str | None = None,
     ):
         self.config = config
         #: shard 0 of local shards: the ShardFeed of each other shard (by index), to which the
@@ -530,6 +531,10 @@ class Service:
         #: a shard 1..K-1: its inputs come from shard 0 through this file descriptor, not Zenoh
         self.feed_fd = feed_fd
         self._on_feed_end = on_feed_end
+        #: local shards: the private group under which shards 1..K-1 publish their vehicles' handover
+        #: states; shard 0 keeps the latest and hands a restarted shard its vehicles' states first
+        self.shard_group = shard_group if shard is not None and shard[1] > 1 else None
+        self.fleet_states: fleet.StateCache | None = None
         #: (index, count): this process serves only the vehicles that rendezvous hashing gives its
         #: shard (``--shards``, :mod:`service.shards`); None: every served vehicle
         self.shard = shard if shard is not None and shard[1] > 1 else None
@@ -593,6 +598,10 @@ class Service:
             self.fleet_view = fleet.FleetView(zid)
             self.fleet_states = fleet.StateCache(cfg.intake.max_vehicles * 10)
             fleet_id = (self.fleet_group, zid)
+        elif self.shard_group is not None:
+            self.fleet_states = fleet.StateCache(cfg.intake.max_vehicles * 10)
+            if self.feed_fd is not None:  # shards 1..K-1 publish their vehicles' states
+                fleet_id = (self.shard_group, fleet.shard_name(self.shard[0]))
         # a bounded pool of worker threads, each owning many vehicles (no thread per vehicle)
         # (workers = 0: one inline worker, run by the intake thread itself)
         inline = cfg.intake.workers == 0
@@ -605,6 +614,9 @@ class Service:
                 zenoh_io.Watch(self.session, f"{base}/member/*", self._on_member, liveliness=True),
             ]
             self._fleet_token = keys.fleet_member(self.fleet_group, zid, cfg.prefix)
+        elif self.shard_group is not None and self.feeds:  # shard 0 hears the other shards' states
+            base = f"{cfg.prefix}/_fleet/{self.shard_group}"
+            self._watches = [zenoh_io.Watch(self.session, f"{base}/state/**", self._on_state)]
         self.liveliness = zenoh_io.Liveliness(self.session)
         self.ros_in = None
         extra = [self._start_ros2()] if cfg.ros2 is not None else []
@@ -712,6 +724,10 @@ class Service:
                         states = self.fleet_states.get(vehicle)
                         if states:  # another service served it: start from its last state
                             w.loop.starter = lambda t, w=w, states=states: w.take_over(states, t)
+                    elif self.fleet_states is not None and self.feed_fd is not None:
+                        states = self.fleet_states.get(vehicle)
+                        if states:  # a restarted shard: the vehicle goes on from its last state
+                            w.loop.starter = lambda t, w=w, states=states: w.take_over(states, t)
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w
@@ -796,6 +812,8 @@ class Service:
         """The vehicle an input is for and its item, or None (refused and counted, or not ours)."""
         pk = keys.parse_input(key, self.config.prefix)
         if pk is None and keys.is_output(key, self.config.prefix):
+            if self.feed_fd is not None and self.fleet_states is not None:
+                self._on_state(key, payload)  # from shard 0's feed: this restarted shard's states
             return None  # another fednav service's outputs share the prefix: not input, not an error
         parts = key.split("/")
         vehicle = parts[1] if len(parts) > 1 else ""
@@ -850,6 +868,19 @@ class Service:
             self._feed_of.clear()
         self._feed_of[vehicle] = feed
         return feed
+
+    def shard_states(self, index: int) -> list[list]:
+        """Shard 0: the latest handover states of local shard ``index``'s vehicles, as feed items
+        (the first frame of a restarted shard's new pipe)."""
+        if self.fleet_states is None or self.shard_group is None:
+            return []
+        now, k, prefix = time.monotonic(), self.shard[1], self.config.prefix
+        return [
+            [now, keys.fleet_state(self.shard_group, vehicle, pipeline, prefix), payload]
+            for vehicle, d in self.fleet_states.snapshot().items()
+            if fleet.shard_of(vehicle, k) == index
+            for pipeline, payload in d.items()
+        ]
 
     def _note_foreign(self, vehicle: str, gen: int) -> None:
         with self._foreign_lock:

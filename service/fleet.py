@@ -117,6 +117,10 @@ class StateCache:
         with self._lock:
             return dict(self._latest.get(vehicle, {}))
 
+    def snapshot(self) -> dict[str, dict[str, bytes]]:
+        with self._lock:
+            return {v: dict(d) for v, d in self._latest.items()}
+
 
 def handover_nav(st, t_start: float):
     """(NavState, InitStd) at ``t_start`` from a HandoverState at ``st.t``: position carried

@@ -12,7 +12,9 @@ their vehicles' outputs through shard 0), or, when shard 0 is a client of a rout
 router. Each shard writes its own recording (``run.rrd``, ``run.shard1.rrd``, ...).
 
 Shard 0 supervises the children: a child that dies is restarted (at most once per
-``RESTART_BACKOFF_S``; its vehicles' inputs meanwhile are counted as lost), and SIGINT/SIGTERM of
+``RESTART_BACKOFF_S``; its vehicles' inputs meanwhile are counted as lost; its vehicles go on
+from the last HandoverState it published, which shard 0 writes first into the new shard's pipe),
+and SIGINT/SIGTERM of
 shard 0 stop them all cleanly (each runs what its feed still holds and closes its recording). A
 child whose feed ends (shard 0 gone, even killed) stops by itself.
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -71,9 +74,15 @@ class ShardSupervisor:
 
         #: shard i's inputs, handed over by shard 0's intake (Service(feeds=...))
         self.feeds = {i: ShardFeed(i) for i in range(1, count)}
+        #: the private group under which shards 1..K-1 publish their vehicles' handover states
+        self.group = f"_shards-{secrets.token_hex(6)}"
+        #: (shard index) -> the latest states of its vehicles (Service.shard_states), handed to a
+        #: restarted shard first: its vehicles go on from where the dead shard left them
+        self.states_for = None
 
     def _command(self, i: int) -> list[str]:
         args = [sys.executable, "-m", "fednav.service", *self._argv, "--shard", f"{i}/{self.count}"]
+        args += ["--shard-group", self.group]
         for ep in self._connect:
             args += ["--connect", ep]
         if self.rrd is not None:
@@ -90,7 +99,8 @@ class ShardSupervisor:
             text=True,
             env=env,
         )
-        self.feeds[i].attach(os.dup(p.stdin.fileno()))  # the feed owns its descriptor
+        first = self.states_for(i) if self.states_for is not None and i in self._procs else None
+        self.feeds[i].attach(os.dup(p.stdin.fileno()), first)  # the feed owns its descriptor
         p.stdin.close()
         p.stdin = None
         self._procs[i] = p
@@ -158,7 +168,7 @@ class ShardSupervisor:
 def _strip(argv: list[str]) -> list[str]:
     """The command line without what each shard sets itself (endpoints, recording, shards)."""
     out, skip = [], False
-    value_opts = {"--listen", "--connect", "--rrd", "--shards", "--shard", "--viewer"}
+    value_opts = {"--listen", "--connect", "--rrd", "--shards", "--shard", "--shard-group", "--viewer"}
     for a in argv:
         if skip:
             skip = False

@@ -229,9 +229,23 @@ def test_a_killed_shard_is_restarted_and_fed_again(tmp_path):
         with lock:
             health[str(sample.key_expr).split("/")[2]] = json.loads(sample.payload.to_bytes())
 
+    notes: dict[str, dict] = {}  # the latest Health notes per vehicle
+
+    def on_vehicle_health(sample: zenoh.Sample) -> None:
+        with lock:
+            notes[str(sample.key_expr).split("/")[1]] = json.loads(sample.payload.to_bytes())["notes"]
+
+    states: set[str] = set()  # vehicles whose handover state shard 1 has published
+
+    def on_state(sample: zenoh.Sample) -> None:
+        with lock:
+            states.add(str(sample.key_expr).split("/")[4])
+
     subs = [
         session.declare_subscriber("fednav/*/nav/lc/solution", on_sol),
         session.declare_subscriber("fednav/_services/*/health", on_health),
+        session.declare_subscriber("fednav/*/service/health", on_vehicle_health),
+        session.declare_subscriber("fednav/_fleet/*/state/**", on_state),
     ]
     try:
         gen = Proc(
@@ -240,14 +254,20 @@ def test_a_killed_shard_is_restarted_and_fed_again(tmp_path):
             "fleet",
         )
         assert wait_until(lambda: all(len(sols.get(v, [])) > 20 for v in theirs), 60.0), sols.keys()
+        assert wait_until(lambda: states >= set(theirs), 20.0), states  # each state published once
+        assert states <= set(theirs)  # by shard 1, for its own vehicles only
         os.kill(child, signal.SIGKILL)
         killed = time.monotonic()
         lost = lambda: any(h.get("inputs_forward_lost", 0) > 0 for h in health.values())  # noqa: E731
         assert wait_until(lost, 20.0), health
-        # restarted: its vehicles are served again (from their next InitialNav or fixes)
+        # restarted: its vehicles are served again, each from the last state the dead shard
+        # published (handed to the new shard by shard 0 before any input), not aligned anew
         assert wait_until(
             lambda: all(any(t > killed + 1.0 for t in sols.get(v, [])) for v in theirs), 60.0
         ), {v: len(sols.get(v, [])) for v in theirs}
+        assert wait_until(
+            lambda: all(notes.get(v, {}).get("handed_over_from:shard1", 0) == 1 for v in theirs), 10.0
+        ), {v: notes.get(v) for v in theirs}
         assert gen.wait(timeout=120) == 0, gen.output()
     finally:
         for sub in subs:

@@ -110,14 +110,23 @@ class ShardFeed:
             self._cv.notify()
 
     # --- the supervisor ---------------------------------------------------------------------
-    def attach(self, fd: int) -> None:
+    def attach(self, fd: int, first: list | None = None) -> None:
         """The (re)started shard's standard input (a descriptor this feed now owns and closes):
-        frames go there from now on; what waited for the shard before is dropped and counted."""
+        frames go there from now on; what waited for the shard before is dropped and counted.
+        ``first``: items for the shard before any message (a restarted shard's vehicles' last
+        handover states), one frame ahead of everything else."""
         _widen(fd)
         os.set_blocking(fd, False)
+        head = None
+        if first:
+            body = self._enc.encode(first)
+            head = _HEADER.pack(len(body)) + body
         with self._cv:
             old, self._fd = self._fd, fd
             self._drop_queued()
+            if head is not None:  # counted neither forwarded nor lost: not inputs
+                self._frames.append((head, 0))
+                self._queued += len(head)
             if old is not None and old == self._writing:
                 self._close_after = old
                 old = None
