@@ -167,3 +167,52 @@ def test_a_foreign_verdict_of_an_old_membership_is_not_kept():
     svc._note_foreign("v2", gen)
     assert svc._wanted("fednav/v1/imu") and svc._wanted("fednav/v2/imu")
     assert svc._wanted("") and svc._wanted("fednav")
+
+
+@pytest.mark.parametrize("subscriptions", [1, 2])
+def test_another_shards_inputs_are_handed_to_its_feed_one_frame_per_drain(sessions, subscriptions):
+    """Shard 0's intake (``forward``): another local shard's messages go to that shard's feed,
+    whole and in order, with one flush per drain; its own are delivered; both for the one
+    blocking subscription and for several polled ones (``intake.subscribe = 'served'``)."""
+    a, b = sessions
+
+    class Feed:
+        def __init__(self):
+            self.items, self.pending, self.flushes = [], [], 0
+
+        def add(self, wall, key, payload):
+            assert isinstance(wall, float)
+            self.pending.append((key, payload))
+
+        def flush(self):
+            self.items.extend(self.pending)
+            self.pending = []
+            self.flushes += 1
+
+    feed = Feed()
+    drained = []
+    keys_ = ["t/*/**"] if subscriptions == 1 else ["t/v1/**", "t/other/**"]
+    intake = Intake(
+        a,
+        keys_,
+        lambda w, k, p: drained.append((k, p)),
+        deliver_many=(lambda items: drained.extend((k, p) for _, k, p in items))
+        if subscriptions == 1
+        else None,
+        forward=lambda key: feed if key.split("/")[1] == "other" else None,
+    )
+    time.sleep(0.5)
+    mine = b.declare_publisher("t/v1/imu", reliability=zenoh.Reliability.RELIABLE)
+    other = b.declare_publisher("t/other/imu", reliability=zenoh.Reliability.RELIABLE)
+    for i in range(50):
+        mine.put(f"m{i}".encode())
+        other.put(f"o{i}".encode())
+    assert wait_until(lambda: len(drained) == 50 and len(feed.items) == 50, 10.0), (
+        len(drained),
+        len(feed.items),
+    )
+    intake.stop()
+    assert drained == [("t/v1/imu", f"m{i}".encode()) for i in range(50)]
+    assert feed.items == [("t/other/imu", f"o{i}".encode()) for i in range(50)]
+    assert not feed.pending and 1 <= feed.flushes <= 50
+    assert intake.unwanted == 0
