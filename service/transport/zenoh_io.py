@@ -429,35 +429,48 @@ class QueryServer:
         self._thread = threading.Thread(target=self._run, name="fednav-queries", daemon=True)
         self._thread.start()
 
+    def _reply(self, query) -> None:
+        try:
+            for key, payload, encoding in self._answer(query.key_expr):
+                query.reply(key, payload, encoding=zenoh.Encoding(encoding))
+        except Exception as exc:  # a bad query must not kill the server
+            try:
+                query.reply_err(str(exc))
+            except zenoh.ZError:
+                pass
+        finally:
+            query.drop()
+
     def _run(self) -> None:
+        if len(self._qs) == 1:  # one queryable (a '*' service): blocked in its channel, no polling
+            handler = self._qs[0].handler
+            while True:
+                try:
+                    query = handler.recv()
+                except zenoh.ZError:  # closed: undeclared by stop()
+                    return
+                self._reply(query)
         while not self._stop.is_set():
             got = False
             for q in self._qs:
                 query = q.try_recv()
                 while query is not None:
                     got = True
-                    try:
-                        for key, payload, encoding in self._answer(query.key_expr):
-                            query.reply(key, payload, encoding=zenoh.Encoding(encoding))
-                    except Exception as exc:  # a bad query must not kill the server
-                        try:
-                            query.reply_err(str(exc))
-                        except zenoh.ZError:
-                            pass
-                    finally:
-                        query.drop()
+                    self._reply(query)
                     query = q.try_recv()
             if not got:
                 self._stop.wait(0.01)
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=5.0)
-        for q in self._qs:
+        if len(self._qs) > 1:
+            self._thread.join(timeout=5.0)
+        for q in self._qs:  # closes the channels: a blocked recv ends
             try:
                 q.undeclare()
             except zenoh.ZError:
                 pass
+        self._thread.join(timeout=5.0)
 
 
 def intersects(key: str, key_expr: zenoh.KeyExpr) -> bool:
