@@ -737,7 +737,12 @@ class Service:
             uptime_s=time.monotonic() - self.started,
             vehicles=list(self.config.vehicles),
             active_vehicles=sorted(self.workers),
-            refused_before_routing=dict(self.unrouted),
+            refused_before_routing=dict(self.unrouted)
+            | (
+                {"bad_shard_frame": bad}
+                if (bad := getattr(getattr(self, "intake", None), "bad_frames", 0))
+                else {}
+            ),
             unserved_vehicles=dict(self.unserved),
             messages_received=sum(w.received for w in list(self.workers.values())),
             fleet_group=self.fleet_group if self.fleet_view is not None else None,

@@ -767,7 +767,8 @@ class ServiceHealth(WireModel):
     refused_before_routing: dict[str, int] = Field(
         default_factory=dict,
         description="Messages refused before any vehicle, by reason: unserved_vehicle (a name not in "
-        "'vehicles'), vehicle_limit (more than intake.max_vehicles with '*'), bad_vehicle_name",
+        "'vehicles'), vehicle_limit (more than intake.max_vehicles with '*'), bad_vehicle_name, "
+        "bad_shard_frame (a local shard: a frame of shard 0's feed that did not decode)",
     )
     unserved_vehicles: dict[str, int] = Field(
         default_factory=dict,

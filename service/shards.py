@@ -14,9 +14,8 @@ router. Each shard writes its own recording (``run.rrd``, ``run.shard1.rrd``, ..
 Shard 0 supervises the children: a child that dies is restarted (at most once per
 ``RESTART_BACKOFF_S``; its vehicles' inputs meanwhile are counted as lost; its vehicles go on
 from the last HandoverState it published, which shard 0 writes first into the new shard's pipe),
-and SIGINT/SIGTERM of
-shard 0 stop them all cleanly (each runs what its feed still holds and closes its recording). A
-child whose feed ends (shard 0 gone, even killed) stops by itself.
+and SIGINT/SIGTERM of shard 0 stop them all cleanly (each runs what its feed still holds and
+closes its recording). A child whose feed ends (shard 0 gone, even killed) stops by itself.
 """
 
 from __future__ import annotations

@@ -120,3 +120,23 @@ def test_a_frame_that_is_not_messagepack_is_counted_and_the_feed_goes_on():
     intake.stop(0.5)
     feed.close()
     os.close(r)
+
+
+def test_closing_the_feed_of_a_stalled_shard_does_not_hang_and_counts_everything(monkeypatch):
+    """Shard 0 stopping while a shard reads nothing: close() returns after its timeout, the frame
+    being written is given up, and every message is either handed over or counted as lost."""
+    from fednav.service.transport import shard_feed
+
+    monkeypatch.setattr(shard_feed, "MAX_QUEUED_BYTES", 200_000)
+    r, w = os.pipe()  # a shard alive but never reading
+    feed = ShardFeed(1)
+    feed.attach(w)
+    for _ in range(300):
+        feed.add(1.0, "fednav/v/sensor/gnss/a/fix", b"z" * 10_000)
+        feed.flush()
+    t0 = time.monotonic()
+    feed.close(timeout_s=1.0)
+    assert time.monotonic() - t0 < 3.0
+    assert _wait(lambda: feed.lost + feed.forwarded == 300), (feed.lost, feed.forwarded)
+    assert not feed._thread.is_alive()
+    os.close(r)

@@ -13,9 +13,10 @@ The pipe carries frames: a 4-byte little-endian length, then a MessagePack array
 intake for that shard, in their order of arrival. Both ends are this program (same version, same
 user, a pipe no one else holds); the shard still validates each message as if it came from Zenoh.
 
-Shard 0 never waits for a shard: frames wait in a bounded queue (``MAX_QUEUED_BYTES``) written by
-a thread of their own; a frame that finds the queue full, or the shard dead or not yet started, is
-dropped and its messages counted (``lost``, in ServiceHealth ``inputs_forward_lost``).
+Shard 0 never waits for a shard: its intake thread writes a frame itself when the pipe takes it
+whole (non-blocking); what the pipe does not take waits in a bounded queue (``MAX_QUEUED_BYTES``)
+for the feed's own thread. A frame that finds the queue full, or the shard dead or not yet
+started, is dropped and its messages counted (``lost``, in ServiceHealth ``inputs_forward_lost``).
 """
 
 from __future__ import annotations
@@ -143,6 +144,8 @@ class ShardFeed:
         with self._cv:
             self._drop_queued()
             fd, self._fd = self._fd, None
+            if fd is not None and fd == self._writing:  # a stalled shard: the thread gives up on it
+                self._close_after, fd = fd, None
         if fd is not None:
             _close(fd)
 
@@ -184,6 +187,8 @@ class ShardFeed:
                     try:
                         view = view[os.write(fd, view) :]
                     except BlockingIOError:  # the shard has not read yet
+                        if self._fd != fd:  # closed or replaced meanwhile: this frame is lost
+                            raise OSError("feed closed") from None
                         select.select([], [fd], [], 0.5)
             except OSError:
                 ok = False
