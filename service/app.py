@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from fednav.service import fleet, keys
+from fednav.service import fleet, imu_batch, keys
 from fednav.service.config import ServiceConfig, recording_kinds
 from fednav.service.engine import EstimateOutput
 from fednav.service.evaluation import recording_errors
@@ -380,6 +380,32 @@ class VehicleWorker:
             log.exception("vehicle %s: final outputs failed", self.vehicle)
 
 
+def json_imu_runs(routed: list) -> list:
+    """A drain's routed inputs ((vehicle worker, (wall, kind, sensor_id, payload)), in arrival
+    order) as (worker, items) in the order each vehicle's first item came, with the JSON IMU
+    samples of one stream that follow each other among that vehicle's inputs (no other input of
+    the vehicle between them) in one list: each vehicle's own order is kept, and its samples
+    are run together (:meth:`VehicleLoop.process_imu_json`). Vehicles are independent, so a
+    sample taken ahead of another vehicle's input that arrived before it changes no result.
+    Under light load a drain holds one sample per vehicle and nothing changes; a loaded service
+    (drains of many messages) spends less per sample the further behind it falls."""
+    out: list = []
+    open_runs: dict = {}  # worker -> its open run (a list in ``out``)
+    for w, item in routed:
+        payload = item[3]
+        if item[1] == "imu" and isinstance(payload, bytes) and payload[:4] != imu_batch.MAGIC:
+            run = open_runs.get(w)
+            if run is not None and run[0][2] == item[2]:
+                run.append(item)
+                continue
+            run = open_runs[w] = [item]
+        else:
+            open_runs.pop(w, None)
+            run = [item]
+        out.append((w, run))
+    return out
+
+
 class PoolWorker:
     """A thread that owns many vehicles: one bounded queue of (vehicle, item), consumed in
     arrival order (a vehicle's events keep their order: a vehicle always lives on one worker).
@@ -425,6 +451,21 @@ class PoolWorker:
                 vw.loop.dropped += 1
                 return
         vw.queued += 1
+
+    def submit_imu_json(self, vw: VehicleWorker, items: list) -> None:
+        """A run of one vehicle's JSON IMU samples of one stream (:func:`json_imu_runs`): taken
+        together when inline (:meth:`VehicleLoop.process_imu_json`), else queued one by one."""
+        if not self.inline:
+            for item in items:
+                self.submit(vw, item)
+            return
+        with self._lock:
+            try:
+                if not vw.retired:
+                    vw.loop.process_imu_json(items[0][2], items)
+            except Exception:
+                log.exception("worker %d: error", self.index)
+                vw.counters["internal_error"] += 1
 
     def _one(self, vw: VehicleWorker, item) -> None:
         """One item of one vehicle (an input, a rejection, or the order to retire it)."""
@@ -798,7 +839,8 @@ class Service:
 
     def _deliver_many(self, items: list[tuple[float, str, bytes]]) -> None:
         """The inline intake's drain of its channel: routed first, so that each vehicle's Health
-        ``queue_depth`` counts what of it still waits, then run message by message."""
+        ``queue_depth`` counts what of it still waits, then run in order, a vehicle's consecutive
+        JSON IMU samples of one stream together (:func:`json_imu_runs`)."""
         routed = []
         for wall, key, payload in items:
             try:
@@ -809,9 +851,12 @@ class Service:
             if r is not None:
                 r[0].queued += 1
                 routed.append(r)
-        for w, item in routed:
-            w.queued -= 1
-            w.pool_worker.submit(w, item)
+        for w, run in json_imu_runs(routed):
+            w.queued -= len(run)
+            if len(run) == 1:
+                w.pool_worker.submit(w, run[0])
+            else:
+                w.pool_worker.submit_imu_json(w, run)
 
     def _route(self, wall: float, key: str, payload: bytes) -> tuple[VehicleWorker, tuple] | None:
         """The vehicle an input is for and its item, or None (refused and counted, or not ours)."""

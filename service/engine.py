@@ -223,7 +223,8 @@ class VehicleEngine:
     def handle_imu_batch(self, sensor_id: str, rows) -> int:
         """The records of an ImuBatch (:mod:`service.imu_batch`; already validated record by record),
         in order, each judged and used exactly as an ImuSample with the same values would be
-        (:meth:`handle`), without a message object per record. Returns the number accepted."""
+        (:meth:`handle`), without a message object per record. ``rows``: an (N, 8) array or a
+        list of 8-tuples (t, dt_s, dtheta_rad, dvel_mps). Returns the number accepted."""
         if sensor_id in self._node_imus:
             return sum(self._on_node_imu(sensor_id, ImuRow(r)) for r in rows)
         if not self.rules.known_sensor("imu", sensor_id):
@@ -236,7 +237,7 @@ class VehicleEngine:
         refusals = self._refusals
         usual = self._usual_imu if not self._sample_pipes else None
         accepted = 0
-        for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist():
+        for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist() if isinstance(rows, np.ndarray) else rows:
             if usual is not None and usual(key, t, dt, a0, a1, a2, v0, v1, v2):
                 accepted += 1
                 continue

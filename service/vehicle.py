@@ -128,6 +128,49 @@ class VehicleLoop:
             return
         self._handle(kind, sensor_id, msg, wall)
 
+    def process_imu_json(self, sensor_id: str, items) -> None:
+        """A run of JSON IMU samples of one stream, consecutive among the vehicle's arrivals
+        (``items``: the (wall, kind, sensor_id, payload) of each, in order): what
+        :meth:`process` does to each, with the samples that decode taken together as the
+        records of one ImuBatch (the engine judges and uses each record exactly as the same
+        sample alone: tests/test_imu_batch.py), without a dispatch per sample. A sample that does
+        not decode (or is too large) goes through :meth:`process` alone, in its place, for its
+        exact refusal and counted reason. Each sample's latency is counted from its own arrival.
+        The service's inline intake hands over such runs when one drain holds several samples of
+        a vehicle (docs/SCALING.md, "JSON samples of one drain taken together")."""
+        rows: list[tuple] = []
+        walls: list[float] = []
+        for wall, _kind, _sid, payload in items:
+            msg = decode_imu_json(payload) if len(payload) <= MAX_PAYLOAD_BYTES else None
+            if msg is None:
+                if rows:
+                    self._imu_rows(sensor_id, rows, walls)
+                    rows, walls = [], []
+                self.process("imu", sensor_id, payload, wall)
+                continue
+            (a0, a1, a2), (v0, v1, v2) = msg.dtheta_rad, msg.dvel_mps
+            rows.append((msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2))
+            walls.append(wall)
+        if rows:
+            self._imu_rows(sensor_id, rows, walls)
+
+    def _imu_rows(self, sensor_id: str, rows: list[tuple], walls: list[float]) -> None:
+        """Valid IMU samples (as records) of one stream into the engine, counted per sample."""
+        self.received += len(rows)
+        if self.starter is not None and not self.engine.initialised:
+            self._start_at(rows[0][0] - rows[0][1])
+        try:
+            n = self.engine.handle_imu_batch(sensor_id, rows)
+        except Exception:
+            log.exception("engine failure on IMU samples of imu/%s", sensor_id)
+            self.counters["internal_error"] += 1
+            return
+        self.accepted += n
+        if n:
+            self.arrivals[f"imu/{sensor_id}" if sensor_id else "imu"] = walls[-1]
+        now = time.monotonic()
+        self.latency_s.extend([now - w for w in walls])
+
     def _start_at(self, t_start: float) -> None:
         starter, self.starter = self.starter, None
         try:

@@ -296,6 +296,131 @@ def test_the_usual_imu_step_takes_an_irregular_stream_as_the_general_path(seed, 
         assert run.engine.streams == ref.engine.streams  # each stream's last time and interval
 
 
+def _feed_runs(cfg, msgs: list, rng: np.random.Generator | None) -> VehicleLoop:
+    """The messages as JSON, one by one through :meth:`VehicleLoop.process` (``rng`` None), or
+    as the service's intake hands a loaded drain over: the routed inputs of drains of random
+    sizes cut into runs by :func:`service.app.json_imu_runs` (with a second vehicle's inputs
+    between them), each run of JSON IMU samples through :meth:`VehicleLoop.process_imu_json`."""
+    from fednav.service.app import json_imu_runs
+
+    loop = VehicleLoop("v1", cfg, CollectingSink(keep_solutions=True))
+    other = VehicleLoop("v2", cfg, CollectingSink(keep_solutions=True))
+    items = []
+    for key, msg in msgs:
+        pk = keys.parse_input(key, cfg.prefix)
+        payload = msg.to_json() if pk.kind != "truth" else msg
+        items.append((time.monotonic(), pk.kind, pk.sensor_id, payload))
+    if rng is None:
+        for item in items:
+            loop.process(*item[1:], item[0])
+        return loop
+    i = 0
+    while i < len(items):
+        n = int(rng.integers(1, 40))
+        drain = []
+        for item in items[i : i + n]:
+            drain.append((loop, item))
+            if rng.random() < 0.3:  # another vehicle's input in between: runs are per vehicle
+                drain.append((other, (item[0], "imu", "", b'{"t": 1.0}')))
+        i += n
+        for w, run in json_imu_runs(drain):
+            if len(run) > 1:
+                w.process_imu_json(run[0][2], run)
+            else:
+                w.process(*run[0][1:], run[0][0])
+    return loop
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_json_samples_of_a_drain_taken_together_change_nothing(seed):
+    """A loaded service's drain: a vehicle's consecutive JSON IMU samples of one stream are run
+    together (service/app.py ``json_imu_runs``, ``VehicleLoop.process_imu_json``). On an irregular
+    stream with bad samples among the good (NaN, an implausible rate, a malformed document): the
+    same solutions to the last bit, the same counts and stream bookkeeping as one by one."""
+    sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
+    cfg = service_config(sc)
+    msgs = []
+    for key, msg in Simulation(sc, seed=seed):
+        if msgs and msg.t - msgs[0][1].t > 40.0:
+            break
+        msgs.append((key, msg))
+    rng = np.random.default_rng(seed)
+    msgs = _irregular(msgs, rng)
+
+    class Raw:  # a payload that is not a valid ImuSample
+        def __init__(self, text: bytes):
+            self.text = text
+            self.t = 0.0
+
+        def to_json(self) -> bytes:
+            return self.text
+
+    imu_key = next(k for k, m in msgs if isinstance(m, ImuSample))
+    bad = [
+        b'{"t": 5.0, "dt_s": 0.005, "dtheta_rad": [NaN, 0, 0], "dvel_mps": [0, 0, 0.05]}',
+        b'{"t": 5.0, "dt_s": 0.005, "dtheta_rad": [1.0, 0, 0], "dvel_mps": [0, 0, 0.05]}',
+        b'{"t": 5.0, "dt_s": 0.005',
+        b'{"t": 5.0, "dt_s": 0.005, "dtheta_rad": [0, 0, 0], "dvel_mps": [0, 0, 0.05], "x": 1}',
+    ]
+    for j, i in enumerate(rng.choice(len(msgs), 12, replace=False)):
+        msgs.insert(int(i), (imu_key, Raw(bad[j % len(bad)])))
+    ref = _feed_runs(cfg, msgs, None)
+    run = _feed_runs(cfg, msgs, np.random.default_rng(seed + 100))
+    for reason in (
+        "duplicate",
+        "time_backwards",
+        "overlap",
+        "non_finite",
+        "absurd_value",
+        "malformed_json",
+        "schema",
+    ):
+        assert ref.counters.get(reason, 0) > 0, (reason, ref.counters)
+    a, b = ref.engine.sink.records, run.engine.sink.records
+    assert a.keys() == b.keys() and a
+    for name in a:
+        assert len(a[name].solutions) == len(b[name].solutions) > 200
+        assert a[name].solutions == b[name].solutions
+    assert run.counters == ref.counters
+    assert (run.received, run.accepted) == (ref.received, ref.accepted)
+    assert run.engine.streams == ref.engine.streams
+    assert len(run.latency_s) == len(ref.latency_s)
+
+
+def test_json_imu_runs_keep_each_vehicles_order():
+    """Runs are cut by any other input of the same vehicle and by another IMU stream; a batch
+    payload, a rejection and a decoded message are never part of one."""
+    from fednav.service.app import json_imu_runs
+
+    j = b'{"t": 1}'
+    drain = [
+        ("a", (0, "imu", "", j)),
+        ("b", (1, "imu", "", j)),
+        ("a", (2, "imu", "", j)),
+        ("b", (3, "gnss_fix", "", j)),
+        ("a", (4, "imu", "", j)),
+        ("b", (5, "imu", "", j)),
+        ("a", (6, "imu", "aux", j)),
+        ("a", (7, "imu", "aux", imu_batch.MAGIC + b"...")),
+        ("a", (8, "imu", "aux", j)),
+        ("a", (9, None, "oversize", j)),
+        ("a", (10, "imu", "aux", j)),
+        ("b", (11, "imu", "", j)),
+    ]
+    got = [(w, [it[0] for it in run]) for w, run in json_imu_runs(drain)]
+    assert got == [
+        ("a", [0, 2, 4]),
+        ("b", [1]),
+        ("b", [3]),
+        ("b", [5, 11]),
+        ("a", [6]),
+        ("a", [7]),
+        ("a", [8]),
+        ("a", [9]),
+        ("a", [10]),
+    ]
+
+
 @pytest.mark.integration
 def test_service_takes_batches_and_counts_bad_ones(tmp_path):
     """Real processes: the simulator publishes ImuBatches (the default), the service navigates
