@@ -144,3 +144,30 @@ def test_health_latency_figures_are_the_windows_percentiles():
     assert lat["p50"] == float(np.percentile(window, 50))
     assert lat["p99"] == float(np.percentile(window, 99))
     assert lat["max"] == float(window.max())
+
+
+@pytest.mark.parametrize(
+    "size,count", [(500, 1), (500, 2), (500, 3), (500, 499), (500, 500), (7, 1000), (2000, 2345)]
+)
+def test_latency_window_percentiles_are_numpys(size, count):
+    """The ring of latencies (service/vehicle.py ``LatencyWindow``): the most recent ``size``
+    values, whatever the count (before the ring fills, at its edge, wrapped many times); p50 /
+    p99 / max equal to numpy's of the same values, to the bit."""
+    import numpy as np
+
+    from fednav.service.vehicle import LatencyWindow
+
+    w = LatencyWindow(size)
+    rng = np.random.default_rng(size + count)
+    values = rng.lognormal(-5.0, 1.0, count)
+    w.extend(values[: count // 3].tolist())
+    for v in values[count // 3 :].tolist():
+        w.append(v)
+    window = values[-size:] * 1e3
+    assert len(w) == len(window)
+    p50, p99, mx = w.percentiles_ms()
+    assert (p50, p99, mx) == (
+        float(np.percentile(window, 50)),
+        float(np.percentile(window, 99)),
+        float(window.max()),
+    )
