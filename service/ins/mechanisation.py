@@ -315,11 +315,14 @@ class Ins:
             self.major_update()
         s = self.state
         r_m, r_n = earth.radii(s.lat_rad)
-        s.lat_rad -= dp_enu_m[1] / (r_m + s.h_m)
-        s.lon_rad -= dp_enu_m[0] / ((r_n + s.h_m) * math.cos(s.lat_rad))
-        s.h_m -= dp_enu_m[2]
+        # on Python floats (a fix epoch's feedback: the same operations, the same results)
+        p0, p1, p2 = (float(v) for v in dp_enu_m)
+        s.lat_rad = float(s.lat_rad - p1 / (r_m + s.h_m))
+        s.lon_rad = float(s.lon_rad - p0 / ((r_n + s.h_m) * math.cos(s.lat_rad)))
+        s.h_m = float(s.h_m - p2)
         s.vel_enu_mps = s.vel_enu_mps - dv_enu_mps
-        q = earth.quat_mul(earth.rotvec_to_quat(phi_rad), s.q_nb)
+        a0, a1, a2 = (float(v) for v in phi_rad)
+        q = np.array(earth.quat_mul_f(earth.rotvec_to_quat_f(a0, a1, a2), s.q_nb.tolist()))
         s.q_nb = q / math.sqrt(float(q @ q))
         # bias states are "remaining bias" (true - estimated): add them to the estimate
         s.gyro_bias_rps = s.gyro_bias_rps + d_gyro_bias_rps

@@ -305,14 +305,15 @@ class Pipeline(ABC):
         their innovations are the stream's spread all the same))."""
         innovation = np.asarray(innovation, dtype=float)
         S_diag = np.asarray(S_diag, dtype=float)
-        ok = np.abs(innovation) <= self.HISTORY_MAX_SIGMA * np.sqrt(np.maximum(S_diag, 1e-300))
+        sd = np.sqrt(np.maximum(S_diag, 1e-300))
+        ok = np.abs(innovation) <= self.HISTORY_MAX_SIGMA * sd
         if used is not None:
             ok &= np.asarray(used, dtype=bool)
         self.floors.record(key, meas, claimed, innovation, S_diag - np.diagonal(meas.R), ok)
         ins = getattr(self.bank, "ins", None)
         t = ins.state.t if ins is not None else getattr(self.bank, "t", None)
         used_rows = np.ones(len(innovation), bool) if used is None else np.asarray(used, dtype=bool)
-        r = innovation / np.sqrt(np.maximum(S_diag, 1e-300))
+        r = innovation / sd
         if ins is not None:  # for the recording's innovation windows (fednav-inspect's NIS per row)
             self.innovations.append((t, key, meas.labels, r, used_rows))
         if t is None:

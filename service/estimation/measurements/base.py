@@ -231,9 +231,12 @@ class SigmaFloors:
     def apply(self, key: str, meas: Measurement) -> tuple[Measurement, np.ndarray]:
         """(meas with its R raised where the history says so, the claimed sigmas before)."""
         sd = np.sqrt(np.clip(np.diagonal(meas.R), 0.0, None))
-        floor = np.array([self._row(key, lab).floor for lab in meas.labels])
+        floors = [self._row(key, lab).floor for lab in meas.labels]
+        if not any(f > 0.0 for f in floors) or all(a >= f for a, f in zip(sd.tolist(), floors, strict=True)):
+            return meas, sd  # (the usual epoch: no history floor, or every claim above it)
+        floor = np.array(floors)
         low = sd < floor
-        if not low.any():
+        if not low.any():  # (NaN sigmas: never below a floor)
             return meas, sd
         scale = np.where(low, floor / np.maximum(sd, 1e-300), 1.0)
         R = meas.R * np.outer(scale, scale)
@@ -242,13 +245,16 @@ class SigmaFloors:
     def record(self, key: str, meas: Measurement, claimed: np.ndarray, innovation, hph, used=None) -> None:
         """Rows of an update that used them: the claimed sigmas, the innovations (z - H x) and
         the filter's share of their variance (diagonal of H P H')."""
+        # Python floats once (the same values as float() of each element)
+        claimed, innovation, hph = (np.asarray(a, dtype=float).tolist() for a in (claimed, innovation, hph))
+        used = None if used is None else np.asarray(used, dtype=bool).tolist()
         for j, lab in enumerate(meas.labels):
             if used is not None and not used[j]:
                 continue
             h = self._row(key, lab)
-            h.claimed.append(float(claimed[j]))
-            h.r2.append(float(innovation[j]) ** 2)
-            h.hph.append(float(hph[j]))
+            h.claimed.append(claimed[j])
+            h.r2.append(innovation[j] ** 2)
+            h.hph.append(hph[j])
             h.stale += 1
             if h.stale >= 10 or len(h.claimed) == HISTORY_MIN_SAMPLES:
                 h.update_floor()
