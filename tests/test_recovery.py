@@ -531,3 +531,63 @@ def test_a_suspect_state_excludes_no_satellite(monkeypatch):
     # the suspicion ended (reset, then verified by the vehicle's own aiding): exclusions allowed again
     tc_pipe = next(p for p in eng.pipelines if p.name == "tc_mhss")
     assert not tc_pipe.suspect and tc_pipe.unverified is None
+
+
+def _outage_then_jump(jump_m: float, outage_s: float = 20.0, jump_s: float = 3.0):
+    """No fixes for ``outage_s`` from AT_S, then ``jump_s`` of fixes ``jump_m`` north (the
+    receiver's solution jumping on return), then the receiver's own fixes again."""
+
+    def inject(eng, pk, msg, t_rel, sim):
+        if pk.kind != "gnss_fix" or t_rel < AT_S:
+            return True
+        if t_rel < AT_S + outage_s:
+            return False
+        if t_rel < AT_S + outage_s + jump_s and jump_m:
+            s = sim.truth.trajectory.state_at(msg.t)
+            r_m, _ = earth.radii(s.llh[0])
+            shifted = msg.model_copy(
+                update={"lat_deg": msg.lat_deg + math.degrees(jump_m / (r_m + s.llh[2]))}
+            )
+            eng.handle(pk.kind, pk.sensor_id, shifted)
+            return False
+        return True
+
+    return inject
+
+
+def test_a_jump_on_return_after_an_outage_is_held_not_taken(demo, monkeypatch):
+    """After a 20 s outage the receiver (claiming 10 m) returns 50 m off for 5 s: each fix a
+    4-5 sigma innovation, inside the 5-sigma gate. The loosely coupled filter holds the returning
+    position until the mean of two fixes agrees with it within 3 sigma (``Pipeline.held_on_return``;
+    their velocity, sound, is taken): the jump is never taken, and the solution follows the same
+    outage without the jump to within a metre. Without
+    the check (the reference) the filter takes the jump and is metres away from it. A plain
+    outage's first fix back is held, the second taken."""
+    sc, clean = demo
+    end = AT_S + 25.0
+
+    def deviation(rec, ref):
+        """The largest difference of the horizontal errors from the jump's end for 20 s."""
+        a = {round(r[0], 2): r[1] for r in rec["lc"] if end <= r[0] <= end + 20.0}
+        return max(abs(a[round(r[0], 2)] - r[1]) for r in ref["lc"] if round(r[0], 2) in a)
+
+    eng, rec = _run(sc, _outage_then_jump(50.0, jump_s=5.0))
+    plain_eng, plain = _run(sc, _outage_then_jump(0.0))
+    with monkeypatch.context() as m:
+        from fednav.service.pipelines.base import Pipeline
+
+        m.setattr(Pipeline, "held_on_return", lambda self, *a: None)
+        _, unchecked = _run(sc, _outage_then_jump(50.0, jump_s=5.0))
+    lc = eng.pipelines[0]
+    assert lc.name == "lc"
+    # the first fix back held whole, the jump's other four fixes' position rows (their velocity,
+    # sound, taken), and the first sound position after it (the mean of two still off)
+    assert lc.screened["return_check"] == 6 + 4 * 3 + 3, dict(lc.screened)
+    assert "innovation_gate" not in lc.screened, dict(lc.screened)
+    assert plain_eng.pipelines[0].screened["return_check"] == 6  # a plain return: one fix held
+    assert not _lies(rec["lc"]), _lies(rec["lc"])[:5]
+    held, taken = deviation(rec, plain), deviation(unchecked, plain)
+    assert held < 1.0 and taken > 1.5 and taken > 2.0 * held, (held, taken)
+    # the status says so: degraded while the returning fixes are held, never aided
+    statuses = {row[3] for row in rec["lc"] if AT_S + 20.0 <= row[0] < end}
+    assert "degraded" in statuses and "aided" not in statuses, statuses

@@ -195,6 +195,10 @@ class Pipeline(ABC):
         #: per stream, in an episode of updates with failing rows: whether the rest of a failing
         #: row's source is suspect (:meth:`source_groups`)
         self._source_episode: dict[str, bool] = {}
+        #: per stream: (time of its last update, its usual interval) and, after a gap, the
+        #: innovations of the messages held since its return (:meth:`held_on_return`)
+        self._used_at: dict[str, tuple[float, float | None]] = {}
+        self._returning: dict[str, tuple[float, deque]] = {}
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
@@ -330,6 +334,81 @@ class Pipeline(ABC):
         r = meas.z - meas.H @ x
         S = np.einsum("ij,jk,ik->i", meas.H, P, meas.H) + np.diagonal(meas.R)
         self.record_rows(key, meas, claimed, r, S, used)
+
+    #: a stream that fed no update for this long (and for RETURN_GAP_PERIODS of its own
+    #: interval) is checked on its return (:meth:`held_on_return`)
+    RETURN_GAP_S = 5.0
+    RETURN_GAP_PERIODS = 5.0
+    #: the returning messages averaged: about RETURN_SPAN_S of them, 2 to 5
+    RETURN_SPAN_S = 0.5
+    #: after this long held, the stream goes to the gate alone (and its recovery rules)
+    RETURN_MAX_S = 10.0
+    #: the mean's test: every row of a source within this many sigmas (3: a sound source held
+    #: one message longer about once in 370 rows; the per-row gate stays 5)
+    RETURN_SIGMA = 3.0
+
+    def held_on_return(
+        self, key: str, t: float, meas, x: np.ndarray, P: np.ndarray, gate: float | None
+    ) -> np.ndarray | None:
+        """The rows of an aiding message held, not used, because their stream is back after a
+        gap and the mean of its first messages must agree with the filter first (None: none held).
+
+        After an outage the filter's position sigma has grown, and one message of a receiver
+        that claims 10 m may be 50 m off (its solution jumping on return) and still pass the
+        per-row gate at 4.9 sigma; the filter then takes the jump and keeps part of it for
+        minutes (docs/hardening.md, "The jump on return"). One message cannot tell the jump
+        from noise; the mean of k of them can: its innovation has the variance H P H' + R / k
+        (the filter's error is common to them, the sensor's noise averages). So from the first
+        message after the gap, each source of the stream (``meas.groups``: a fix's position
+        solution, its velocity) is held until the mean innovation of its rows over the last k
+        messages (k ~ RETURN_SPAN_S of the stream's interval, 2 to 5) agrees with the filter
+        within RETURN_SIGMA on every row; from then on that source's rows go on to the gate as usual
+        (a jumped position does not hold back the receiver's sound velocity). Held rows are
+        counted in ``screened["return_check"]`` (the status is ``degraded`` meanwhile). After
+        RETURN_MAX_S of holding, the gate and its recovery decide alone. The first message of a
+        stream, and every message of a stream at its cadence, are never held; nor is any without
+        a gate (``gate`` None: screening off). ``x``, ``P``: the prior the message is tested
+        against."""
+        state = self._returning.get(key)  # a check under way goes on (its sound sources are used)
+        if state is None:
+            last = self._used_at.get(key)
+            if gate is None or last is None:
+                return None
+            if t - last[0] <= max(self.RETURN_GAP_S, self.RETURN_GAP_PERIODS * (last[1] or 0.0)):
+                return None
+            k = int(min(5, max(2, round(self.RETURN_SPAN_S / last[1]) if last[1] else 2)))
+            state = self._returning[key] = (t, deque(maxlen=k), set())
+        started, window, released = state
+        if not 0.0 <= t - started <= self.RETURN_MAX_S:
+            del self._returning[key]
+            return None
+        H = meas.H
+        r = meas.z - H @ x
+        groups = meas.groups if meas.groups is not None else np.zeros(len(r), dtype=int)
+        if window and window[-1][0].shape != r.shape:  # other rows (a fix without its velocity)
+            window.clear()
+            released.clear()
+        window.append((r, np.diagonal(meas.R).copy()))
+        if len(window) == window.maxlen:
+            n = len(window)
+            mean = sum(w[0] for w in window) / n
+            var = np.einsum("ij,jk,ik->i", H, P, H) + sum(w[1] for w in window) / (n * n)
+            agree = np.abs(mean) <= self.RETURN_SIGMA * np.sqrt(np.maximum(var, 1e-300))
+            released.update(int(g) for g in np.unique(groups) if agree[groups == g].all())
+        held = ~np.isin(groups, list(released))
+        if not held.any():
+            self._returning.pop(key, None)
+            return None
+        self.mark_screened(t, "return_check", int(held.sum()))
+        return held
+
+    def note_used(self, key: str, t: float) -> None:
+        """A stream's message fed an update at ``t`` (its cadence, for :meth:`held_on_return`)."""
+        last = self._used_at.get(key)
+        interval = last[1] if last is not None else None
+        if last is not None and 0.0 < t - last[0] <= self.RETURN_GAP_S:
+            interval = t - last[0]
+        self._used_at[key] = (t, interval)
 
     def source_groups(self, key: str, meas) -> np.ndarray | None:
         """The rows' sources (``meas.groups``) for a screening that makes the rest of a failing

@@ -122,6 +122,11 @@ class LooselyCoupled(Pipeline):
         meas, claimed = self.floors.apply(key, meas)  # no claim below what the stream's history supports
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
+        held = self.held_on_return(key, nav.t, meas, bank.x[0], bank.P[0], self.cfg.innovation_gate_sigma)
+        if held is not None:  # back after a gap: its first messages must agree with the filter first
+            if held.all():
+                return []
+            meas, claimed = measurements.rows_of(meas, ~held), claimed[~held]
         x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
         prior = res
         gate = self.cfg.innovation_gate_sigma
@@ -171,6 +176,7 @@ class LooselyCoupled(Pipeline):
             return outputs
         bank.x, bank.P = x, P
         bank.feedback(bank.x[0].copy())
+        self.note_used(key, nav.t)
         self.last_nis = float(res.nis[0])
         self.nis_history.append((nav.t, kind, self.last_nis, int(res.dof[0])))
         self.mark_aided(nav.t, meas.H, ~refused)

@@ -17,6 +17,7 @@ from fednav.service.estimation.measurements.base import (
     private_layout,
     private_transition,
     refused_with_source,
+    rows_of,
 )
 
 
@@ -72,4 +73,5 @@ __all__ = [
     "private_layout",
     "private_transition",
     "refused_with_source",
+    "rows_of",
 ]

@@ -148,6 +148,19 @@ __all__ = [
 SUSPECT_SIGMA = 2.0
 
 
+def rows_of(meas: Measurement, rows: np.ndarray) -> Measurement:
+    """The measurement with only ``rows`` ((m,) bool), everything else as it was."""
+    idx = np.flatnonzero(rows)
+    return replace(
+        meas,
+        z=meas.z[idx],
+        H=meas.H[idx],
+        R=meas.R[np.ix_(idx, idx)],
+        labels=tuple(meas.labels[i] for i in idx),
+        groups=None if meas.groups is None else meas.groups[idx],
+    )
+
+
 def refused_with_source(
     standardised: np.ndarray, refused: np.ndarray, groups: np.ndarray | None
 ) -> np.ndarray:
