@@ -206,12 +206,18 @@ class VehicleLoop:
     def _imu_rows(self, sensor_id: str, rows: list[tuple], walls: list[float]) -> None:
         """Valid IMU samples (as records) of one stream into the engine, counted per sample."""
         self.received += len(rows)
+        self._imu_records(sensor_id, rows, walls)
+
+    def _imu_records(self, sensor_id: str, rows, walls: list[float]) -> None:
+        """Validated IMU records ((N, 8) array or 8-tuples) of one stream into the engine, from the
+        messages that arrived at ``walls`` (a latency each): the start hook, the engine, the
+        counts of what it took."""
         if self.starter is not None and not self.engine.initialised:
-            self._start_at(rows[0][0] - rows[0][1])
+            self._start_at(float(rows[0][0] - rows[0][1]))
         try:
             n = self.engine.handle_imu_batch(sensor_id, rows)
         except Exception:
-            log.exception("engine failure on IMU samples of imu/%s", sensor_id)
+            log.exception("engine failure on IMU records of imu/%s", sensor_id)
             self.counters["internal_error"] += 1
             return
         self.accepted += n
@@ -263,18 +269,7 @@ class VehicleLoop:
             rows = rows[ok]
         if len(rows) == 0:
             return
-        if self.starter is not None and not self.engine.initialised:
-            self._start_at(float(rows[0, 0] - rows[0, 1]))
-        try:
-            n = self.engine.handle_imu_batch(sensor_id, rows)
-        except Exception:
-            log.exception("engine failure on an ImuBatch of imu/%s", sensor_id)
-            self.counters["internal_error"] += 1
-            return
-        self.accepted += n
-        if n:
-            self.arrivals[f"imu/{sensor_id}"] = wall
-        self.latency_s.append(time.monotonic() - wall)
+        self._imu_records(sensor_id, rows, [wall])
 
     def health(self, queue_depth: int = 0, notes: dict[str, int] | None = None) -> Health:
         # one pass over the window and one percentile call (a health a second per vehicle: 195 ->

@@ -210,6 +210,17 @@ def test_batches_give_the_same_solutions_as_json_samples():
     assert json_loop.counters == batch_loop.counters
 
 
+def _first_40_s(seed: int) -> tuple:
+    """(service config, the first 40 s of (key, message)) of the demo aircraft's stream."""
+    sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
+    msgs = []
+    for key, msg in Simulation(sc, seed=seed):
+        if msgs and msg.t - msgs[0][1].t > 40.0:
+            break
+        msgs.append((key, msg))
+    return service_config(sc), msgs
+
+
 def _irregular(msgs: list, rng: np.random.Generator) -> list:
     """The IMU samples of a stream with what a real or hostile sender does to them, at random
     places: duplicates, samples behind the running time, overlapping intervals, short gaps (a
@@ -269,13 +280,7 @@ def test_the_usual_imu_step_takes_an_irregular_stream_as_the_general_path(seed, 
     JSON samples and batch records) against the general path (the rules' verdict, then
     ``_imu_values``) on every irregularity: the same solutions to the last bit, the same counts;
     and batches against JSON samples with the same arrivals."""
-    sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
-    cfg = service_config(sc)
-    msgs = []
-    for key, msg in Simulation(sc, seed=seed):
-        if msgs and msg.t - msgs[0][1].t > 40.0:
-            break
-        msgs.append((key, msg))
+    cfg, msgs = _first_40_s(seed)
     msgs = _irregular(msgs, np.random.default_rng(seed))
     runs = [_feed(cfg, msgs, 7, as_json=True), _feed(cfg, msgs, 7, as_json=False)]
     with monkeypatch.context() as m:
@@ -337,13 +342,7 @@ def test_json_samples_of_a_drain_taken_together_change_nothing(seed):
     together (service/app.py ``json_imu_runs``, ``VehicleLoop.process_imu_json``). On an irregular
     stream with bad samples among the good (NaN, an implausible rate, a malformed document): the
     same solutions to the last bit, the same counts and stream bookkeeping as one by one."""
-    sc = load_scenario(SCENARIOS / "demo_aircraft.toml")
-    cfg = service_config(sc)
-    msgs = []
-    for key, msg in Simulation(sc, seed=seed):
-        if msgs and msg.t - msgs[0][1].t > 40.0:
-            break
-        msgs.append((key, msg))
+    cfg, msgs = _first_40_s(seed)
     rng = np.random.default_rng(seed)
     msgs = _irregular(msgs, rng)
 
