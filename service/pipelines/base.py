@@ -198,7 +198,7 @@ class Pipeline(ABC):
         #: per stream: (time of its last update, its usual interval) and, after a gap, the
         #: innovations of the messages held since its return (:meth:`held_on_return`)
         self._used_at: dict[str, tuple[float, float | None]] = {}
-        self._returning: dict[str, tuple[float, deque]] = {}
+        self._returning: dict[str, tuple[float, deque, set]] = {}  # (since, window, sources released)
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
