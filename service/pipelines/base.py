@@ -348,7 +348,7 @@ class Pipeline(ABC):
     RETURN_SIGMA = 3.0
 
     def held_on_return(
-        self, key: str, t: float, meas, x: np.ndarray, P: np.ndarray, gate: float | None
+        self, key: str, t: float, meas, x: np.ndarray, P: np.ndarray, screening: bool
     ) -> np.ndarray | None:
         """The rows of an aiding message held, not used, because their stream is back after a
         gap and the mean of its first messages must agree with the filter first (None: none held).
@@ -366,13 +366,18 @@ class Pipeline(ABC):
         (a jumped position does not hold back the receiver's sound velocity). Held rows are
         counted in ``screened["return_check"]`` (the status is ``degraded`` meanwhile). After
         RETURN_MAX_S of holding, the gate and its recovery decide alone. The first message of a
-        stream, and every message of a stream at its cadence, are never held; nor is any without
-        a gate (``gate`` None: screening off). ``x``, ``P``: the prior the message is tested
-        against."""
+        stream, and every message of a stream at its cadence, are never held; nor is any of a
+        pipeline whose screening is off (``screening`` False: no gate, or a fault test that
+        refuses nothing, as the paper's unscreened centralised filter). ``x``, ``P``: the prior
+        the message is tested against (a federated pipeline's: the owning local filter's).
+        The loosely coupled pipeline (so the transfer alignment master) and the federated,
+        centralised and underwater ones check; the tightly coupled ones do not (a jump common to
+        every pseudorange is a clock step to them, and a single satellite's is their own
+        tests')."""
         state = self._returning.get(key)  # a check under way goes on (its sound sources are used)
         if state is None:
             last = self._used_at.get(key)
-            if gate is None or last is None:
+            if not screening or last is None:
                 return None
             if t - last[0] <= max(self.RETURN_GAP_S, self.RETURN_GAP_PERIODS * (last[1] or 0.0)):
                 return None
@@ -403,7 +408,9 @@ class Pipeline(ABC):
         return held
 
     def note_used(self, key: str, t: float) -> None:
-        """A stream's message fed an update at ``t`` (its cadence, for :meth:`held_on_return`)."""
+        """A stream's message fed an update at ``t`` (its cadence, for :meth:`held_on_return`).
+        The federated pipelines note every message their fault test judged, used or isolated:
+        for them only a stream back after silence is checked."""
         last = self._used_at.get(key)
         interval = last[1] if last is not None else None
         if last is not None and 0.0 < t - last[0] <= self.RETURN_GAP_S:

@@ -234,6 +234,11 @@ class _CorePipeline(Pipeline):
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
         x0, P0 = bank.x[ch.owner].copy(), bank.P[ch.owner].copy()
+        held = self.held_on_return(key, bank.t, meas, x0, P0, ch.test.refuses)
+        if held is not None:  # back after a gap: its first messages must agree with the filter first
+            if held.all():
+                return []
+            meas, claimed = measurements.rows_of(meas, ~held), claimed[~held]
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test, self.source_groups(key, meas))
         self.end_source_episode(key, bool(upd.decision.flagged.any()))
@@ -241,6 +246,10 @@ class _CorePipeline(Pipeline):
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         if upd.rows_used:
             self.mark_aided(bank.t, meas.H, upd.decision.used)
+        # the stream's cadence for the return check counts every message its fault test judged:
+        # a stream isolated by the test and back is the test's to re-admit (the paper's method,
+        # its per-observation flags published throughout); one back after silence is checked
+        self.note_used(key, bank.t)
         if upd.doubt > 0.0:  # (core: "Doubtful updates")
             self.screened["doubted_update"] += 1
         isolated = int(np.count_nonzero(upd.decision.isolated))

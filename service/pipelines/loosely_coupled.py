@@ -122,7 +122,8 @@ class LooselyCoupled(Pipeline):
         meas, claimed = self.floors.apply(key, meas)  # no claim below what the stream's history supports
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
-        held = self.held_on_return(key, nav.t, meas, bank.x[0], bank.P[0], self.cfg.innovation_gate_sigma)
+        screening = self.cfg.innovation_gate_sigma is not None
+        held = self.held_on_return(key, nav.t, meas, bank.x[0], bank.P[0], screening)
         if held is not None:  # back after a gap: its first messages must agree with the filter first
             if held.all():
                 return []
