@@ -536,6 +536,21 @@ def test_a_suspect_state_excludes_no_satellite(monkeypatch):
     assert not tc_pipe.suspect and tc_pipe.unverified is None
 
 
+def _moved(msg: GnssFix, sim, north_m: float, up_mps: float = 0.0) -> GnssFix:
+    """The fix ``north_m`` north of where it says, its velocity ``up_mps`` up."""
+    s = sim.truth.trajectory.state_at(msg.t)
+    r_m, _ = earth.radii(s.llh[0])
+    ve, vn, vu = msg.vel_enu_mps
+    lat = msg.lat_deg + math.degrees(north_m / (r_m + s.llh[2]))
+    return msg.model_copy(update={"lat_deg": lat, "vel_enu_mps": (ve, vn, vu + up_mps)})
+
+
+def _deviation(rec, ref, name: str, start: float, span: float = 20.0) -> float:
+    """The largest difference of ``name``'s horizontal errors in two runs over [start, start + span]."""
+    a = {round(r[0], 2): r[1] for r in rec[name] if start <= r[0] <= start + span}
+    return max(abs(a[round(r[0], 2)] - r[1]) for r in ref[name] if round(r[0], 2) in a)
+
+
 def _outage_then_jump(jump_m: float, outage_s: float = 20.0, jump_s: float = 3.0):
     """No fixes for ``outage_s`` from AT_S, then ``jump_s`` of fixes ``jump_m`` north (the
     receiver's solution jumping on return), then the receiver's own fixes again."""
@@ -546,12 +561,7 @@ def _outage_then_jump(jump_m: float, outage_s: float = 20.0, jump_s: float = 3.0
         if t_rel < AT_S + outage_s:
             return False
         if t_rel < AT_S + outage_s + jump_s and jump_m:
-            s = sim.truth.trajectory.state_at(msg.t)
-            r_m, _ = earth.radii(s.llh[0])
-            shifted = msg.model_copy(
-                update={"lat_deg": msg.lat_deg + math.degrees(jump_m / (r_m + s.llh[2]))}
-            )
-            eng.handle(pk.kind, pk.sensor_id, shifted)
+            eng.handle(pk.kind, pk.sensor_id, _moved(msg, sim, jump_m))
             return False
         return True
 
@@ -569,11 +579,6 @@ def test_a_jump_on_return_after_an_outage_is_held_not_taken(demo, monkeypatch):
     sc, clean = demo
     end = AT_S + 25.0
 
-    def deviation(rec, ref):
-        """The largest difference of the horizontal errors from the jump's end for 20 s."""
-        a = {round(r[0], 2): r[1] for r in rec["lc"] if end <= r[0] <= end + 20.0}
-        return max(abs(a[round(r[0], 2)] - r[1]) for r in ref["lc"] if round(r[0], 2) in a)
-
     eng, rec = _run(sc, _outage_then_jump(50.0, jump_s=5.0))
     plain_eng, plain = _run(sc, _outage_then_jump(0.0))
     with monkeypatch.context() as m:
@@ -589,7 +594,7 @@ def test_a_jump_on_return_after_an_outage_is_held_not_taken(demo, monkeypatch):
     assert "innovation_gate" not in lc.screened, dict(lc.screened)
     assert plain_eng.pipelines[0].screened["return_check"] == 6  # a plain return: one fix held
     assert not _lies(rec["lc"]), _lies(rec["lc"])[:5]
-    held, taken = deviation(rec, plain), deviation(unchecked, plain)
+    held, taken = _deviation(rec, plain, "lc", end), _deviation(unchecked, plain, "lc", end)
     assert held < 1.0 and taken > 1.5 and taken > 2.0 * held, (held, taken)
     # the status says so: degraded while the returning fixes are held, never aided
     statuses = {row[3] for row in rec["lc"] if AT_S + 20.0 <= row[0] < end}
@@ -630,15 +635,7 @@ def _fixes_shifted(north_m: float, from_s: float, for_s: float, up_mps: float = 
     def inject(eng, pk, msg, t_rel, sim):
         if pk.kind != "gnss_fix" or not from_s <= t_rel < from_s + for_s:
             return True
-        s = sim.truth.trajectory.state_at(msg.t)
-        r_m, _ = earth.radii(s.llh[0])
-        ve, vn, vu = msg.vel_enu_mps
-        lat = msg.lat_deg + math.degrees(north_m / (r_m + s.llh[2]))
-        eng.handle(
-            pk.kind,
-            pk.sensor_id,
-            msg.model_copy(update={"lat_deg": lat, "vel_enu_mps": (ve, vn, vu + up_mps)}),
-        )
+        eng.handle(pk.kind, pk.sensor_id, _moved(msg, sim, north_m, up_mps))
         return False
 
     return inject
@@ -662,12 +659,7 @@ def test_the_federated_families_hold_a_jump_on_return_too(federated_demo, monkey
         m.setattr(Pipeline, "held_on_return", lambda self, *a: None)
         _, unchecked = _run(sc, _outage_then_jump(35.0, jump_s=5.0))
     for p in eng.pipelines:
-        base = {round(r[0], 2): r[1] for r in plain[p.name] if end <= r[0] <= end + 20.0}
-
-        def deviation(rec, name=p.name, base=base):
-            return max(abs(r[1] - base[round(r[0], 2)]) for r in rec[name] if round(r[0], 2) in base)
-
-        held, taken = deviation(rec), deviation(unchecked)
+        held, taken = _deviation(rec, plain, p.name, end), _deviation(unchecked, plain, p.name, end)
         assert p.screened["return_check"] > 0 and not _lies(rec[p.name]), (p.name, dict(p.screened))
         assert held < 1.0 and taken > 1.2 and taken > 2.0 * held, (p.name, held, taken)
         statuses = {row[3] for row in rec[p.name] if AT_S + 20.0 <= row[0] < end}
