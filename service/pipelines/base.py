@@ -199,6 +199,11 @@ class Pipeline(ABC):
         #: innovations of the messages held since its return (:meth:`held_on_return`)
         self._used_at: dict[str, tuple[float, float | None]] = {}
         self._returning: dict[str, tuple[float, deque, set]] = {}  # (since, window, sources released)
+        #: (kind, row label) -> the first of the consecutive updates that flagged that row on its
+        #: own (beyond the gate or the fault test's threshold, not only by its source)
+        self._refused_since: dict[tuple[str, str], float] = {}
+        self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
+        self._recovered_at: dict[str, float] = {}  # kind -> time of its last refusal recovery
 
     #: without aiding for longer than this many aiding periods (at least ``min_coast_after_s``)
     #: an aided pipeline reports ``coasting``; screening within that time reports ``degraded``
@@ -275,6 +280,59 @@ class Pipeline(ABC):
             self._refused_from = t  # again after as long if the refusals go on
             self._refused_reports += 1
             self.report("aiding_refused" if self._refused_reports == 1 else "aiding_still_refused")
+
+    #: a kind accepted before whose rows keep being refused this long (s): the filter, not the
+    #: sensor, is wrong (:meth:`refused_long`; None: never, the fault test's exclusion stands)
+    refusal_recovery_s: float | None = None
+    #: ... one position row alone: this many times as long
+    row_refusal_factor: float = 2.0
+
+    def refused_long(self, kind: str, t: float, meas, flagged: np.ndarray) -> bool:
+        """Whether ``kind``'s refusals say the filter, not the sensor, is wrong: every row of its
+        messages beyond the gate (or the fault test's threshold) on its own at every update for
+        ``refusal_recovery_s``, or one row that observes position for ``row_refusal_factor``
+        times that. Only a run of such updates counts, and only for a kind accepted before (a
+        sensor never accepted is never trusted by recovery).
+
+        The row rule: a position corrupted along one axis while the rest of the fix agrees is
+        refused row by row, the whole fix never fails together, and the filter stayed off for
+        good (docs/hardening.md, "A silent corruption of the state"). It waits longer (the rest
+        of the fix agreeing is weaker evidence against the filter, and a receiver's transient
+        fault must not restart the filter onto it: the demo's step lasts 15 s, seed 000's up to
+        20 s), and it takes position rows only: a filter whose velocity were wrong would soon
+        disagree with the fixes' positions too, so velocity rows refused while the positions
+        agree are the receiver's fault (seed 000's 50 s velocity step)."""
+        since = self._refused_since
+        if not flagged.any():  # the usual update: nothing refused, every run of refusals ends
+            if since:
+                for k in [k for k in since if k[0] == kind]:
+                    del since[k]
+            return False
+        labels = meas.labels
+        for label, f in zip(labels, flagged, strict=True):
+            if f:
+                since.setdefault((kind, label), t)
+            else:
+                since.pop((kind, label), None)
+        limit = self.refusal_recovery_s
+        if limit is None or kind not in self._trusted:
+            return False
+        first = [since.get((kind, label), t) for label in labels]  # (t: not flagged now)
+        if flagged.all() and t - max(first) >= limit:
+            return True
+        long = np.array([t - t0 >= self.row_refusal_factor * limit for t0 in first]) & flagged
+        return bool(long.any() and np.any(meas.H[long][:, em.POS] != 0.0))
+
+    def refusal_event(self, kind: str, t: float) -> str:
+        """Count a recovery :meth:`refused_long` called for and name the lifecycle's event:
+        ``aiding_refused`` (the state is suspect: checked against the vehicle's own reference),
+        or ``aiding_still_refused`` within three recovery times of the last one (the recovery did
+        not help: the whole state is reset)."""
+        self.screened["gate_recovery"] += 1
+        last = self._recovered_at.get(kind)
+        again = last is not None and t - last <= 3.0 * float(self.refusal_recovery_s or 0.0)
+        self._recovered_at[kind] = t
+        return "aiding_still_refused" if again else "aiding_refused"
 
     def refuses_epoch(self, meas, x: np.ndarray, P: np.ndarray) -> bool:
         """Whether the prior (x, P) refuses an epoch's rows as a whole: the NIS of the rows without
@@ -516,6 +574,7 @@ class Pipeline(ABC):
         self.aided_since_start = False
         self.failed = self.lost = False
         self.last_aiding_t = self.last_nav_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
+        self._refused_since.clear()  # a new state: its refusals start again
         self.consistency.clear()  # (the streams' fault episodes stay, as in :meth:`restarted`)
         self._refused_from = None
 

@@ -66,6 +66,14 @@ class _CorePipeline(Pipeline):
     """Shared machinery of Federated and Centralized (one core, two configurations)."""
 
     restores_members = True  # a restart from a checkpoint: each local as it was
+    #: a kind accepted before whose rows the fault test keeps flagging (Pipeline.refused_long):
+    #: all of them, or one position row, for 30 s. Longer than the loosely coupled gate's 10 s
+    #: and 20 s: the paper's fault test isolates a faulty receiver and carries on (its per-row
+    #: test flags the demo's 15 s step whole, and seed 000's faults last up to 20 s). (The
+    #: underwater pipeline keeps None: its USBL excluded by chi2_reconfig stays excluded, the
+    #: paper's reconfiguration.)
+    refusal_recovery_s: float | None = 30.0
+    row_refusal_factor = 1.0
 
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
@@ -244,7 +252,12 @@ class _CorePipeline(Pipeline):
         self.end_source_episode(key, bool(upd.decision.flagged.any()))
         self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.passed)
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
+        # rows its test keeps refusing: the filter may be the one wrong (a test that refuses
+        # nothing, the paper's unscreened comparators, takes its faults: never)
+        if ch.test.refuses and self.refused_long(kind, bank.t, meas, upd.decision.flagged):
+            self.report(self.refusal_event(kind, bank.t))  # the lifecycle checks the state
         if upd.rows_used:
+            self._trusted.add(kind)
             self.mark_aided(bank.t, meas.H, upd.decision.used)
         # the stream's cadence for the return check counts every message its fault test judged:
         # a stream isolated by the test and back is the test's to re-admit (the paper's method,

@@ -93,10 +93,8 @@ class LooselyCoupled(Pipeline):
         self.last_nis: float | None = None
         #: (t, kind, NIS, dof) of the latest updates, for consistency checks
         self.nis_history: deque = deque(maxlen=2048)
-        self._refused_since: dict[str, float] = {}  # kind -> first of its consecutive fully refused updates
-        self._trusted: set[str] = set()  # kinds with at least one accepted update since the start
+        self.refusal_recovery_s = cfg.gate_recovery_s
         self._gate_reported: set[str] = set()  # kinds whose last published Faults refused rows
-        self._recovered_at: dict[str, float] = {}  # kind -> time of its last gate recovery
 
     def consumed_kinds(self) -> frozenset[str]:
         return frozenset(self.models)
@@ -132,31 +130,30 @@ class LooselyCoupled(Pipeline):
         prior = res
         gate = self.cfg.innovation_gate_sigma
         flagged = np.abs(res.standardised[0]) > gate if gate is not None else np.zeros(len(meas.z), bool)
-        if flagged.any():  # the rest of a failing row's source is suspect (Pipeline.source_groups)
+        any_flagged = bool(flagged.any())
+        if any_flagged:  # the rest of a failing row's source is suspect (Pipeline.source_groups)
             groups = self.source_groups(key, meas)
             refused = measurements.refused_with_source(res.standardised[0], flagged, groups)
         else:
             refused = flagged
             self.end_source_episode(key, False)
         outputs: list[WireModel] = []
-        if refused.any():
+        due = (any_flagged or bool(self._refused_since)) and self.refused_long(kind, nav.t, meas, flagged)
+        if any_flagged:  # (refused: the flagged rows and the suspects of their sources)
             self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
             outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], flagged, refused))
             self._gate_reported.add(kind)
-            if flagged.all():  # every row beyond the gate on its own (not only by its group)
-                since = self._refused_since.setdefault(kind, nav.t)
-                if kind not in self._trusted or nav.t - since < self.cfg.gate_recovery_s:
-                    return outputs  # a sensor never accepted is never trusted by recovery
-                # a sensor accepted before, every row refused for gate_recovery_s: the filter,
-                # not the sensor, is wrong
-                self.screened["gate_recovery"] += 1
+            if flagged.all() and not due:  # every row beyond the gate on its own (not by its group)
+                return outputs
+            if due:
+                # a sensor accepted before, every row refused for gate_recovery_s, or one of
+                # its position rows for twice that (Pipeline.refused_long): the filter, not the
+                # sensor, is wrong
+                event = self.refusal_event(kind, nav.t)
                 self.recover_covariance()
                 # and its state is suspect (service/lifecycle.py); refused again soon after the
                 # covariance restart: the restart did not help, the whole state is reset
-                last = self._recovered_at.get(kind)
-                again = last is not None and nav.t - last <= 3.0 * self.cfg.gate_recovery_s
-                self._recovered_at[kind] = nav.t
-                self.report("aiding_still_refused" if again else "aiding_refused")
+                self.report(event)
                 x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R)
                 refused = np.zeros_like(refused)
             else:
@@ -164,7 +161,6 @@ class LooselyCoupled(Pipeline):
         elif kind in self._gate_reported:  # the first update the gate passes whole: say it is clear
             self._gate_reported.discard(kind)
             outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], flagged, refused))
-        self._refused_since.pop(kind, None)  # (only a run of epochs with every row flagged counts)
         # the rows within the gate (the suspects of a faulty source too)
         self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~flagged)
         if refused.size and refused.all():

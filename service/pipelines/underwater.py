@@ -71,6 +71,11 @@ def dvl_model(cfg: UnderwaterConfig) -> DvlModel:
 class Underwater(_CorePipeline):
     """Seed 004 pipeline: federated INS/USBL + INS/DVL, or the centralised comparator."""
 
+    #: a USBL its test keeps excluding stays excluded (the paper's reconfiguration: seed 004's
+    #: multipath fault lasts 500 s); a corrupted position the USBL keeps refusing looks the same
+    #: and is not recovered (docs/hardening.md, "A silent corruption of the state")
+    refusal_recovery_s = None
+
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
         return frozenset({"usbl", "dvl"})
