@@ -287,7 +287,7 @@ class Pipeline(ABC):
     #: ... one position row alone: this many times as long
     row_refusal_factor: float = 2.0
 
-    def refused_long(self, kind: str, t: float, meas, flagged: np.ndarray) -> bool:
+    def refused_long(self, kind: str, t: float, meas, flagged: np.ndarray, key: str) -> bool:
         """Whether ``kind``'s refusals say the filter, not the sensor, is wrong: every row of its
         messages beyond the gate (or the fault test's threshold) on its own at every update for
         ``refusal_recovery_s``, or one row that observes position for ``row_refusal_factor``
@@ -301,7 +301,12 @@ class Pipeline(ABC):
         fault must not restart the filter onto it: the demo's step lasts 15 s, seed 000's up to
         20 s), and it takes position rows only: a filter whose velocity were wrong would soon
         disagree with the fixes' positions too, so velocity rows refused while the positions
-        agree are the receiver's fault (seed 000's 50 s velocity step)."""
+        agree are the receiver's fault (seed 000's 50 s velocity step). And it holds only in a
+        stream (``key``) whose innovations were consistent when its failing rows began
+        (:meth:`source_groups`'s episode): a receiver claiming a fifth of its noise has rows
+        refused for as long as it runs, which says nothing against the filter, and restarting
+        the filter onto it hid the overconfidence the consistency test names (found by
+        tests/test_inspect_real.py's 5x case)."""
         since = self._refused_since
         if not flagged.any():  # the usual update: nothing refused, every run of refusals ends
             if since:
@@ -321,7 +326,10 @@ class Pipeline(ABC):
         if flagged.all() and t - max(first) >= limit:
             return True
         long = np.array([t - t0 >= self.row_refusal_factor * limit for t0 in first]) & flagged
-        return bool(long.any() and np.any(meas.H[long][:, em.POS] != 0.0))
+        if not (long.any() and np.any(meas.H[long][:, em.POS] != 0.0)):
+            return False
+        episode = self._source_episode.get(key)
+        return bool(self.consistency.is_consistent(key) if episode is None else episode)
 
     def refusal_event(self, kind: str, t: float) -> str:
         """Count a recovery :meth:`refused_long` called for and name the lifecycle's event:

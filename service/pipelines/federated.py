@@ -254,7 +254,7 @@ class _CorePipeline(Pipeline):
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         # rows its test keeps refusing: the filter may be the one wrong (a test that refuses
         # nothing, the paper's unscreened comparators, takes its faults: never)
-        if ch.test.refuses and self.refused_long(kind, bank.t, meas, upd.decision.flagged):
+        if ch.test.refuses and self.refused_long(kind, bank.t, meas, upd.decision.flagged, key):
             self.report(self.refusal_event(kind, bank.t))  # the lifecycle checks the state
         if upd.rows_used:
             self._trusted.add(kind)

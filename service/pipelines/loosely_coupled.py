@@ -138,7 +138,9 @@ class LooselyCoupled(Pipeline):
             refused = flagged
             self.end_source_episode(key, False)
         outputs: list[WireModel] = []
-        due = (any_flagged or bool(self._refused_since)) and self.refused_long(kind, nav.t, meas, flagged)
+        due = (any_flagged or bool(self._refused_since)) and self.refused_long(
+            kind, nav.t, meas, flagged, key
+        )
         if any_flagged:  # (refused: the flagged rows and the suspects of their sources)
             self.mark_screened(nav.t, "innovation_gate", int(refused.sum()))
             outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], flagged, refused))
