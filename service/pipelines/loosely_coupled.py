@@ -100,7 +100,6 @@ class LooselyCoupled(Pipeline):
         return frozenset(self.models)
 
     def initialise(self, nav: NavState, std: InitStd) -> None:
-        self._refused_since.clear()
         self._gate_reported.clear()
         self._P0 = initial_covariance(std, self.imu, self.private)
         self.bank = InsFilterBank(
