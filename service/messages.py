@@ -552,7 +552,11 @@ class Integrity(WireModel):
     """Satellites excluded (by this or an earlier epoch)"""
     satellites: list[SatelliteTest]
     """Per satellite in use: its tests"""
-    detected_by: str = Field("", description="'separation', 'residual', 'separation+residual' or ''")
+    detected_by: str = Field(
+        "",
+        description="'separation', 'residual', 'separation+residual', 'epoch_refused' (the "
+        "pipeline's state refused the epoch wholesale: no update, an alarm) or ''",
+    )
 
 
 class Alignment(WireModel):

@@ -185,6 +185,9 @@ class Pipeline(ABC):
         #: (the service's recording drains them at output epochs)
         self.innovations: deque = deque(maxlen=64)
         self._refused_from: float | None = None  # first epoch of a run of wholesale refusals
+        #: ... the run's first epoch, kept over its reports (None: no run under way): the state
+        #: went wrong before it (a sudden corruption) and its estimates since are no checkpoints
+        self.refusal_began: float | None = None
         self._refused_reports = 0
         #: sigma floors from each stream's own history (measurements.base.SigmaFloors)
         self.floors = SigmaFloors()
@@ -272,10 +275,12 @@ class Pipeline(ABC):
         which checks the state against the vehicle's own reference; ``aiding_still_refused``
         every ``refused_after_s`` after that while the refusals go on: the state is reset."""
         if not refused:
-            self._refused_from = None
+            self._refused_from = self.refusal_began = None
             return
         if self._refused_from is None:
             self._refused_from, self._refused_reports = t, 0
+        if self.refusal_began is None:
+            self.refusal_began = t
         if t - self._refused_from >= self.refused_after_s:
             self._refused_from = t  # again after as long if the refusals go on
             self._refused_reports += 1
@@ -347,10 +352,15 @@ class Pipeline(ABC):
         the worst source (``meas.groups``, e.g. a satellite; else the worst row) above its
         chi-square quantile at ``REFUSED_P_FA``. One failing source never makes it true; a state
         that disagrees with most sources does (a jump it took, a corrupted INS)."""
+        return self.epoch_refusal(meas, x, P)[0]
+
+    def epoch_refusal(self, meas, x: np.ndarray, P: np.ndarray) -> tuple[bool, float]:
+        """(:meth:`refuses_epoch`, the typical source's disagreement: the median over the sources
+        but the worst of each one's RMS standardised innovation, in sigmas; 0 when not refused)."""
         z, H = meas.z, meas.H
         m = len(z)
         if m < 3 or not (np.all(np.isfinite(z)) and np.all(np.isfinite(H))):
-            return False
+            return False, 0.0
         s = np.einsum("ij,jk,ik->i", H, P, H) + meas.r_var
         q = np.square(z - H @ x) / np.maximum(s, 1e-30)
         if meas.groups is not None and len(meas.groups) == m:
@@ -358,10 +368,39 @@ class Pipeline(ABC):
             worst = int(np.argmax(per))
             keep = meas.groups != worst
         else:
+            per, worst = q, int(np.argmax(q))
             keep = np.ones(m, bool)
-            keep[int(np.argmax(q))] = False
+            keep[worst] = False
         dof = int(np.count_nonzero(keep))
-        return dof >= 2 and float(q[keep].sum()) > _chi2_quantile(dof, self.REFUSED_P_FA)
+        if not (dof >= 2 and float(q[keep].sum()) > _chi2_quantile(dof, self.REFUSED_P_FA)):
+            return False, 0.0
+        rows = np.bincount(meas.groups) if per is not q else np.ones(m)
+        others = np.delete(np.arange(len(per)), worst)
+        others = others[rows[others] > 0]
+        return True, float(np.sqrt(np.median(per[others] / rows[others])))
+
+    #: an epoch refused wholesale whose typical source is this far out (sigmas, :meth:`epoch_refusal`)
+    #: takes no update (:meth:`refused_wholesale`); a refusal nearer than that is a prior somewhat
+    #: too sure of itself (seed 003's clean runs, seeds 1-2: 1.8-2.3 sigma at 15-28 epochs; seed
+    #: 001's ramp, seeds 1-3: 2.1-2.4 sigma, the main filter having absorbed part of the ramp),
+    #: which the update is there to correct
+    GROSS_REFUSAL_SIGMA = 5.0
+
+    def refused_wholesale(self, t: float, meas, x: np.ndarray, P: np.ndarray) -> bool:
+        """Note whether the prior (x, P) refuses this epoch's rows as a whole (:meth:`note_refusal`:
+        for ``refused_after_s`` the lifecycle checks the state, then resets it), and whether the
+        refusal is gross (the typical source beyond ``GROSS_REFUSAL_SIGMA``): then the epoch takes
+        no update (counted ``epoch_refused``). For a pipeline without a gate of its own (the
+        tightly coupled families' pseudoranges): an update with every satellite 200 m out dragged
+        the biases and the receiver clock along with a corrupted position, and let the MHSS monitor
+        exclude good satellites against it, which the reset kept (docs/hardening.md, "A silent
+        corruption of the state")."""
+        refused, typical = self.epoch_refusal(meas, x, P)
+        self.note_refusal(t, refused)
+        if refused and typical > self.GROSS_REFUSAL_SIGMA:
+            self.mark_screened(t, "epoch_refused", len(meas.z))
+            return True
+        return False
 
     #: rows whose innovation is further out than this (standardised) are not the sensor's
     #: spread but a fault, and stay out of its history
@@ -584,7 +623,7 @@ class Pipeline(ABC):
         self.last_aiding_t = self.last_nav_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
         self._refused_since.clear()  # a new state: its refusals start again
         self.consistency.clear()  # (the streams' fault episodes stay, as in :meth:`restarted`)
-        self._refused_from = None
+        self._refused_from = self.refusal_began = None
 
     def restore_references(self, refs: dict[str, np.ndarray]) -> None:
         """After a restart from a full state (``InitStd.cov`` of every state), the linearisation

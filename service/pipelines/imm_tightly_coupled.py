@@ -127,7 +127,8 @@ class ImmTightlyCoupled(Pipeline):
             self.screened["sigma_floor"] += meas.floored
         r_var = meas.r_var
         x0, P0 = bank.x[0].copy(), bank.P[0].copy()
-        self.note_refusal(nav.t, self.refuses_epoch(meas, x0, P0))  # a suspect state?
+        if self.refused_wholesale(nav.t, meas, x0, P0):
+            return []
         mask = None
         rejected: list[str] = []
         if self.cfg.gate_p_fa is not None:

@@ -143,7 +143,9 @@ class TightlyCoupled(Pipeline):
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
         x0, P0 = bank.x[0].copy(), bank.P[0].copy()
-        self.note_refusal(nav.t, self.refuses_epoch(meas, x0, P0))  # a suspect state?
+        if self.refused_wholesale(nav.t, meas, x0, P0):  # no update; integrity: an alarm
+            res = self.last = self.monitor.refused_epoch(bank, msg.t)
+            return [] if res.tests is None else [self.integrity_message(res)]
         try:
             # an unverified or suspect state cannot judge an excluded satellite's health, and a
             # suspect one (possibly corrupt, its covariance not saying so) no satellite's fault

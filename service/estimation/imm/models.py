@@ -72,7 +72,8 @@ class DownWeighting:
 
     def factors(self, v: np.ndarray, suspected: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(h_scale, r_scale), shapes of ``v``: the H-row and R_ii multipliers of eq (14)-(16)."""
-        c0 = np.where(np.abs(v) > self.c, self.big, np.exp(np.square(v / self.c) - 1.0))
+        a = np.abs(v)  # (clipped inside exp: no overflow where big is taken anyway)
+        c0 = np.where(a > self.c, self.big, np.exp(np.square(np.minimum(a, self.c) / self.c) - 1.0))
         r_scale = np.where(suspected, c0, 1.0)
         h_scale = np.where(suspected, self.h_percent / 100.0, 1.0)
         return h_scale, r_scale

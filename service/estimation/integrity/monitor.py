@@ -336,7 +336,8 @@ class EpochResult:
     """Diagnostics of one GNSS epoch (tests, evaluation, dashboards and the Integrity message).
 
     ``tests`` is None when the monitor runs without integrity (depth 0); ``detected_by`` is
-    "separation", "residual", "separation+residual" or "" (no detection); ``residual_by_sat``:
+    "separation", "residual", "separation+residual", "epoch_refused" (the state refused the
+    epoch wholesale: :meth:`MhssMonitor.refused_epoch`) or "" (no detection); ``residual_by_sat``:
     per satellite the (statistic, threshold) of its window with the largest ratio.
     """
 
@@ -390,6 +391,33 @@ class MhssMonitor:
         satellite back in at the next epoch without its check (the demo's C03 at a reset 30 s
         after its ramp fault ended; during a live fault it would have been the faulty one)."""
         self.residual.clear()
+
+    def refused_epoch(self, bank, t: float) -> EpochResult:
+        """An epoch the pipeline's state refused wholesale (``Pipeline.refused_wholesale``: most
+        satellites disagree with it, so no update and no satellite's fault to find): the
+        protection levels of the bank as it stands, reported ``detected`` and unresolved
+        (``detected_by`` ``"epoch_refused"``), hence an alarm. No exclusion, no health judged."""
+        cfg, mh = self.settings, bank.mhss
+        if mh.depth == 0 or mh.N == 0:
+            return EpochResult(t, mh.sats, None, None, False, None, True, ())
+        p_fa, nf = cfg.p_fa, self.n_families
+        kfa = k_fa(p_fa, mh.N * nf)
+        tests = mh.main_tests(kfa, self.kmd, k_fa_horizontal(p_fa, mh.N * nf, cfg.horizontal_threshold))
+        verdict = assess(tests.hpl, tests.vpl, cfg.phase, True, False)
+        return EpochResult(
+            t,
+            mh.sats,
+            None,
+            tests,
+            True,
+            None,
+            False,
+            (),
+            None,
+            "epoch_refused",
+            verdict,
+            tuple(self.book.ids),
+        )
 
     def epoch(
         self, bank, meas: Measurement, t: float, judge_health: bool = True, may_exclude: bool = True
