@@ -263,7 +263,7 @@ class Pipeline(ABC):
     #: restored navigation covariance (an IMM's models, whose probabilities restart too)
     restores_members: bool = False
 
-    #: an epoch's rows refused wholesale (:meth:`refuses_epoch`) for this long (s): the filter,
+    #: an epoch's rows refused wholesale (:meth:`epoch_refusal`) for this long (s): the filter,
     #: not the sensor, is wrong
     refused_after_s: float = 2.0
     #: ... at this false-alarm probability per epoch of the trimmed NIS test
@@ -347,16 +347,13 @@ class Pipeline(ABC):
         self._recovered_at[kind] = t
         return "aiding_still_refused" if again else "aiding_refused"
 
-    def refuses_epoch(self, meas, x: np.ndarray, P: np.ndarray) -> bool:
-        """Whether the prior (x, P) refuses an epoch's rows as a whole: the NIS of the rows without
-        the worst source (``meas.groups``, e.g. a satellite; else the worst row) above its
-        chi-square quantile at ``REFUSED_P_FA``. One failing source never makes it true; a state
-        that disagrees with most sources does (a jump it took, a corrupted INS)."""
-        return self.epoch_refusal(meas, x, P)[0]
-
     def epoch_refusal(self, meas, x: np.ndarray, P: np.ndarray) -> tuple[bool, float]:
-        """(:meth:`refuses_epoch`, the typical source's disagreement: the median over the sources
-        but the worst of each one's RMS standardised innovation, in sigmas; 0 when not refused)."""
+        """(whether the prior (x, P) refuses an epoch's rows as a whole, the typical source's
+        disagreement). Refused: the NIS of the rows without the worst source (``meas.groups``,
+        e.g. a satellite; else the worst row) above its chi-square quantile at ``REFUSED_P_FA``.
+        One failing source never makes it true; a state that disagrees with most sources does (a
+        jump it took, a corrupted INS). The disagreement: the median over the sources but the
+        worst of each one's RMS standardised innovation, in sigmas (0 when not refused)."""
         z, H = meas.z, meas.H
         m = len(z)
         if m < 3 or not (np.all(np.isfinite(z)) and np.all(np.isfinite(H))):
