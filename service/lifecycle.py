@@ -991,10 +991,11 @@ class VehicleLife:
         contested, and the state of a vehicle whose INS was lost for a moment.
 
         ``own_motion`` (the INS's input sound: a refusal run, not a contested key): when the INS's
-        own velocity and attitude now agree with the carried ones (chi-square of 6 at 1e-6 under
-        the carried covariance), they are taken, with the checkpoint's covariance carried without
-        the unknown-motion growth (the IMU measured the motion over the gap: its biases' share is
-        added), and the position is carried with the trapezoid of both velocities. The carry's
+        own velocity and heading now agree with the carried ones (chi-square of 4 at 1e-6 under
+        the carried covariance: :meth:`_own_motion`), its velocity and attitude are taken, with
+        the checkpoint's covariance carried without the unknown-motion growth (the IMU measured
+        the motion over the gap: its biases' share is added), and the position is carried with
+        the trapezoid of both velocities. The carry's
         growth alone left a tightly coupled pipeline reset 2.5 s after its checkpoint with 0.72 deg
         of attitude and 0.27 m/s of velocity sigma while its INS was within 0.003 deg and 0.04 m/s
         of them; re-learning them from pseudoranges took it 2 m off for 30 s (the demo, seed 7:
@@ -1023,7 +1024,7 @@ class VehicleLife:
         T9 = np.eye(9)
         T9[:3, 3:6] = dt * np.eye(3)
         P9 = T9 @ P9 @ T9.T
-        P_motion, P9_motion = P.copy(), P9.copy()  # (before the unknown motion's growth)
+        before_growth = (P.copy(), P9.copy()) if own_motion else None
         dt_signed, dt = dt, abs(dt)
         acc = acc_std
         grow = np.diag([(0.5 * acc * dt * dt) ** 2] * 3 + [(acc * dt) ** 2] * 3)
@@ -1054,7 +1055,7 @@ class VehicleLife:
         if own_motion and p.bank is not None:
             carried6 = P9[3:9, 3:9].copy()  # velocity and attitude as carried (the turn's growth too)
             carried6[3:, 3:] += np.eye(3) * turn * turn
-            taken = self._own_motion(p, nav, cp, carried6, P_motion, P9_motion, dt_signed)
+            taken = self._own_motion(p, nav, cp, carried6, *before_growth, dt_signed)
             if taken is not None:
                 nav, P, P9 = taken
                 sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
