@@ -503,6 +503,8 @@ class VehicleEngine:
                 self.sink.on_output(self.vehicle, out, err9)
             if p.screened.get("innovations_inconsistent") and ("inconsistent", p.name) not in self._warned:
                 self._warn_inconsistent(p)
+            if p.screened.get("innovations_biased") and ("biased", p.name) not in self._warned:
+                self._warn_biased(p)
         self.life.after_aiding(kind, msg, self.pre.t_end, sensor_id)
 
     def _warn_inconsistent(self, p: Pipeline) -> None:
@@ -518,6 +520,25 @@ class VehicleEngine:
             p.name,
             p.consistency.window_s,
             streams or "a stream",
+        )
+
+    def _warn_biased(self, p: Pipeline) -> None:
+        """Log once per pipeline when a stream's innovations first turn off centre."""
+        self._warned.add(("biased", p.name))
+        rows = ", ".join(
+            f"{k} {label} {p.bias.mean(k, label):+.1f} sigma"
+            for k, labels in p.bias.failing().items()
+            for label in labels
+        )
+        log.warning(
+            "vehicle %s: pipeline %s: innovations off centre over the last %.0f s (%s on average): the "
+            "state is further off than its sigmas say (a corruption the aiding pulls back slowly), or "
+            "a sensor's errors are biased or correlated beyond its model; status degraded meanwhile "
+            "(Health screened innovations_biased counts the episodes)",
+            self.vehicle,
+            p.name,
+            p.bias.window_s,
+            rows or "a stream",
         )
 
     def _unused(self, p: Pipeline, kind: str) -> None:

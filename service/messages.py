@@ -667,7 +667,9 @@ class PipelineHealth(WireModel):
         "the doubt level and the fault test's threshold, weighed as possibly faulty (federated and "
         "underwater families: the covariance widened, the correction scaled down); and "
         "innovations_inconsistent: the times a stream's innovations turned larger than the filter claims "
-        "(status degraded meanwhile)",
+        "(status degraded meanwhile); innovations_biased: the times a stream's innovations turned off "
+        "centre (status degraded meanwhile), and bias_inflation: the rows whose bias grew the "
+        "covariance (loosely coupled, federated and centralised families)",
     )
 
 

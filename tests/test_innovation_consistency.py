@@ -12,7 +12,7 @@ from scipy.stats import chi2
 from fednav.service import earth, keys
 from fednav.service.config import ImuModel, LooselyCoupledConfig
 from fednav.service.engine import VehicleEngine
-from fednav.service.estimation.consistency import InnovationConsistency, chi2_upper
+from fednav.service.estimation.consistency import InnovationBias, InnovationConsistency, chi2_upper
 from fednav.service.ins.alignment import InitStd
 from fednav.service.ins.mechanisation import NavState
 from fednav.service.messages import GnssFix
@@ -107,6 +107,75 @@ def test_one_large_innovation_does_not_fail_a_window_and_time_going_back_starts_
     assert c.ratio("gnss_fix/main") == pytest.approx(1e6 / 6)
     c.clear()
     assert c.ratio("gnss_fix/main") is None and c.failing() == []
+
+
+def _feed_bias(
+    b: InnovationBias,
+    rng,
+    seconds: float,
+    t0: float = T0,
+    rows: int = 6,
+    rate_hz: float = 1.0,
+    bias=None,
+    used=None,
+):
+    """Standardised innovations (``bias``: added per row) into the bias test; its verdicts."""
+    labels = tuple(f"r{j}" for j in range(rows))
+    offset = np.zeros(rows) if bias is None else np.asarray(bias, float)
+    use = np.ones(rows, bool) if used is None else np.asarray(used, bool)
+    return [
+        b.add(KEY, t0 + k / rate_hz, labels, rng.standard_normal(rows) + offset, use)
+        for k in range(int(seconds * rate_hz))
+    ]
+
+
+@pytest.mark.parametrize(("rows", "rate_hz", "seconds"), [(6, 1.0, 5_000.0), (24, 10.0, 500.0)])
+def test_centred_innovations_are_almost_never_called_biased(rows, rate_hz, seconds):
+    """White, centred innovations: the bias test's two means (the window's, its latest span's) at
+    1e-6 each fail at most a handful of updates in thousands (a threshold at 2 sigma would fail
+    ~5 % of them)."""
+    verdicts = _feed_bias(InnovationBias(), np.random.default_rng(7), seconds, rows=rows, rate_hz=rate_hz)
+    assert sum(verdicts) <= 1e-3 * len(verdicts), sum(verdicts)
+
+
+def test_a_row_off_centre_is_found_within_its_recent_span_and_named():
+    """One row 2 sigma off centre from t = 60 s (1 Hz): failing within the latest span's 10 s,
+    only that row named, its recent mean near 2 while the whole window's is diluted; centred
+    again, it passes once the biased updates have left the 30 s window."""
+    b = InnovationBias()
+    rng = np.random.default_rng(8)
+    assert not any(_feed_bias(b, rng, 60.0))
+    off = _feed_bias(b, rng, 15.0, t0=T0 + 60.0, bias=[2.0, 0, 0, 0, 0, 0])
+    first = off.index(True)
+    assert 5 <= first <= 10, off
+    assert b.failing() == {KEY: ["r0"]}
+    assert b.recent_mean(KEY, "r0") == pytest.approx(2.0, abs=0.8)
+    assert abs(b.mean(KEY, "r0")) < abs(b.recent_mean(KEY, "r0"))
+    after = _feed_bias(b, rng, 40.0, t0=T0 + 75.0)
+    assert after[-1] is False and b.failing() == {}
+    b.clear()
+    assert b.mean(KEY, "r0") is None and b.failing() == {}
+
+
+def test_a_small_bias_or_rows_not_used_are_not_a_failure():
+    """A bias of 0.3 sigma at 10 Hz is significant but not material (below half the claimed
+    spread): no failure. Rows the update did not use (refused by the gate) are not averaged."""
+    assert not any(
+        _feed_bias(InnovationBias(), np.random.default_rng(9), 300.0, rate_hz=10.0, bias=[0.3] * 6)
+    )
+    used = [False, True, True, True, True, True]
+    assert not any(
+        _feed_bias(InnovationBias(), np.random.default_rng(10), 60.0, bias=[5.0, 0, 0, 0, 0, 0], used=used)
+    )
+
+
+def test_rows_are_followed_by_label_whatever_their_order_and_non_finite_ones_are_skipped():
+    b = InnovationBias()
+    b.add(KEY, T0, ("a", "b"), np.array([1.0, 2.0]), np.ones(2, bool))
+    b.add(KEY, T0 + 0.5, ("b", "a", "c"), np.array([4.0, 3.0, np.nan]), np.ones(3, bool))
+    b.add(KEY, T0 + 1.2, ("a",), np.array([5.0]), np.zeros(1, bool))  # not used: not averaged
+    assert b.mean(KEY, "a") == 2.0 and b.mean(KEY, "b") == 3.0 and b.mean(KEY, "c") is None
+    assert b.recent_mean(KEY, "a") == 2.0 and b.mean("star/main", "a") is None
 
 
 def _lc(claimed_std_m: float, real_std_m: float, seconds: float = 90.0):

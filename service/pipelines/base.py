@@ -37,7 +37,7 @@ from scipy.stats import chi2
 
 from fednav.service import earth
 from fednav.service.config import ImuModel
-from fednav.service.estimation.consistency import InnovationConsistency
+from fednav.service.estimation.consistency import InnovationBias, InnovationConsistency
 from fednav.service.estimation.ins_filter import InsFilterBank
 from fednav.service.estimation.measurements.base import SigmaFloors
 from fednav.service.estimation.measurements.gnss_fix import BLOCK as GNSS_ERROR_BLOCK
@@ -194,6 +194,9 @@ class Pipeline(ABC):
         #: are the innovations as small as the filter claims (estimation/consistency.py)? the
         #: last time a stream's window failed: ``degraded`` for a coasting window after it
         self.consistency = InnovationConsistency()
+        #: ... and centred (the same module), for the pipelines with ``bias_test``
+        self.bias = InnovationBias()
+        self._inflated_at: dict[tuple[str, str], float | None] = {}  # (stream, row) -> t (inflate_for_bias)
         self.last_inconsistent_t: float | None = None
         #: per stream, in an episode of updates with failing rows: whether the rest of a failing
         #: row's source is suspect (:meth:`source_groups`)
@@ -403,6 +406,13 @@ class Pipeline(ABC):
     #: spread but a fault, and stay out of its history
     HISTORY_MAX_SIGMA = 5.0
 
+    #: whether a stream's innovations off centre (estimation/consistency.py ``InnovationBias``)
+    #: make the pipeline ``degraded`` too: the pipelines whose small gains leave a state a few
+    #: aiding sigmas off for minutes (loosely coupled, federated, centralised); the tightly
+    #: coupled families refuse such a state wholesale (:meth:`refused_wholesale`), and a biased
+    #: satellite is their integrity monitor's business
+    bias_test: bool = False
+
     def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None) -> None:
         """The rows of an update that passed its screening, into the stream's sigma history and
         its innovation consistency window (innovations ``z - H x`` of the prior and the diagonal
@@ -430,6 +440,61 @@ class Pipeline(ABC):
             self.last_inconsistent_t = t
             if not was:  # counted once per episode, in Health's screened counts
                 self.screened["innovations_inconsistent"] += 1
+        if self.bias_test:
+            was = self.bias.is_failing(key)
+            if self.bias.add(key, t, meas.labels, r, used_rows):
+                self.last_inconsistent_t = t
+                if not was:
+                    self.screened["innovations_biased"] += 1
+
+    def inflate_for_bias(
+        self, key: str, meas, S_diag, P: np.ndarray, P_ref: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """The prior covariances ``P`` (members x n x n) inflated where stream ``key``'s rows are
+        off centre (:class:`InnovationBias`, after :meth:`record_rows` of this update), or None.
+
+        The mean innovation b of a failing row (the larger of its window's mean and its latest
+        span's, ``InnovationBias.recent_s``, standardised, times the row's sqrt(S)) says the
+        state is about b off along that row, while its covariance claims v = h P h'. Each member's covariance
+        grows by b^2 along the row alone, P + b^2 g g' with g = h' / (h h'): the row's variance
+        becomes v + b^2 and nothing else is assumed about where the error came from (growing P
+        along P h', the filter's own correlations, moved a velocity that was right with a
+        position corrupted alone). The update that follows takes the aiding with the gain the
+        evidence supports instead of pulling the state back over minutes (docs/hardening.md,
+        "A smaller corruption"). Once per row per bias window (``InnovationBias.window_s``): a
+        row still off centre a whole window after its inflation is inflated again. ``P_ref``: the
+        covariance the pipeline reports, when its members share it (a federated bank's locals
+        hold the fused covariance divided by their shares): member i then grows by b^2 times
+        its variance along g over the reference's, so that the fused variance grows by b^2."""
+        rows = self.bias.failing().get(key)
+        if not rows:
+            return None
+        t = self._bias_clock()
+        labels = list(meas.labels)
+        out = None
+        for label in rows:
+            last = self._inflated_at.get((key, label))
+            if last is not None and t is not None and t - last < self.bias.window_s:
+                continue
+            j = labels.index(label)
+            h = np.asarray(meas.H[j], dtype=float)
+            hh = float(h @ h)
+            m = max(abs(self.bias.mean(key, label) or 0.0), abs(self.bias.recent_mean(key, label) or 0.0))
+            b2 = m * m * float(S_diag[j])
+            if not (hh > 0.0 and math.isfinite(b2)):
+                continue
+            scale = np.ones(P.shape[0])
+            if P_ref is not None:
+                ref = float(h @ P_ref @ h)
+                scale = np.array([float(h @ Pi @ h) / ref if ref > 0.0 else 1.0 for Pi in P])
+            out = (P if out is None else out) + (b2 / (hh * hh)) * scale[:, None, None] * np.outer(h, h)[None]
+            self._inflated_at[(key, label)] = t
+            self.screened["bias_inflation"] += 1
+        return out
+
+    def _bias_clock(self) -> float | None:
+        ins = getattr(self.bank, "ins", None)
+        return ins.state.t if ins is not None else getattr(self.bank, "t", None)
 
     def record_prior_rows(self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None) -> None:
         """:meth:`record_rows` from the prior (x, P) the rows were tested against."""
@@ -568,6 +633,8 @@ class Pipeline(ABC):
         self.aided_since_start = False
         self.failed = False
         self.consistency.clear()  # the restarted covariance's innovations start a new history
+        self.bias.clear()
+        self._inflated_at.clear()
         # (a stream's fault episode and its rule stay: the sensor's fault did not end with the
         # filter's restart, :meth:`source_groups`)
         self.last_inconsistent_t = None
@@ -620,6 +687,8 @@ class Pipeline(ABC):
         self.last_aiding_t = self.last_nav_aiding_t = self.last_screened_t = self.last_inconsistent_t = None
         self._refused_since.clear()  # a new state: its refusals start again
         self.consistency.clear()  # (the streams' fault episodes stay, as in :meth:`restarted`)
+        self.bias.clear()
+        self._inflated_at.clear()
         self._refused_from = self.refusal_began = None
 
     def restore_references(self, refs: dict[str, np.ndarray]) -> None:

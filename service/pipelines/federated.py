@@ -66,6 +66,7 @@ class _CorePipeline(Pipeline):
     """Shared machinery of Federated and Centralized (one core, two configurations)."""
 
     restores_members = True  # a restart from a checkpoint: each local as it was
+    bias_test = True  # innovations off centre: degraded (Pipeline.bias_test)
     #: a kind accepted before whose rows the fault test keeps flagging (Pipeline.refused_long):
     #: all of them, or one position row, for 30 s. Longer than the loosely coupled gate's 10 s
     #: and 20 s: the paper's fault test isolates a faulty receiver and carries on (its per-row
@@ -251,6 +252,14 @@ class _CorePipeline(Pipeline):
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test, self.source_groups(key, meas))
         self.end_source_episode(key, bool(upd.decision.flagged.any()))
         self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.passed)
+        # the state further off than its covariance says (a test that refuses nothing, the paper's
+        # unscreened comparators, is the paper's plain filter: its status says so, no inflation)
+        if ch.test.refuses and self.bias_test and self.bias.is_failing(key):
+            S_diag = np.einsum("ij,jk,ik->i", meas.H, P0, meas.H) + np.diagonal(meas.R)
+            inflated = self.inflate_for_bias(key, meas, S_diag, bank.P, self.fused_covariance())
+            if inflated is not None:
+                bank.P = inflated
+                self._version += 1
         self._epoch_t = bank.t  # fused when the epoch ends (next IMU data or a later aiding time)
         # rows its test keeps refusing: the filter may be the one wrong (a test that refuses
         # nothing, the paper's unscreened comparators, takes its faults: never)

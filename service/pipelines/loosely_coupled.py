@@ -54,6 +54,8 @@ STATES_PERIOD_S = 1.0
 
 
 class LooselyCoupled(Pipeline):
+    bias_test = True  # innovations off centre: degraded (Pipeline.bias_test)
+
     @classmethod
     def sensor_kinds(cls) -> frozenset[str]:
         """Every kind of the sensor registry with a measurement model (private states included:
@@ -166,6 +168,13 @@ class LooselyCoupled(Pipeline):
         self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~flagged)
         if refused.size and refused.all():
             return outputs  # the flagged rows and the rest of their sources: nothing left to take
+        # the state further off than its covariance says: the update again (a filter without a
+        # gate takes whatever comes, as configured: its status says so, no inflation)
+        biased = screening and self.bias_test and self.bias.is_failing(key)
+        inflated = self.inflate_for_bias(key, meas, np.diagonal(prior.S[0]), bank.P) if biased else None
+        if inflated is not None:
+            bank.P = inflated
+            x, P, res = kalman.update(bank.x, bank.P, meas.z, meas.H, meas.R, mask=~refused[None, :])
         self._trusted.add(kind)
         if not kalman.is_positive_definite(P)[0]:
             # numerical health: never continue on a broken P; keep the INS, re-initialise the
