@@ -413,12 +413,16 @@ class Pipeline(ABC):
     #: satellite is their integrity monitor's business
     bias_test: bool = False
 
-    def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None) -> None:
+    def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None, taken=None) -> None:
         """The rows of an update that passed its screening, into the stream's sigma history and
         its innovation consistency window (innovations ``z - H x`` of the prior and the diagonal
         of their covariance S = H P H' + R; ``used``: the rows the screening passed, those the
         update took and those left out only as suspects of a faulty source (:meth:`source_groups`:
-        their innovations are the stream's spread all the same))."""
+        their innovations are the stream's spread all the same); ``taken``: the rows the update
+        took, the only ones the bias test averages (a suspect of a faulty source shares its
+        source's fault: averaged, it made the covariance grow towards the fault, and the grown
+        covariance let the fault in as a suspect within SUSPECT_SIGMA; tests/test_fix_groups.py);
+        default ``used``)."""
         innovation = np.asarray(innovation, dtype=float)
         S_diag = np.asarray(S_diag, dtype=float)
         sd = np.sqrt(np.maximum(S_diag, 1e-300))
@@ -442,7 +446,8 @@ class Pipeline(ABC):
                 self.screened["innovations_inconsistent"] += 1
         if self.bias_test:
             was = self.bias.is_failing(key)
-            if self.bias.add(key, t, meas.labels, r, used_rows):
+            took = used_rows if taken is None else np.asarray(taken, dtype=bool)
+            if self.bias.add(key, t, meas.labels, r, took):
                 self.last_inconsistent_t = t
                 if not was:
                     self.screened["innovations_biased"] += 1
@@ -462,7 +467,9 @@ class Pipeline(ABC):
         position corrupted alone). The update that follows takes the aiding with the gain the
         evidence supports instead of pulling the state back over minutes (docs/hardening.md,
         "A smaller corruption"). Once per row per bias window (``InnovationBias.window_s``): a
-        row still off centre a whole window after its inflation is inflated again. ``P_ref``: the
+        row still off centre a whole window after its inflation is inflated again. The callers
+        inflate only in an update whose screening flagged no row: a stream with a failing row is
+        suspect, and growing the covariance towards it would let its fault in. ``P_ref``: the
         covariance the pipeline reports, when its members share it (a federated bank's locals
         hold the fused covariance divided by their shares): member i then grows by b^2 times
         its variance along g over the reference's, so that the fused variance grows by b^2."""
@@ -496,11 +503,13 @@ class Pipeline(ABC):
         ins = getattr(self.bank, "ins", None)
         return ins.state.t if ins is not None else getattr(self.bank, "t", None)
 
-    def record_prior_rows(self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None) -> None:
+    def record_prior_rows(
+        self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None, taken=None
+    ) -> None:
         """:meth:`record_rows` from the prior (x, P) the rows were tested against."""
         r = meas.z - meas.H @ x
         S = np.einsum("ij,jk,ik->i", meas.H, P, meas.H) + np.diagonal(meas.R)
-        self.record_rows(key, meas, claimed, r, S, used)
+        self.record_rows(key, meas, claimed, r, S, used, taken)
 
     #: a stream that fed no update for this long (and for RETURN_GAP_PERIODS of its own
     #: interval) is checked on its return (:meth:`held_on_return`)

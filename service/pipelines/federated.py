@@ -251,10 +251,11 @@ class _CorePipeline(Pipeline):
         self._version += 1
         upd = core.update(ch.owner, meas.z, meas.H, meas.R, ch.test, self.source_groups(key, meas))
         self.end_source_episode(key, bool(upd.decision.flagged.any()))
-        self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.passed)
+        self.record_prior_rows(key, meas, claimed, x0, P0, upd.decision.passed, upd.decision.used)
         # the state further off than its covariance says (a test that refuses nothing, the paper's
         # unscreened comparators, is the paper's plain filter: its status says so, no inflation)
-        if ch.test.refuses and self.bias_test and self.bias.is_failing(key):
+        flagged = bool(upd.decision.flagged.any())
+        if ch.test.refuses and not flagged and self.bias_test and self.bias.is_failing(key):
             S_diag = np.einsum("ij,jk,ik->i", meas.H, P0, meas.H) + np.diagonal(meas.R)
             inflated = self.inflate_for_bias(key, meas, S_diag, bank.P, self.fused_covariance())
             if inflated is not None:

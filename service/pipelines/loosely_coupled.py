@@ -165,12 +165,12 @@ class LooselyCoupled(Pipeline):
             self._gate_reported.discard(kind)
             outputs.append(self._gate_faults(nav.t, kind, meas.labels, res.standardised[0], flagged, refused))
         # the rows within the gate (the suspects of a faulty source too)
-        self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~flagged)
+        self.record_rows(key, meas, claimed, prior.innovation[0], np.diagonal(prior.S[0]), ~flagged, ~refused)
         if refused.size and refused.all():
             return outputs  # the flagged rows and the rest of their sources: nothing left to take
         # the state further off than its covariance says: the update again (a filter without a
         # gate takes whatever comes, as configured: its status says so, no inflation)
-        biased = screening and self.bias_test and self.bias.is_failing(key)
+        biased = screening and not any_flagged and self.bias_test and self.bias.is_failing(key)
         inflated = self.inflate_for_bias(key, meas, np.diagonal(prior.S[0]), bank.P) if biased else None
         if inflated is not None:
             bank.P = inflated
