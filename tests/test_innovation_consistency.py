@@ -178,6 +178,33 @@ def test_rows_are_followed_by_label_whatever_their_order_and_non_finite_ones_are
     assert b.recent_mean(KEY, "a") == 2.0 and b.mean("star/main", "a") is None
 
 
+def test_an_inflation_skips_a_failing_row_the_update_does_not_carry():
+    """The rows of a stream that fail its bias test may be missing from the update at hand (held
+    on return, not sent): the inflation grows what the update carries and never fails on the rest."""
+    p = LooselyCoupled(LooselyCoupledConfig(name="lc"), ImuModel(), 0.1)
+    rng = np.random.default_rng(11)
+    labels = ("pos_e", "pos_n")
+    for k in range(40):
+        p.bias.add(KEY, T0 + k, labels, rng.standard_normal(2) + np.array([0.0, 3.0]), np.ones(2, bool))
+    assert p.bias.failing() == {KEY: ["pos_n"]}
+
+    class Meas:  # an update carrying pos_e alone
+        labels = ("pos_e",)
+        H = np.eye(1, 15)
+
+    P = np.eye(15)[None]
+    assert p.inflate_for_bias(KEY, Meas, np.array([4.0]), P) is None
+
+    class Both:
+        labels = ("pos_e", "pos_n")
+        H = np.eye(2, 15)
+
+    grown = p.inflate_for_bias(KEY, Both, np.array([4.0, 4.0]), P)
+    m = p.bias.recent_mean(KEY, "pos_n")
+    assert grown[0, 1, 1] == pytest.approx(1.0 + m * m * 4.0) and grown[0, 0, 0] == 1.0
+    assert p.screened["bias_inflation"] == 1
+
+
 def _lc(claimed_std_m: float, real_std_m: float, seconds: float = 90.0):
     """A static, level loosely coupled filter (no innovation gate) fed 1 Hz fixes at the truth plus
     N(0, real) noise claiming ``claimed``; its status and counts after ``seconds``."""

@@ -483,6 +483,8 @@ class Pipeline(ABC):
             last = self._inflated_at.get((key, label))
             if last is not None and t is not None and t - last < self.bias.window_s:
                 continue
+            if label not in labels:  # a row this update does not carry (held, or not sent)
+                continue
             j = labels.index(label)
             h = np.asarray(meas.H[j], dtype=float)
             hh = float(h @ h)
