@@ -44,7 +44,8 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+import struct
+from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -119,6 +120,19 @@ TIME_BASE_MISMATCH_S = 60.0
 UNAIDED_WARNING_S = 30.0
 
 
+#: IMU intervals kept for a replay (:meth:`VehicleEngine.verified_imu`): 2.5 s of a 200 Hz IMU
+#: with a second publisher's as many again (a reset comes at the first aiding epoch after the
+#: contest; its checkpoint is at most ~0.2 s before it); a replay that does not reach back to its
+#: checkpoint falls back to the carry
+IMU_LOG_LEN = 1024
+#: aiding messages kept for the same replay: those of the last AIDING_LOG_S of INS time, at most
+#: AIDING_LOG_LEN (the messages themselves: a raw GNSS epoch of 12 satellites is ~8 kB)
+AIDING_LOG_S = 3.0
+AIDING_LOG_LEN = 256
+#: one row of the IMU ring (t, dt, dtheta xyz, dvel xyz), little-endian doubles as numpy reads them
+_PACK_ROW = struct.Struct("=8d").pack_into
+
+
 class VehicleEngine:
     """Drives all configured pipelines of one vehicle from a time-ordered event stream."""
 
@@ -134,6 +148,16 @@ class VehicleEngine:
         self.pre = Preintegrator()  # the vehicle's one minor loop, shared by every pipeline
         self.last_imu_t: float | None = None
         self.pending: list[tuple[float, str, str, WireModel]] = []
+        #: the last IMU_LOG_LEN intervals of the INS's key that reached a verdict, taken or
+        #: refused, rows of (t, dt, dtheta xyz, dvel xyz) in a ring (64 kB, whatever the rate):
+        #: what a reset after a contested key replays from its last verified checkpoint
+        #: (:attr:`imu_log`, :meth:`verified_imu`)
+        self._imu_buf = bytearray(IMU_LOG_LEN * 64)
+        self._imu_ring = np.frombuffer(self._imu_buf, dtype=float).reshape(IMU_LOG_LEN, 8)
+        self._imu_n = 0  # rows written, ever
+        #: the aiding messages handed to the pipelines lately, as (INS time, kind, sensor id,
+        #: message, lateness): what that replay applies again between its IMU intervals
+        self.aiding_log: deque = deque(maxlen=AIDING_LOG_LEN)
         self.rules = AcceptanceRules(config.intake)
         self._truth: dict[int, Truth] = {}
         self._last_out_k = -1
@@ -206,9 +230,12 @@ class VehicleEngine:
         key = self._imu_keys.get(sensor_id)
         if key is None:
             key = self._imu_keys[sensor_id] = f"imu/{sensor_id}" if sensor_id else "imu"
-        if not self._sample_pipes and self.rules.known_sensor("imu", sensor_id):
+        if self.rules.known_sensor("imu", sensor_id):
             (a0, a1, a2), (v0, v1, v2) = msg.dtheta_rad, msg.dvel_mps
-            if self._usual_imu(key, msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2):
+            n = self._imu_n  # the row into the ring (struct's pack_into: a numpy row cost 4 %)
+            _PACK_ROW(self._imu_buf, (n % IMU_LOG_LEN) * 64, msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2)
+            self._imu_n = n + 1
+            if not self._sample_pipes and self._usual_imu(key, msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2):
                 return True
         verdict = self.rules.decide("imu", sensor_id, msg, self.last_imu_t, self.life.initialised)
         reason = verdict.reason
@@ -232,6 +259,7 @@ class VehicleEngine:
                 self._watch_refusals("imu", sensor_id, float(r[0]), "unexpected_sensor")
             self.rejected["unexpected_sensor"] += len(rows)
             return 0
+        self._log_imu_rows(rows if isinstance(rows, np.ndarray) else np.asarray(rows, dtype=float))
         decide = self.rules.decide_imu
         key = f"imu/{sensor_id}" if sensor_id else "imu"
         refusals = self._refusals
@@ -395,8 +423,28 @@ class VehicleEngine:
         return int(round(t * 1e6))
 
     # --- IMU ------------------------------------------------------------------------------------
-    def _on_imu(self, msg: ImuSample, verdict: Verdict) -> bool:
-        return self._imu_values(msg.t, msg.dt_s, msg.dtheta_rad, msg.dvel_mps, verdict, msg)
+    def _log_imu_rows(self, rows: np.ndarray) -> None:
+        """Rows (n, 8) of the INS's key into the IMU ring, in order."""
+        n = len(rows)
+        if n == 0:
+            return
+        if n > IMU_LOG_LEN:
+            self._imu_n += n - IMU_LOG_LEN
+            rows, n = rows[-IMU_LOG_LEN:], IMU_LOG_LEN
+        i = self._imu_n % IMU_LOG_LEN
+        first = min(n, IMU_LOG_LEN - i)
+        self._imu_ring[i : i + first] = rows[:first]
+        if first < n:
+            self._imu_ring[: n - first] = rows[first:]
+        self._imu_n += n
+
+    @property
+    def imu_log(self) -> list[list[float]]:
+        """The IMU ring's rows, oldest first: (t, dt, dtheta xyz, dvel xyz) of the last
+        IMU_LOG_LEN intervals of the INS's key that reached a verdict, taken or refused."""
+        n = min(self._imu_n, IMU_LOG_LEN)
+        idx = (self._imu_n - n + np.arange(n)) % IMU_LOG_LEN
+        return self._imu_ring[idx].tolist()
 
     def _imu_values(self, t: float, dt: float, dtheta, dvel, verdict: Verdict, msg=None) -> bool:
         """One IMU interval (a sample, or a record of a batch: ``msg`` None) after its verdict."""
@@ -439,6 +487,47 @@ class VehicleEngine:
         self.last_t = t
         self._maybe_output(t)
         return True
+
+    def verified_imu(self, t0: float, t1: float) -> list[tuple] | None:
+        """The IMU intervals of the stream the INS followed at ``t0`` (a verified checkpoint's time:
+        the end of one of its intervals), from ``t0`` to ``t1``, from :attr:`imu_log`, taken or
+        refused: the intervals that continue it end to end (each begins where the one before
+        ended, to 1 % of its length); the one holding ``t1`` cut there as the engine cuts an
+        interval at an aiding epoch (its share of the increments). None unless they cover the
+        span whole and unambiguously: a slot of that cadence missing, or held by two different
+        intervals (a second publisher on the verified stream's own time stamps: which one is
+        genuine is not known). A second publisher between the verified stream's samples (the
+        forged bursts of docs/hardening.md) is off its cadence and left out."""
+        slots: dict[int, tuple] = {}
+        for rec in self.imu_log:
+            rec = tuple(rec)
+            t, dt = rec[0], rec[1]
+            if t <= t0 + 1e-9 or not dt > 0.0 or t - dt >= t1 - 1e-9:
+                continue  # before the checkpoint, or beginning at or after t1
+            k = round((t - t0) / dt)
+            if k < 1 or abs(t - t0 - k * dt) > 0.01 * dt:
+                continue  # off the verified stream's cadence
+            prev = slots.get(k)
+            if prev is not None and prev != rec:
+                return None
+            slots[k] = rec
+        if not slots or len(slots) != max(slots):
+            return None
+        rows = [slots[k] for k in range(1, len(slots) + 1)]
+        end = t0
+        for r in rows:
+            if abs(r[0] - r[1] - end) > 0.01 * r[1]:
+                return None
+            end = r[0]
+        last = rows[-1]
+        if abs(last[0] - t1) <= 1e-6:
+            return rows
+        if last[0] < t1:
+            return None  # the interval that reaches t1 is not there
+        start = rows[-2][0] if len(rows) > 1 else t0
+        f = (t1 - start) / (last[0] - start)
+        rows[-1] = (t1, t1 - start, *(x * f for x in last[2:]))
+        return rows
 
     def _on_node_imu(self, sensor_id: str, msg: ImuSample) -> bool:
         """A node IMU sample: judged by the aiding rules of its own key (duplicate, late,
@@ -486,6 +575,10 @@ class VehicleEngine:
     # --- aiding ---------------------------------------------------------------------------------
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:
         self._advance_all()
+        log, t_ins = self.aiding_log, self.pre.t_end
+        log.append((t_ins, kind, sensor_id, msg, dt_late))
+        while log[0][0] < t_ins - AIDING_LOG_S:
+            log.popleft()
         self.life.before_aiding(kind, msg)
         for p in self.pipelines:
             p.sync()  # every pipeline at the aiding epoch (the same propagation steps as before)
