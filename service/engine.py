@@ -126,8 +126,8 @@ UNAIDED_WARNING_S = 30.0
 #: checkpoint falls back to the carry
 IMU_LOG_LEN = 1024
 #: aiding messages kept for the same replay: those of the last AIDING_LOG_S of INS time, at most
-#: AIDING_LOG_LEN (the messages themselves: a raw GNSS epoch of 12 satellites is ~8 kB)
-AIDING_LOG_S = 3.0
+#: AIDING_LOG_LEN (the messages themselves: a fix ~1.9 kB, a raw GNSS epoch of 12 satellites ~16 kB)
+AIDING_LOG_S = 2.0
 AIDING_LOG_LEN = 256
 #: one row of the IMU ring (t, dt, dtheta xyz, dvel xyz), little-endian doubles as numpy reads them
 _PACK_ROW = struct.Struct("=8d").pack_into

@@ -49,10 +49,14 @@ the reference, attitude from gravity and the GNSS track, position from the pipel
 verified estimate (a checkpoint kept at output epochs) carried to now when the moment of the
 corruption is known, else the reference's; the biases and the sensors' own states (receiver
 clock, DVL offset and scale, ...) kept. After a contested IMU key (the moment of the corruption
-known): the last verified state carried over the gap, whole (velocity, attitude, biases, clock
-and their correlations), when the reference agrees with it; else as above with the attitude of
-that carried state (the INS's last interval may hold a forged sample). Without GNSS the carried
-checkpoint is the reference. A tightly coupled pipeline's satellite exclusions survive the reset
+known): the last verified state restarted whole and run forward with the verified stream's own
+IMU intervals and the aiding between them (:meth:`VehicleLife._replayed`: the engine keeps what
+reached a verdict, taken or refused), when they are there whole and the reference agrees;
+else that state carried over the gap, whole (velocity, attitude, biases, clock and their
+correlations), when the reference agrees with it; else as above with the attitude of that
+carried state (the INS's last interval may hold a forged sample). Without GNSS the carried
+checkpoint is the reference. An INS lost for a moment restarts the same way (replayed, else
+carried). A tightly coupled pipeline's satellite exclusions survive the reset
 (a satellite is re-admitted only after its health tests pass against the new filter for
 ``readmit_after_s``: ``MhssMonitor.restart_windows``). Every transition is said on the pipeline's
 Faults (subsystem ``lifecycle``) and counted in Health notes.
