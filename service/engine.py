@@ -158,6 +158,12 @@ class VehicleEngine:
         #: the aiding messages handed to the pipelines lately, as (INS time, kind, sensor id,
         #: message, lateness): what that replay applies again between its IMU intervals
         self.aiding_log: deque = deque(maxlen=AIDING_LOG_LEN)
+        #: the INS time of the last aiding message that left the log (a replay from a checkpoint
+        #: before it would miss aiding): :meth:`aiding_logged_since`
+        self._aiding_dropped_t = -math.inf
+        #: the end times of the INS key's intervals the rules refused (the rare path: under
+        #: contest), to tell the stream the INS took from the verified one (:meth:`imu_took_forged`)
+        self._imu_refused: deque = deque(maxlen=IMU_LOG_LEN)
         self.rules = AcceptanceRules(config.intake)
         self._truth: dict[int, Truth] = {}
         self._last_out_k = -1
@@ -452,6 +458,7 @@ class VehicleEngine:
             self._imu_lost(t, verdict.reason)
             return True
         if not verdict.accepted:
+            self._imu_refused.append(t)
             if verdict.reason in CONTESTED_IMU and self.life.initialised:
                 self.life.on_imu_contested(t, verdict.reason)
             return self._reject(verdict.reason)
@@ -529,6 +536,31 @@ class VehicleEngine:
         rows[-1] = (t1, t1 - start, *(x * f for x in last[2:]))
         return rows
 
+    def imu_took_forged(self, t0: float, t1: float) -> bool:
+        """Whether the intervals the INS took from ``t0`` (a verified checkpoint's time) to ``t1``
+        differ from the verified stream's (:meth:`verified_imu`): an interval off its cadence taken
+        (a second publisher's, slipped between the genuine samples), or one on it refused (a
+        genuine sample refused as overlapping a forged one taken before it). Read from
+        :attr:`imu_log` and the refusals' times; a duplicate of a sample taken counts as refused,
+        the sample itself as taken."""
+        refused = Counter(t for t in self._imu_refused if t > t0 + 1e-9)
+        for rec in self.imu_log:
+            t, dt = rec[0], rec[1]
+            if t <= t0 + 1e-9 or not dt > 0.0 or t - dt >= t1 - 1e-9:
+                continue
+            k = round((t - t0) / dt)
+            on_cadence = k >= 1 and abs(t - t0 - k * dt) <= 0.01 * dt
+            took = refused[t] == 0
+            if not took:
+                refused[t] -= 1
+            if took != on_cadence:
+                return True
+        return False
+
+    def aiding_logged_since(self, t0: float) -> bool:
+        """Whether :attr:`aiding_log` still holds every aiding message applied after ``t0``."""
+        return self._aiding_dropped_t <= t0 + 1e-9
+
     def _on_node_imu(self, sensor_id: str, msg: ImuSample) -> bool:
         """A node IMU sample: judged by the aiding rules of its own key (duplicate, late,
         time_backwards, not_initialised, early), then handed to the pipelines that consume it."""
@@ -576,9 +608,11 @@ class VehicleEngine:
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:
         self._advance_all()
         log, t_ins = self.aiding_log, self.pre.t_end
+        if len(log) == AIDING_LOG_LEN:
+            self._aiding_dropped_t = log[0][0]
         log.append((t_ins, kind, sensor_id, msg, dt_late))
         while log[0][0] < t_ins - AIDING_LOG_S:
-            log.popleft()
+            self._aiding_dropped_t = log.popleft()[0]
         self.life.before_aiding(kind, msg)
         for p in self.pipelines:
             p.sync()  # every pipeline at the aiding epoch (the same propagation steps as before)

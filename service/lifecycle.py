@@ -377,6 +377,9 @@ class VehicleLife:
         #: per pipeline, its latest verified estimates (t, NavState, P9, full state, dynamics) at
         #: output epochs; dynamics: (acceleration ENU m/s^2, body turn rate w_nb rad/s) of its INS
         self.checkpoints: dict[str, deque] = {p.name: deque(maxlen=CHECKPOINTS) for p in engine.pipelines}
+        #: per pipeline, the checkpoint its last replay under a contest left (the verified
+        #: stream's alone: a later contested sample does not drop it, :meth:`on_imu_contested`)
+        self.replayed_checkpoint: dict[str, tuple] = {}
         #: per pipeline, (t, |acceleration change|, |turn rate change|) between its checkpoints
         self.dyn_changes: dict[str, deque] = {p.name: deque() for p in engine.pipelines}
 
@@ -754,7 +757,9 @@ class VehicleLife:
                         life.stage == SUSPECT and life.reason == "imu_contested"
                     )
                     began = p.refusal_began
-                    self.suspect(p, t, "aiding_refused")
+                    if not (life.stage == SUSPECT and life.reason == "imu_contested"):
+                        # (under a contest the refusal is the contest's: the replay judges it)
+                        self.suspect(p, t, "aiding_refused")
                     life.force_reset = event == "aiding_still_refused"
                     if dated and event == "aiding_refused":
                         self._corrupt_since(p, began)
@@ -800,6 +805,8 @@ class VehicleLife:
             elif p.last_screened_t == t:
                 life.agreeing = 0
         else:
+            if self._replay_forged(p, life, ref, t):
+                return
             p.sync()
             est = p.estimate()
             ok, _ = alignment.plausible(est.nav, ref[0], est.P9[:6, :6] + ref[1])
@@ -868,7 +875,8 @@ class VehicleLife:
         first refusal (a jittered second publisher), and a checkpoint after it is not a good state."""
         for p in self.engine.pipelines:
             cps = self.checkpoints[p.name]
-            while cps and cps[-1][0] > t - CONTESTED_GUARD_S:
+            clean = self.replayed_checkpoint.get(p.name)
+            while cps and cps[-1][0] > t - CONTESTED_GUARD_S and cps[-1] is not clean:
                 cps.pop()
             if self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost):
                 self.suspect(p, t, "imu_contested")
@@ -903,8 +911,15 @@ class VehicleLife:
         if not (life.stage == SUSPECT and life.reason == "imu_contested" and life.moment_known):
             return False
         plan = self._replay_plan(p, t)
-        if plan is None:
+        if plan is None or not self._replay_agrees(p, plan, fix, t):
             return False
+        self._start_replayed(p, *plan, "reset", t)
+        return True
+
+    def _replay_agrees(self, p: Pipeline, plan, fix: GnssFix, t: float) -> bool:
+        """Whether the navigation the verified stream's IMU gives from the plan's checkpoint to
+        ``t`` (without aiding, its position sigma grown by the checkpoint's velocity sigma over the
+        span) agrees with the vehicle's fix (``alignment.plausible``)."""
         c, rows = plan
         t_cp, cp, P9 = c[0], c[1], c[2]
         ins = Ins(cp, p.bank.ins.major_interval_s)  # the replayed navigation, to check it first
@@ -915,9 +930,38 @@ class VehicleLife:
         T9[:3, 3:6] = (t - t_cp) * np.eye(3)
         P6 = (T9 @ P9 @ T9.T)[:6, :6]
         ref_nav, ref_std = alignment.motion_alignment(fix, t)
-        if not alignment.plausible(ins.state, ref_nav, P6 + alignment.std_cov6(ref_std))[0]:
+        return bool(alignment.plausible(ins.state, ref_nav, P6 + alignment.std_cov6(ref_std))[0])
+
+    def _replay_forged(self, p: Pipeline, life: Life, ref, t: float) -> bool:
+        """While the IMU key is contested, at a reference epoch: when the INS took intervals that
+        are not the verified stream's (:meth:`VehicleEngine.imu_took_forged`: a second
+        publisher's sample between the genuine ones taken, or a genuine one refused for it), restart
+        ``p`` from its last verified checkpoint with the verified stream's IMU and the aiding since
+        (:meth:`_start_replayed`), whether or not its state disagrees with the reference yet, and
+        keep the replayed state as a checkpoint (built from the verified stream alone: a contest
+        that goes on replays from it). With a fix as the reference, only when the replayed
+        navigation agrees with it (:meth:`_replay_agrees`). Returns whether it did.
+
+        Why: a forged sample close to the genuine ones (the genuine increments with 0.2 rad/s more
+        yaw rate) leaves a state that still agrees with the fixes, so no reset came; the heading
+        error it left grew into the position. The gnss family, seed 401: the federated filter
+        892 m off at the end of the run, the loosely coupled 233 m at its peak
+        (docs/hardening.md, "Forged samples close to the genuine ones")."""
+        if not (life.stage == SUSPECT and life.reason == "imu_contested" and life.moment_known):
             return False
-        self._start_replayed(p, c, rows, "reset", t)
+        plan = self._replay_plan(p, t)
+        if plan is None or not self.engine.imu_took_forged(plan[0][0], t):
+            return False
+        fix = ref[2] if isinstance(ref[2], GnssFix) else None
+        if fix is not None and not self._replay_agrees(p, plan, fix, t):
+            return False
+        self.engine.notes[f"reset:{p.name}"] += 1
+        self._start_replayed(p, *plan, "reset", t)
+        p.sync()
+        est = p.estimate()
+        cp = (est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), _imu_of(p))
+        self.checkpoints[p.name].append(cp)
+        self.replayed_checkpoint[p.name] = cp
         return True
 
     def _replay_plan(self, p: Pipeline, t: float):
@@ -928,8 +972,8 @@ class VehicleLife:
         if p.wants_imu_samples or p.node_imu_ids() or p.bank is None:
             return None
         c = self._checkpoint(p, t)
-        if c is None:
-            return None
+        if c is None or not self.engine.aiding_logged_since(c[0]):
+            return None  # (the aiding since the checkpoint no longer all in the log)
         rows = self.engine.verified_imu(c[0], t)
         return None if rows is None else (c, rows)
 
