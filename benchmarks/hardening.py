@@ -19,6 +19,9 @@ into a clean stream (seeds S, S+1, ...), against the same stream clean:
   second publisher under the IMU's key delivers them at the demo's pace ``1x`` (each lands between
   two genuine samples), ``10x`` (arrival jitter +-10 ms of stream time: some arrive before the
   genuine sample they follow) and ``max`` (all at once, as fast as possible);
+- ``imu_close``: forged samples close to the genuine ones (each the genuine sample's increments
+  with more yaw rate), at 10x: ``0.2`` (50 samples, 0.2 rad/s more) and ``0.05x500`` (500 samples,
+  5 s, 0.05 rad/s more); plausible, and the fixes agree with the state they leave for a while;
 - ``init_burst``: 500 InitialNav in 2.5 s, the true state moved 5, 20 or 100 m north, claiming
   1 cm / 0.01 m/s / 0.01 deg;
 - ``drift``: a forged fix stream under the receiver's own key (between its fixes) drifting 0.1 to
@@ -164,6 +167,8 @@ CASES = [
     ("imu_burst", "1x"),
     ("imu_burst", "10x"),
     ("imu_burst", "max"),
+    ("imu_close", "0.2"),
+    ("imu_close", "0.05x500"),
     ("init_burst", 5.0),
     ("init_burst", 20.0),
     ("init_burst", 100.0),
@@ -337,6 +342,12 @@ def _shift_raw(msg: GnssRaw, traj, north_m: float) -> GnssRaw:
     return msg.model_copy(update={"sats": sats})
 
 
+def _close(arg: str) -> tuple[float, int]:
+    """An ``imu_close`` case's (extra yaw rate rad/s, number of samples): "0.2" or "0.05x500"."""
+    rate, _, n = arg.partition("x")
+    return float(rate), int(n or 50)
+
+
 @dataclass
 class Injector:
     """One corruption injected into a scenario's stream (module docstring)."""
@@ -360,6 +371,8 @@ class Injector:
             self.end_s = self.start_s + float(self.arg) + 5.0
         elif self.kind == "imu_burst":
             self.end_s = self.start_s + 0.5
+        elif self.kind == "imu_close":
+            self.end_s = self.start_s + 0.01 * _close(self.arg)[1]
 
     def filter(self, pk, msg, t_rel: float, traj):
         """The genuine message as delivered (None: dropped)."""
@@ -384,14 +397,18 @@ class Injector:
     def after(self, pk, msg, t_rel: float, traj, last: dict) -> list[tuple[str, str, object]]:
         """Forged messages delivered after the genuine ``msg`` (kind, sensor id, message)."""
         out = []
-        if self.kind == "imu_burst" and pk.kind == "imu":
+        if self.kind in ("imu_burst", "imu_close") and pk.kind == "imu":
             if abs(t_rel - self.start_s) < 0.5 * msg.dt_s and not self.queue and not last.get("burst"):
                 last["burst"] = True
-                jitter = PACE_JITTER_S[self.arg]
+                if self.kind == "imu_burst":
+                    jitter, n, dtheta = PACE_JITTER_S[self.arg], 50, (0.2, 0.0, 0.0)
+                else:  # the genuine increments, more yaw rate
+                    (rate, n), a = _close(self.arg), msg.dtheta_rad
+                    jitter, dtheta = PACE_JITTER_S["10x"], (a[0], a[1], a[2] + rate * msg.dt_s)
                 items = []
-                for k in range(50):
+                for k in range(n):
                     f = msg.model_copy(
-                        update={"t": msg.t + 0.5 * msg.dt_s + k * msg.dt_s, "dtheta_rad": (0.2, 0.0, 0.0)}
+                        update={"t": msg.t + 0.5 * msg.dt_s + k * msg.dt_s, "dtheta_rad": dtheta}
                     )
                     arrival = msg.t + 1e-7 * k if jitter is None else f.t + self.rng.uniform(-jitter, jitter)
                     items.append((arrival, k, f))
@@ -416,7 +433,7 @@ class Injector:
     def before(self, pk, msg) -> list[tuple[str, str, object]]:
         """Forged IMU samples that arrive before the genuine sample ``msg``."""
         out = []
-        if self.kind == "imu_burst" and pk.kind == "imu":
+        if self.kind in ("imu_burst", "imu_close") and pk.kind == "imu":
             while self.queue and self.queue[0][0] < msg.t:
                 _, _, m = self.queue.pop(0)
                 out.append(("imu", pk.sensor_id, m))

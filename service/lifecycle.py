@@ -940,7 +940,9 @@ class VehicleLife:
         (:meth:`_start_replayed`), whether or not its state disagrees with the reference yet, and
         keep the replayed state as a checkpoint (built from the verified stream alone: a contest
         that goes on replays from it). With a fix as the reference, only when the replayed
-        navigation agrees with it (:meth:`_replay_agrees`). Returns whether it did.
+        navigation agrees with it (:meth:`_replay_agrees`). A pipeline whose stream is not replayed
+        (node IMUs) or not unambiguously is reset from its checkpoint carried over the gap
+        instead (:meth:`_reset_from_reference`). Returns whether it did.
 
         Why: a forged sample close to the genuine ones (the genuine increments with 0.2 rad/s more
         yaw rate) leaves a state that still agrees with the fixes, so no reset came; the heading
@@ -950,9 +952,15 @@ class VehicleLife:
         if not (life.stage == SUSPECT and life.reason == "imu_contested" and life.moment_known):
             return False
         plan = self._replay_plan(p, t)
-        if plan is None or not self.engine.imu_took_forged(plan[0][0], t):
+        c = plan[0] if plan is not None else self._checkpoint(p, t)
+        if c is None or not self.engine.imu_took_forged(c[0], t):
             return False
         fix = ref[2] if isinstance(ref[2], GnssFix) else None
+        if plan is None:  # a stream that is not replayed (node IMUs) or not unambiguously
+            if fix is None:
+                return False  # (no fix: the pipeline's own screening decides, as before)
+            self._reset_from_reference(p, fix, t)  # the checkpoint carried over the gap
+            return True
         if fix is not None and not self._replay_agrees(p, plan, fix, t):
             return False
         self.engine.notes[f"reset:{p.name}"] += 1
