@@ -164,6 +164,8 @@ class VehicleEngine:
         #: the end times of the INS key's intervals the rules refused (the rare path: under
         #: contest), to tell the stream the INS took from the verified one (:meth:`imu_took_forged`)
         self._imu_refused: deque = deque(maxlen=IMU_LOG_LEN)
+        #: per aiding key, its last message refused while the key is contested
+        self._held: dict[tuple[str, str], WireModel] = {}
         self.rules = AcceptanceRules(config.intake)
         self._truth: dict[int, Truth] = {}
         self._last_out_k = -1
@@ -206,11 +208,17 @@ class VehicleEngine:
         verdict = self.rules.decide(kind, sensor_id, msg, self.last_imu_t, self.initialised)
         if verdict.accepted or verdict.reason in ("not_initialised", "imu_gap", "time_jump"):
             self._note_stream(kind, sensor_id, msg.t)
-        self._watch_refusals(kind, sensor_id, msg.t, verdict.reason)
         life = self.life
-        if kind == "gnss_fix" and verdict.in_sequence:
+        if kind not in ("init", "truth"):
+            if verdict.reason == "duplicate":
+                self._watch_contest(kind, sensor_id, msg)
+            elif verdict.accepted and life.aiding_contested(kind, sensor_id, msg.t):
+                verdict = Verdict("aiding_contested")  # neither publisher's, for now (lifecycle)
+                self._held[(kind, sensor_id)] = msg  # (its duplicate still tells the contest on)
+        self._watch_refusals(kind, sensor_id, msg.t, verdict.reason)
+        if kind == "gnss_fix" and verdict.in_sequence and verdict.reason != "aiding_contested":
             life.on_fix(msg, f"gnss_fix/{sensor_id}")  # the newest fix, also when not applied (alignment)
-        elif kind == "gnss_raw" and verdict.in_sequence and not life.initialised:
+        elif kind == "gnss_raw" and verdict.in_sequence and not life.initialised and verdict.accepted:
             life.on_raw(msg)  # a raw receiver without a fix stream aligns like one with it
         if verdict.reason == "not_initialised":
             life.try_align()  # this message may complete an alignment
@@ -535,6 +543,32 @@ class VehicleEngine:
         f = (t1 - start) / (last[0] - start)
         rows[-1] = (t1, t1 - start, *(x * f for x in last[2:]))
         return rows
+
+    def _watch_contest(self, kind: str, sensor_id: str, msg: WireModel) -> None:
+        """A duplicate aiding message (the time of one already taken): when it says something else
+        than the one taken (pending, or in :attr:`aiding_log`; or the last one held while the key is
+        contested), two publishers share the key and
+        which one is genuine is not known: counted ``contested:<kind>/<id>`` and handed to the
+        lifecycle (:meth:`VehicleLife.on_aiding_contested`). A copy of the same message (a
+        retransmission, a replayed log) is only a duplicate."""
+        t = msg.t
+        held = self._held.get((kind, sensor_id))
+        taken = held if held is not None and held.t == t else None
+        for e in self.pending if taken is None else ():
+            if e[1] == kind and e[2] == sensor_id and e[3].t == t:
+                taken = e[3]
+                if taken != msg:
+                    self.pending.remove(e)  # not applied yet: neither copy will be
+                    self._held[(kind, sensor_id)] = taken
+                break
+        for e in reversed(self.aiding_log) if taken is None else ():
+            if e[1] == kind and e[2] == sensor_id and e[3].t == t:
+                taken = e[3]
+                break
+        if taken is None or taken == msg:
+            return
+        self.notes[f"contested:{kind}/{sensor_id}" if sensor_id else f"contested:{kind}"] += 1
+        self.life.on_aiding_contested(kind, sensor_id, t)
 
     def imu_took_forged(self, t0: float, t1: float) -> bool:
         """Whether the intervals the INS took from ``t0`` (a verified checkpoint's time) to ``t1``

@@ -42,7 +42,11 @@ Suspicion (evidence that a running state may be wrong): a contested IMU key
 (:data:`CONTESTED_IMU` refusals: a second publisher's samples may have been taken), aiding the
 pipeline refuses wholesale (its own screening: ``Pipeline.report("aiding_refused")``; refused
 again, ``aiding_still_refused``: reset at the next reference whatever the check says). A suspect
-pipeline is ``degraded`` and checked like an unverified one.
+pipeline is ``degraded`` and checked like an unverified one. Suspect for a contested key, at a
+reference epoch: if the INS took intervals other than the verified stream's, the pipeline is
+replayed from its checkpoint at once, whether or not the reference disagrees yet (forged samples
+close to the genuine ones leave a state the fixes agree with for a while:
+:meth:`VehicleLife._replay_forged`).
 
 Reset: the whole state, with an honest covariance (:meth:`VehicleLife._fix_state`): velocity from
 the reference, attitude from gravity and the GNSS track, position from the pipeline's last
@@ -134,6 +138,9 @@ CHECKPOINT_MAX_AGE_S = 5.0
 CHECKPOINTS = 8
 #: ... one kept at most every this often (s; the cost of a copy of the filter at output epochs)
 CHECKPOINT_PERIOD_S = 0.1
+#: an aiding key on which two publishers said different things for one epoch (a duplicate that
+#: differs from the message taken) is used again only after this long without such a pair (s)
+CONTESTED_AIDING_HOLD_S = 10.0
 #: checkpoints this close before a contested IMU sample are not trusted (s)
 CONTESTED_GUARD_S = 0.1
 #: a carried checkpoint moves on with the acceleration and turn rate its INS had then; what the
@@ -380,6 +387,8 @@ class VehicleLife:
         #: per pipeline, the checkpoint its last replay under a contest left (the verified
         #: stream's alone: a later contested sample does not drop it, :meth:`on_imu_contested`)
         self.replayed_checkpoint: dict[str, tuple] = {}
+        #: aiding key ("kind/id") -> time of its last contested epoch (:meth:`on_aiding_contested`)
+        self.contested_aiding: dict[str, float] = {}
         #: per pipeline, (t, |acceleration change|, |turn rate change|) between its checkpoints
         self.dyn_changes: dict[str, deque] = {p.name: deque() for p in engine.pipelines}
 
@@ -881,6 +890,68 @@ class VehicleLife:
             if self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost):
                 self.suspect(p, t, "imu_contested")
 
+    def on_aiding_contested(self, kind: str, sensor_id: str, t: float) -> None:
+        """Two different messages for the epoch ``t`` under one aiding key (a second publisher:
+        a spoofer racing the sensor on its own time stamps; which one is genuine is not known).
+        The key is refused ``aiding_contested`` until ``CONTESTED_AIDING_HOLD_S`` has passed
+        without such a pair (:meth:`aiding_contested`), and every running pipeline that uses the
+        kind is suspect (``aiding_contested``: ``degraded``, verified again by the vehicle's other
+        references or, after the hold, by the key's own; a disagreement then resets it).
+
+        Why: forged fixes on the receiver's own time stamps, delivered just before the genuine
+        ones and claiming 1 m against the receiver's 10 m, were taken and the genuine refused as
+        duplicates; the filters followed the forged drift 'aided' while beyond 3 sigma for
+        160-380 epochs (docs/hardening.md, "Forged fixes on the receiver's own time stamps")."""
+        key = f"{kind}/{sensor_id}" if sensor_id else kind
+        last = self.contested_aiding.get(key)
+        self.contested_aiding[key] = t
+        if last is None or abs(t - last) > CONTESTED_AIDING_HOLD_S:
+            log.warning(
+                "vehicle %s: two publishers under %s: different messages for the epoch %.3f; the key is "
+                "not used until %.0f s pass without such a pair (Health rejected aiding_contested, "
+                "notes contested:%s)",
+                self.engine.vehicle,
+                key,
+                t,
+                CONTESTED_AIDING_HOLD_S,
+                key,
+            )
+        first = last is None or abs(t - last) > CONTESTED_AIDING_HOLD_S
+        for p in self.engine.pipelines:
+            running = self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost)
+            if not (running and kind in p.consumed_kinds()):
+                continue
+            self.suspect(p, t, "aiding_contested")
+            if first:
+                self._undo_contested(p, kind, sensor_id, t)
+
+    def _undo_contested(self, p: Pipeline, kind: str, sensor_id: str, t: float) -> None:
+        """The first contested epoch's message was applied before its rival arrived: restart ``p``
+        from its last checkpoint before ``t`` and replay the IMU and the aiding since, without the
+        key's messages from ``t`` on (:meth:`_start_replayed`); the checkpoints from ``t`` on are
+        dropped (they may hold that message). Nothing when the replay cannot be made."""
+        cps = self.checkpoints[p.name]
+        while cps and cps[-1][0] > t - 1e-6:
+            cps.pop()
+        if self.engine.last_imu_t is None:
+            return
+        self.engine._advance_all()  # (every pipeline at the engine's time: nothing left to push)
+        t_now = self.engine.pre.t_end
+        plan = self._replay_plan(p, t_now)
+        if plan is None:
+            return
+        self.engine.notes[f"reset:{p.name}"] += 1
+        self._start_replayed(p, *plan, "reset", t_now, skip=(kind, sensor_id, t))
+        life = self.lives[p.name]
+        life.verified, life.reason = False, "aiding_contested"
+
+    def aiding_contested(self, kind: str, sensor_id: str, t: float) -> bool:
+        """Whether the aiding key is held after a contested epoch (:meth:`on_aiding_contested`)."""
+        if not self.contested_aiding:
+            return False
+        last = self.contested_aiding.get(f"{kind}/{sensor_id}" if sensor_id else kind)
+        return last is not None and abs(t - last) <= CONTESTED_AIDING_HOLD_S
+
     def _reset_from_reference(self, p: Pipeline, fix: GnssFix, t: float) -> None:
         """Restart ``p`` from the vehicle's own fix (:meth:`_fix_state`), or after a contested IMU
         key from its last verified state with the verified stream's IMU since then
@@ -985,19 +1056,26 @@ class VehicleLife:
         rows = self.engine.verified_imu(c[0], t)
         return None if rows is None else (c, rows)
 
-    def _start_replayed(self, p: Pipeline, c, rows, event: str, t: float) -> None:
+    def _start_replayed(self, p: Pipeline, c, rows, event: str, t: float, skip=None) -> None:
         """Restart ``p`` from checkpoint ``c``, whole, then run the IMU intervals ``rows`` through
         it to ``t`` (the filter's own propagation: navigation, covariance, private states), with
         the aiding messages the engine handed it in between applied again at their epochs (the
         interval holding one cut there, as the engine cuts it; the pipeline's own screening judges
         them again; their outputs were sent the first time and are not sent again); unverified.
-        Counted ``replayed:<pipeline>``."""
+        Counted ``replayed:<pipeline>``. ``skip``: (kind, sensor id, t0), that key's messages from
+        ``t0`` on are not applied again (a contested aiding key)."""
         t_cp, cp, P9, P, refs, _ = c
         sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
         std = InitStd(sd[0:3], sd[3:6], sd[6:9], cov=P)
         self._start_one(p, cp, std, event, verified=False, reason=event, refs=refs, event_t=t)
         kinds = p.consumed_kinds()
-        aids = [a for a in self.engine.aiding_log if t_cp + 1e-9 < a[0] < t - 1e-9 and a[1] in kinds]
+        aids = [
+            a
+            for a in self.engine.aiding_log
+            if t_cp + 1e-9 < a[0] < t - 1e-9
+            and a[1] in kinds
+            and not (skip is not None and a[1:3] == skip[:2] and a[3].t >= skip[2] - 1e-9)
+        ]
         i, cur = 0, t_cp
         for r in rows:
             end = r[0]
