@@ -27,6 +27,8 @@ into a clean stream (seeds S, S+1, ...), against the same stream clean:
 - ``drift``: a forged fix stream under the receiver's own key (between its fixes) drifting 0.1 to
   2 m/s for 30 s, claiming 1 m (the genuine receiver 10 m) and a velocity with the drift
   (underwater: the same with the USBL);
+- ``drift_stamped``: the same forged stream on the receiver's own time stamps, each forged fix
+  delivered just before the genuine one (a spoofer racing the receiver), 0.5 and 2 m/s;
 - ``outage``: no GNSS for 60 s (fixes and raw epochs), then 5 s of fixes 50 m off: the
   receiver's solution jumps on return, its pseudoranges return as they are (underwater: the
   USBL, its relative vector 50 m off).
@@ -175,6 +177,8 @@ CASES = [
     ("drift", 0.1),
     ("drift", 0.5),
     ("drift", 2.0),
+    ("drift_stamped", 0.5),
+    ("drift_stamped", 2.0),
     ("outage", 60.0),
 ]
 #: the pace of a second publisher's samples: arrival jitter in stream seconds (None: all at once)
@@ -365,7 +369,7 @@ class Injector:
         self.end_s = self.start_s
         if self.kind == "init_burst":
             self.end_s = self.start_s + 2.5
-        elif self.kind == "drift":
+        elif self.kind in ("drift", "drift_stamped"):
             self.end_s = self.start_s + 30.0
         elif self.kind == "outage":
             self.end_s = self.start_s + float(self.arg) + 5.0
@@ -430,8 +434,11 @@ class Injector:
                 out.append((self.aiding, "main", self._forged(g, msg.t, t_rel, traj)))
         return out
 
-    def before(self, pk, msg) -> list[tuple[str, str, object]]:
-        """Forged IMU samples that arrive before the genuine sample ``msg``."""
+    def before(self, pk, msg, t_rel: float = 0.0, traj=None) -> list[tuple[str, str, object]]:
+        """Forged messages that arrive before the genuine ``msg``: IMU samples of a burst, or
+        the forged fix on the genuine one's time stamp."""
+        if self.kind == "drift_stamped" and pk.kind == self.aiding and self.start_s <= t_rel < self.end_s:
+            return [(self.aiding, pk.sensor_id, self._forged(msg, msg.t, t_rel, traj))]
         out = []
         if self.kind in ("imu_burst", "imu_close") and pk.kind == "imu":
             while self.queue and self.queue[0][0] < msg.t:
@@ -471,7 +478,7 @@ def run_case(sc, seed: int, kind, arg, start_s: float, aiding: str):
     for key, msg in sim:
         pk = keys.parse_input(key)
         t_rel = msg.t - sc.t0_gps_s
-        for k, sid, fm in inj.before(pk, msg):
+        for k, sid, fm in inj.before(pk, msg, t_rel, traj):
             eng.handle(k, sid, fm)
         m = inj.filter(pk, msg, t_rel, traj)
         if m is not None:

@@ -39,7 +39,9 @@ agrees with one of the two fixes before it) with its sigmas floored by what the 
 before: a forged fix between genuine ones, or one claiming 1e-9 m, never resets anything.
 
 Suspicion (evidence that a running state may be wrong): a contested IMU key
-(:data:`CONTESTED_IMU` refusals: a second publisher's samples may have been taken), aiding the
+(:data:`CONTESTED_IMU` refusals: a second publisher's samples may have been taken), a contested
+aiding key (two different messages for one epoch: neither publisher's used for
+:data:`CONTESTED_AIDING_HOLD_S`, :meth:`VehicleLife.on_aiding_contested`), aiding the
 pipeline refuses wholesale (its own screening: ``Pipeline.report("aiding_refused")``; refused
 again, ``aiding_still_refused``: reset at the next reference whatever the check says). A suspect
 pipeline is ``degraded`` and checked like an unverified one. Suspect for a contested key, at a
