@@ -218,7 +218,7 @@ class VehicleEngine:
         self._watch_refusals(kind, sensor_id, msg.t, verdict.reason)
         if kind == "gnss_fix" and verdict.in_sequence and verdict.reason != "aiding_contested":
             life.on_fix(msg, f"gnss_fix/{sensor_id}")  # the newest fix, also when not applied (alignment)
-        elif kind == "gnss_raw" and verdict.in_sequence and not life.initialised and verdict.accepted:
+        elif kind == "gnss_raw" and verdict.in_sequence and not life.initialised:
             life.on_raw(msg)  # a raw receiver without a fix stream aligns like one with it
         if verdict.reason == "not_initialised":
             life.try_align()  # this message may complete an alignment
