@@ -546,11 +546,11 @@ class VehicleEngine:
 
     def _watch_contest(self, kind: str, sensor_id: str, msg: WireModel) -> None:
         """A duplicate aiding message (the time of one already taken): when it says something else
-        than the one taken (pending, or in :attr:`aiding_log`; or the last one held while the key is
-        contested), two publishers share the key and
-        which one is genuine is not known: counted ``contested:<kind>/<id>`` and handed to the
-        lifecycle (:meth:`VehicleLife.on_aiding_contested`). A copy of the same message (a
-        retransmission, a replayed log) is only a duplicate."""
+        than the one taken (pending, or in :attr:`aiding_log`; or the last one held while the key
+        is contested), two publishers share the key and which one is genuine is not known:
+        counted ``contested:<kind>/<id>`` and handed to the lifecycle
+        (:meth:`VehicleLife.on_aiding_contested`); a pending copy is dropped. A copy of the same
+        message (a retransmission, a replayed log) is only a duplicate."""
         t = msg.t
         held = self._held.get((kind, sensor_id))
         taken = held if held is not None and held.t == t else None

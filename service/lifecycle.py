@@ -907,7 +907,8 @@ class VehicleLife:
         key = f"{kind}/{sensor_id}" if sensor_id else kind
         last = self.contested_aiding.get(key)
         self.contested_aiding[key] = t
-        if last is None or abs(t - last) > CONTESTED_AIDING_HOLD_S:
+        first = last is None or abs(t - last) > CONTESTED_AIDING_HOLD_S
+        if first:
             log.warning(
                 "vehicle %s: two publishers under %s: different messages for the epoch %.3f; the key is "
                 "not used until %.0f s pass without such a pair (Health rejected aiding_contested, "
@@ -918,7 +919,6 @@ class VehicleLife:
                 CONTESTED_AIDING_HOLD_S,
                 key,
             )
-        first = last is None or abs(t - last) > CONTESTED_AIDING_HOLD_S
         for p in self.engine.pipelines:
             running = self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost)
             if not (running and kind in p.consumed_kinds()):
