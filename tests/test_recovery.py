@@ -1035,3 +1035,28 @@ def test_a_silent_corruption_is_refused_wholesale_by_the_tightly_coupled_familie
     monkeypatch.setattr(Pipeline, "refused_wholesale", noted_only)
     eng, _ = _run(sc, _position_corrupted(200.0))
     assert any(m.excluded for m in eng.integrity)
+
+
+def test_a_pipeline_that_cannot_replay_is_reset_from_its_carried_checkpoint_after_close_forgeries():
+    """The transfer alignment's wing IMUs are node IMUs: its stream is not replayed. Forged samples
+    close to the genuine ones under the master IMU's key (benchmarks/hardening.py ``imu_close``
+    0.2, seed 401) left it verified with the forged heading: 118 m off at its peak, back after
+    108 s, 'aided' beyond 3 sigma. Now, the INS having taken intervals off the verified stream,
+    the first fix resets it from its checkpoint carried over the gap: the error stays at the
+    clean run's, nothing 'aided' beyond 3 sigma."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hardening
+
+    build, _, start, aiding = hardening.FAMILIES["ta"]
+    sc = build()
+    clean, _, _ = hardening.run_case(sc, 401, None, None, start, aiding)
+    rec, eng, inj = hardening.run_case(sc, 401, "imu_close", "0.2", start, aiding)
+    assert eng.rejected["overlap"] + eng.rejected["time_backwards"] > 0, eng.rejected
+    assert eng.notes["reset:ta_akf"] >= 1 and eng.notes["replayed:ta_akf"] == 0, eng.notes
+    row = hardening.assess(rec["ta_akf"], clean["ta_akf"], start, inj.end_s)
+    p95 = float(np.percentile(hardening._h(clean["ta_akf"][1], clean["ta_akf"][2])[0], 95))
+    assert row.peak < 2.0 * p95 and row.lies == 0, (row.peak, p95, row.lies)
+    assert row.recovered is not None and row.recovered <= 1.0, row.recovered
