@@ -10,7 +10,20 @@ each from its own plain Zenoh session, with the attacks from a second session of
 - ``inits``: 500 InitialNav in 2.5 s from 70 s, 20 m north, claiming 1 cm / 0.01 m/s / 0.01 deg,
   stamped at the newest Solution the attacker sees on the bus (current from the service's view);
 - ``drift``: a forged fix stream under the receiver's key, half a period after each genuine fix,
-  drifting 1 m/s north for 30 s from 70 s and claiming 1 m.
+  drifting 1 m/s north for 30 s from 70 s and claiming 1 m;
+- ``close``: forged IMU samples close to the genuine ones: the attacker reads the genuine samples
+  on the bus and publishes for each, as it sees it, its increments with 0.2 rad/s more yaw rate
+  stamped half a period later, 50 from 70 s;
+- ``close500``: the same with 0.05 rad/s more, 500 samples (5 s);
+- ``stamped``: the ``drift`` stream on the receiver's own time stamps: the attacker learns the
+  fixes' cadence on the bus and publishes each forged fix when it sees the IMU sample two
+  periods before the next genuine fix (a spoofer racing the receiver; usually ahead of it).
+
+The ``close`` and ``stamped`` attackers key on what they see on the bus, so their messages reach
+the service where they are meant to however far it runs behind the sensors (the others are
+timed from the sensors' own stream).
+
+``--attacks`` chooses the attacked vehicles (all by default; ``clean`` always runs).
 
 Two sessions reach the service in an order no in-process run reproduces (the sensors' session is
 busier than the forger's: its messages can arrive seconds of stream time later), so runs differ;
@@ -54,8 +67,17 @@ from tests.plain_zenoh import client  # noqa: E402  (the tests' plain client: no
 from tests.test_hostile import Publisher  # noqa: E402  (reliable, blocking, waits for the subscriber)
 
 AT_S = 70.0
-VEHICLES = ("clean", "burst", "inits", "drift")
-ENDS = {"burst": AT_S + 0.6, "inits": AT_S + 2.5, "drift": AT_S + 30.0}
+#: the attacked vehicles and the end of each one's attack (s of the scenario)
+ENDS = {
+    "burst": AT_S + 0.6,
+    "inits": AT_S + 2.5,
+    "drift": AT_S + 30.0,
+    "close": AT_S + 0.5,
+    "close500": AT_S + 5.0,
+    "stamped": AT_S + 30.0,
+}
+#: ``close`` attacks: (extra yaw rate, rad/s; samples)
+CLOSE = {"close": (0.2, 50), "close500": (0.05, 500)}
 PIPELINES = ("lc", "fed", "tc_mhss")
 
 
@@ -63,6 +85,20 @@ def _moved(traj, t: float, north_m: float, dvn: float = 0.0):
     s = traj.state_at(t)
     r_m, _ = earth.radii(s.llh[0])
     return s, math.degrees(s.llh[0] + north_m / (r_m + s.llh[2])), s.vel_enu_mps + np.array([0.0, dvn, 0.0])
+
+
+def _forged_fix(traj, t: float, t_rel: float) -> GnssFix:
+    """The drifting fix at ``t`` (``t_rel`` s of the scenario): 1 m/s north from AT_S, claiming 1 m."""
+    s, lat, vel = _moved(traj, t, 1.0 * (t_rel - AT_S), 1.0)
+    return GnssFix(
+        t=t,
+        lat_deg=lat,
+        lon_deg=math.degrees(s.llh[1]),
+        height_m=float(s.llh[2]),
+        vel_enu_mps=tuple(float(v) for v in vel),
+        pos_std_enu_m=(1.0, 1.0, 1.0),
+        vel_std_enu_mps=(0.1, 0.1, 0.1),
+    )
 
 
 def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float) -> int:
@@ -80,6 +116,8 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
     # never reached the filter)
     seen = queue.Queue()
     watch = attack = None  # (the subscriber kept: an undeclared subscriber's callback stops)
+    if vehicle in CLOSE or vehicle == "stamped":
+        watch, attack, sent_bus = _bus_forger(sc, vehicle, attacker, forged, traj)
     if vehicle == "inits":
         watch = attacker.declare_subscriber(
             keys.nav(vehicle, "lc", "solution"),
@@ -122,22 +160,18 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
                     sent += 1
             pub.put(key, msg.to_json())
             if vehicle == "drift" and isinstance(msg, GnssFix) and AT_S <= t_rel < AT_S + 30.0:
-                t = msg.t + 0.5
-                s, lat, vel = _moved(traj, t, 1.0 * (t_rel + 0.5 - AT_S), 1.0)
-                fake = GnssFix(
-                    t=t,
-                    lat_deg=lat,
-                    lon_deg=math.degrees(s.llh[1]),
-                    height_m=float(s.llh[2]),
-                    vel_enu_mps=tuple(float(v) for v in vel),
-                    pos_std_enu_m=(1.0, 1.0, 1.0),
-                    vel_std_enu_mps=(0.1, 0.1, 0.1),
-                )
-                forged.put(k_fix, fake.to_json())
+                forged.put(k_fix, _forged_fix(traj, msg.t + 0.5, t_rel + 0.5).to_json())
                 sent += 1
         if attack is not None:  # the service may reach the attack's time only after the stream
-            attack.join()
-            sent += sent_inits[0]
+            if vehicle == "inits":
+                attack.join()
+                sent += sent_inits[0]
+            else:
+                drain(genuine, [keys.service(vehicle, "status")])  # the attacker has seen it all
+                time.sleep(1.0)
+                sent_bus[1].put(None)
+                attack.join(timeout=60)
+                sent += sent_bus[0][0]
             watch.undeclare()
         for session in (genuine, attacker):  # what is still queued reaches the service first
             drain(session, [keys.service(vehicle, "status")])
@@ -147,7 +181,65 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
     return sent
 
 
-def one_run(seed: int, pace: float, workdir: Path) -> dict:
+def _bus_forger(sc, vehicle: str, attacker: zenoh.Session, forged, traj):
+    """The ``close`` / ``stamped`` attacker: a subscription to the vehicle's genuine IMU samples
+    (and fixes) on the bus and a thread publishing the forged messages as it sees them. Returns
+    (the subscriber, the thread, ([forged sent], its queue))."""
+    k_imu, k_fix = keys.sensor(vehicle, "imu", "main"), keys.sensor(vehicle, "gnss_fix", "main")
+    todo: queue.Queue = queue.Queue()
+    sent = [0]
+    fixes: list[float] = []  # the genuine fixes' times seen
+    forged_at: set[float] = set()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        d = json.loads(sample.payload.to_bytes())
+        if key == k_fix:
+            fixes.append(d["t"])
+            return
+        if key != k_imu:
+            return
+        t, dt = d["t"], d["dt_s"]
+        t_rel = t - sc.t0_gps_s
+        if vehicle in CLOSE:
+            rate, n = CLOSE[vehicle]
+            if AT_S - 0.5 * dt <= t_rel < AT_S + (n - 0.5) * dt:
+                a = d["dtheta_rad"]
+                d.update(t=t + 0.5 * dt, dtheta_rad=[a[0], a[1], a[2] + rate * dt])
+                todo.put((k_imu, json.dumps(d).encode()))
+            return
+        if len(fixes) < 2:  # stamped: the next fix from the cadence seen
+            return
+        t_next = fixes[-1] + (fixes[-1] - fixes[-2])
+        rel = t_next - sc.t0_gps_s
+        if AT_S <= rel < AT_S + 30.0 and t_next - 2.0 * dt <= t < t_next and t_next not in forged_at:
+            forged_at.add(t_next)
+            todo.put((k_fix, _forged_fix(traj, t_next, rel).to_json()))
+
+    def run() -> None:
+        while (item := todo.get()) is not None:
+            forged.put(*item)
+            sent[0] += 1
+
+    subs = [
+        attacker.declare_subscriber(k, on_sample, allowed_origin=zenoh.Locality.REMOTE)
+        for k in (k_imu, k_fix)
+    ]
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return _Subs(subs), th, (sent, todo)
+
+
+class _Subs:
+    def __init__(self, subs):
+        self.subs = subs
+
+    def undeclare(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+
+
+def one_run(seed: int, pace: float, workdir: Path, attacks: tuple[str, ...] = tuple(ENDS)) -> dict:
     sc = load_scenario("demo_product")
     text = (ROOT / "simulators" / "scenarios" / "demo_product.toml").read_text()
     text = text.replace("[service]\n", '[service]\nvehicles = ["*"]\n', 1)
@@ -167,13 +259,14 @@ def one_run(seed: int, pace: float, workdir: Path) -> dict:
 
     session.declare_subscriber("fednav/*/nav/*/solution", on_solution)
     sent: dict[str, int] = {}
+    vehicles = ("clean", *attacks)
     try:
         t_wall0 = time.monotonic() + 1.0
         threads = [
             threading.Thread(
                 target=lambda v=v: sent.__setitem__(v, publish(sc, v, port, t_wall0, seed, pace))
             )
-            for v in VEHICLES
+            for v in vehicles
         ]
         for th in threads:
             th.start()
@@ -183,13 +276,13 @@ def one_run(seed: int, pace: float, workdir: Path) -> dict:
         # wait until every vehicle's Health time reached the end of the scenario
         end_t = sc.t0_gps_s + sc.duration_s - 0.5
         deadline = time.monotonic() + 300.0
-        for v in VEHICLES:
+        for v in vehicles:
             while time.monotonic() < deadline:
                 h = ((query_status(port, v) or {}).get("health")) or {}
                 if (h.get("t") or 0.0) >= end_t:
                     break
                 time.sleep(0.5)
-        status = {v: wait_idle(port, vehicle=v) for v in VEHICLES}
+        status = {v: wait_idle(port, vehicle=v) for v in vehicles}
         # and until this process's subscriber has taken every Solution in flight (its callback
         # thread lags behind when the publishing threads hold the GIL)
         count, still = -1, 0
@@ -231,7 +324,8 @@ def one_run(seed: int, pace: float, workdir: Path) -> dict:
             continue
         p95 = float(np.percentile([e[1] for e in clean], 95))
         row = {"clean_p95": p95, "clean_lies": lies(clean)}
-        for v, end in ENDS.items():
+        for v in attacks:
+            end = ENDS[v]
             e = errors(v, p)
             if not e:
                 row[v] = None
@@ -245,9 +339,7 @@ def one_run(seed: int, pace: float, workdir: Path) -> dict:
             peak = max(after) if after else None  # None: its solutions stopped before the attack
             row[v] = {"peak": peak, "recovered": rec, "lies": lies(e), "last": e[-1][0]}
         result["pipelines"][p] = row
-    result["refused"] = {
-        v: ((status.get(v) or {}).get("health") or {}).get("rejected") for v in ("burst", "inits", "drift")
-    }
+    result["refused"] = {v: ((status.get(v) or {}).get("health") or {}).get("rejected") for v in attacks}
     return result
 
 
@@ -256,12 +348,17 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--pace", type=float, default=10.0, help="x real time (default 10, the probes')")
+    ap.add_argument("--attacks", default=",".join(ENDS), help=f"attacked vehicles, of {','.join(ENDS)}")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
+    attacks = tuple(x for x in a.attacks.split(",") if x)
+    unknown = [x for x in attacks if x not in ENDS]
+    if unknown:
+        ap.error(f"unknown attacks {unknown}; known: {', '.join(ENDS)}")
     results = []
     for r in range(a.runs):
         with tempfile.TemporaryDirectory(prefix="fednav_probe_") as tmp:
-            res = one_run(a.seed, a.pace, Path(tmp))
+            res = one_run(a.seed, a.pace, Path(tmp), attacks)
         results.append(res)
         if a.json:
             continue
@@ -271,7 +368,7 @@ def main() -> int:
                 print(f"  {p}: no solutions")
                 continue
             cells = []
-            for v in ENDS:
+            for v in attacks:
                 x = row[v]
                 if x is None:
                     cells.append(f"{v}: no solutions")
