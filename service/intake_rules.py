@@ -12,7 +12,10 @@ it are refused, and only a run of samples that agree with each other re-bases it
   starts more than a quarter interval before the previous sample's end ``overlap`` (samples
   slipped between genuine ones); a gap (span minus the sample's interval) longer than ``max_imu_gap_s``
   but inside the window: ``imu_gap`` (taken; the INS is lost and re-initialised). Refused samples
-  behind or ahead of the window are candidates of a time jump: ``time_jump_samples`` consecutive
+  more than ``future_window_s`` behind or ahead of the running time are candidates of a time jump
+  (samples behind it by less are ``time_backwards`` and never move it: a second publisher lagging
+  the sensor by a fraction of a second, whose samples reach the service in runs of twenty and
+  more, would otherwise re-base the INS on its own stream): ``time_jump_samples`` consecutive
   candidates, each following the previous one by at most its interval plus ``max_imu_gap_s``,
   with no accepted sample between them, give ``time_jump`` (the last one is taken: the INS is
   re-initialised on the new time base and every per-key record is forgotten).
@@ -227,6 +230,11 @@ class AcceptanceRules:
         if t == t_ins:
             return Verdict("duplicate")
         if t < t_ins:
+            if t_ins - t <= self.intake.future_window_s:
+                # inside the window the INS has just run through: a second publisher lagging
+                # behind the sensor (or the sensor's own stream behind a forged run ahead), never
+                # a new time base; a restart this close behind catches up within the window
+                return Verdict("time_backwards")
             return self._jump_candidate(t, dt_s, "time_backwards")
         gap = (t - t_ins) - dt_s
         if gap > self.intake.future_window_s:
