@@ -15,6 +15,9 @@ each from its own plain Zenoh session, with the attacks from a second session of
   on the bus and publishes for each, as it sees it, its increments with 0.2 rad/s more yaw rate
   stamped half a period later, 50 from 70 s;
 - ``close500``: the same with 0.05 rad/s more, 500 samples (5 s);
+- ``race``: for each genuine sample it sees, the next one predicted on its own time stamp (the
+  same increments, 0.05 rad/s more yaw rate), 500 from 70 s: one copy of each slot is taken, the
+  other refused ``duplicate``, whichever arrives first;
 - ``stamped``: the ``drift`` stream on the receiver's own time stamps: the attacker learns the
   fixes' cadence on the bus and publishes each forged fix when it sees the IMU sample two
   periods before the next genuine fix (a spoofer racing the receiver; usually ahead of it).
@@ -74,10 +77,11 @@ ENDS = {
     "drift": AT_S + 30.0,
     "close": AT_S + 0.5,
     "close500": AT_S + 5.0,
+    "race": AT_S + 5.0,
     "stamped": AT_S + 30.0,
 }
-#: ``close`` attacks: (extra yaw rate, rad/s; samples)
-CLOSE = {"close": (0.2, 50), "close500": (0.05, 500)}
+#: ``close`` attacks: (extra yaw rate, rad/s; samples; on the next sample's own stamp)
+CLOSE = {"close": (0.2, 50, False), "close500": (0.05, 500, False), "race": (0.05, 500, True)}
 PIPELINES = ("lc", "fed", "tc_mhss")
 
 
@@ -202,10 +206,10 @@ def _bus_forger(sc, vehicle: str, attacker: zenoh.Session, forged, traj):
         t, dt = d["t"], d["dt_s"]
         t_rel = t - sc.t0_gps_s
         if vehicle in CLOSE:
-            rate, n = CLOSE[vehicle]
+            rate, n, own_stamp = CLOSE[vehicle]
             if AT_S - 0.5 * dt <= t_rel < AT_S + (n - 0.5) * dt:
                 a = d["dtheta_rad"]
-                d.update(t=t + 0.5 * dt, dtheta_rad=[a[0], a[1], a[2] + rate * dt])
+                d.update(t=t + (dt if own_stamp else 0.5 * dt), dtheta_rad=[a[0], a[1], a[2] + rate * dt])
                 todo.put((k_imu, json.dumps(d).encode()))
             return
         if len(fixes) < 2:  # stamped: the next fix from the cadence seen

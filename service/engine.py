@@ -468,7 +468,8 @@ class VehicleEngine:
         if not verdict.accepted:
             self._imu_refused.append(t)
             if verdict.reason in CONTESTED_IMU and self.life.initialised:
-                self.life.on_imu_contested(t, verdict.reason)
+                ambiguous = verdict.reason == "duplicate" and self._duplicate_differs(t)
+                self.life.on_imu_contested(t, verdict.reason, ambiguous)
             return self._reject(verdict.reason)
         if not self.life.initialised:
             self.life.align.add(t, dt, dtheta, dvel)
@@ -502,6 +503,22 @@ class VehicleEngine:
         self.last_t = t
         self._maybe_output(t)
         return True
+
+    def _duplicate_differs(self, t: float, look_back: int = 64) -> bool:
+        """Whether the IMU ring's latest ``look_back`` rows hold two different intervals for the
+        time ``t`` (a duplicate that says something else than the sample taken: two publishers on
+        the same time stamps, which one is genuine not known), not a copy of it."""
+        n = min(self._imu_n, IMU_LOG_LEN, look_back)
+        ring = self._imu_ring
+        first = None
+        for i in range(self._imu_n - n, self._imu_n):
+            row = ring[i % IMU_LOG_LEN]
+            if row[0] == t:
+                if first is None:
+                    first = row
+                elif not np.array_equal(row, first):
+                    return True
+        return False
 
     def verified_imu(self, t0: float, t1: float) -> list[tuple] | None:
         """The IMU intervals of the stream the INS followed at ``t0`` (a verified checkpoint's time:

@@ -1107,3 +1107,50 @@ def test_a_forger_lagging_the_imu_in_runs_never_moves_the_time_base():
         rec = [r for r in sink.rec[name] if r[0] - sc.t0_gps_s >= 70.0]
         assert max(r[1] for r in rec) < 3.0, (name, max(rec, key=lambda r: r[1]))
         assert not _lies(rec), (name, _lies(rec)[:3])
+
+
+@pytest.mark.parametrize("forger_first", [True, False], ids=["forger_first", "forger_second"])
+def test_a_forger_racing_the_imu_on_its_own_time_stamps_is_reset_out_after_the_checkpoints_expire(
+    forger_first,
+):
+    """A second publisher with a copy of every IMU sample on the sample's own time stamp (its
+    increments with 0.05 rad/s more yaw rate) for 5 s: one copy of each slot taken, the other
+    refused ``duplicate``; which is genuine is not known, so nothing can be replayed. The resets at
+    each fix carried the checkpoint from before the contest until it was 5 s old; the forged
+    samples after the last one stayed in the state: the federated filter 2.9 deg off in heading,
+    its star tracker isolated by its fault test, 23.6 m off 31 s after the contest. Now each fix
+    while the contest goes on, and the first one after it, restarts the pipelines from the fix."""
+    sc = shortened("demo_product.toml", 110.0)
+    eng = VehicleEngine("v1", service_config(sc), sink := Sink())
+    for key, msg in Simulation(sc, seed=5):
+        pk = keys.parse_input(key)
+        t_rel = msg.t - sc.t0_gps_s
+        if pk.kind != "imu" or not 70.0 - 0.005 <= t_rel < 75.0 - 0.005:
+            eng.handle(pk.kind, pk.sensor_id, msg)
+            continue
+        a = msg.dtheta_rad
+        forged = msg.model_copy(update={"dtheta_rad": (a[0], a[1], a[2] + 0.05 * msg.dt_s)})
+        for m in (forged, msg) if forger_first else (msg, forged):
+            eng.handle(pk.kind, pk.sensor_id, m)
+    assert eng.rejected["duplicate"] == 500, dict(eng.rejected)
+    names = ("lc", "fed", "tc_mhss")
+    for name in names:
+        rec = [r for r in sink.rec[name] if r[0] - sc.t0_gps_s >= 70.0]
+        assert max(r[1] for r in rec) < 8.0, (name, max(rec, key=lambda r: r[1]))
+        late = [r[1] for r in rec if r[0] - sc.t0_gps_s >= 95.0]
+        assert max(late) < 3.0, (name, max(late))  # without: fed 5.5 m at 108 s, 23.6 at 106 s in 120
+        assert not _lies(rec), (name, _lies(rec)[:3])
+    assert all(eng.notes[f"reset:{name}"] >= 5 for name in names), eng.notes  # 4 in the contest, 1 after
+
+
+def test_only_an_imu_duplicate_that_differs_is_ambiguous():
+    """A copy of a sample (a retransmission) is not a second publisher on the genuine time stamps;
+    a duplicate with other increments is (``VehicleEngine._duplicate_differs``, read from the IMU
+    ring: what :meth:`VehicleLife._reset_after_long_contest` acts on)."""
+    eng = VehicleEngine("v1", service_config(load_scenario("demo_aircraft.toml")), Sink())
+    s = ImuSample(t=1000.01, dt_s=0.01, dtheta_rad=(0.0, 0.0, 1e-4), dvel_mps=(0.0, 0.0, 0.098))
+    eng.handle("imu", "main", s)
+    eng.handle("imu", "main", s)
+    assert not eng._duplicate_differs(s.t)
+    eng.handle("imu", "main", s.model_copy(update={"dtheta_rad": (0.0, 0.0, 2e-4)}))
+    assert eng._duplicate_differs(s.t) and not eng._duplicate_differs(s.t + 0.01)
