@@ -108,6 +108,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C (SIGINT): a stop asked for, not a failure to trace back
+        print("fednav-sim: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None = None) -> int:
     rest = sys.argv[1:] if argv is None else argv
     one_blas_thread()
     if rest and rest[0] in ("rinex2raw", "eval-rinex"):  # real RINEX data (docs/real_rinex.md)

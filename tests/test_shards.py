@@ -248,8 +248,11 @@ def test_a_killed_shard_is_restarted_and_fed_again(tmp_path):
         session.declare_subscriber("fednav/_fleet/*/state/**", on_state),
     ]
     try:
+        # 60 s at 2x: inputs still flow when the shard is killed, however slowly the machine ran
+        # the steps before (with 30 s, a fresh-clone CI run reached the kill after the last input:
+        # nothing to lose, inputs_forward_lost stayed 0); stopped once the test has seen enough
         gen = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "6", "--duration", "30"]
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "6", "--duration", "60"]
             + ["--speed", "2", "--connect", f"tcp/127.0.0.1:{port}"],
             "fleet",
         )
@@ -268,7 +271,8 @@ def test_a_killed_shard_is_restarted_and_fed_again(tmp_path):
         assert wait_until(
             lambda: all(notes.get(v, {}).get("handed_over_from:shard1", 0) == 1 for v in theirs), 10.0
         ), {v: notes.get(v) for v in theirs}
-        assert gen.wait(timeout=120) == 0, gen.output()
+        gen.signal(signal.SIGINT)  # stopped: exit 130 with a one-line message, no traceback
+        assert gen.wait(timeout=60) in (0, 130) and "Traceback" not in gen.output(), gen.output()
     finally:
         for sub in subs:
             sub.undeclare()
