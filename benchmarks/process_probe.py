@@ -21,6 +21,11 @@ each from its own plain Zenoh session, with the attacks from a second session of
 - ``stamped``: the ``drift`` stream on the receiver's own time stamps: the attacker learns the
   fixes' cadence on the bus and publishes each forged fix when it sees the IMU sample two
   periods before the next genuine fix (a spoofer racing the receiver; usually ahead of it).
+- ``outage``: no GNSS for 60 s from 70 s (fixes and raw epochs withheld by the vehicle's own
+  publisher), then 5 s of fixes 50 m north (the receiver's solution jumping on return; its
+  pseudoranges return as they are), as ``benchmarks/hardening.py``'s ``outage``. With it the
+  scenario runs 200 s instead of 120 (straight on after its last turn) for every vehicle, so
+  that 65 s follow the jump.
 
 The ``close`` and ``stamped`` attackers key on what they see on the bus, so their messages reach
 the service where they are meant to however far it runs behind the sensors (the others are
@@ -58,10 +63,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from hardening import forged_init  # noqa: E402  (the init_burst's InitialNav)
+from hardening import _shift_fix, demo_scenario, forged_init  # noqa: E402  (the attacks' messages)
 
 from fednav.service import earth, keys  # noqa: E402
-from fednav.service.messages import GnssFix, ImuSample  # noqa: E402
+from fednav.service.messages import GnssFix, GnssRaw, ImuSample  # noqa: E402
+from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S  # noqa: E402
 from fednav.simulators.processes import free_port, query_status, start_service, wait_idle  # noqa: E402
 from fednav.simulators.publisher import drain  # noqa: E402
 from fednav.simulators.scenario import load_scenario  # noqa: E402
@@ -79,7 +85,10 @@ ENDS = {
     "close500": AT_S + 5.0,
     "race": AT_S + 5.0,
     "stamped": AT_S + 30.0,
+    "outage": AT_S + 65.0,
 }
+#: the outage: GNSS withheld for OUTAGE_S, then JUMP_S of fixes JUMP_M north
+OUTAGE_S, JUMP_S, JUMP_M = 60.0, 5.0, 50.0
 #: ``close`` attacks: (extra yaw rate, rad/s; samples; on the next sample's own stamp)
 CLOSE = {"close": (0.2, 50, False), "close500": (0.05, 500, False), "race": (0.05, 500, True)}
 PIPELINES = ("lc", "fed", "tc_mhss")
@@ -106,7 +115,10 @@ def _forged_fix(traj, t: float, t_rel: float) -> GnssFix:
 
 
 def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float) -> int:
-    genuine, attacker = client(port), client(port)
+    # sessions that wait as fednav's own publishers do (PUBLISHER_BLOCK_WAIT_S): with Zenoh's 5 s,
+    # a service busy with the other vehicles' backlog had the link of a vehicle's session closed
+    # and the rest of its stream dropped (the "stall" of three or more attacked vehicles)
+    genuine, attacker = client(port, PUBLISHER_BLOCK_WAIT_S), client(port, PUBLISHER_BLOCK_WAIT_S)
     pub, forged = Publisher(genuine), Publisher(attacker)
     k_imu, k_fix = keys.sensor(vehicle, "imu", "main"), keys.sensor(vehicle, "gnss_fix", "main")
     sim = Simulation(sc, seed=seed, vehicle=vehicle)
@@ -162,6 +174,11 @@ def publish(sc, vehicle: str, port: int, t_wall0: float, seed: int, pace: float)
                 if burst and burst[0].t < msg.t + msg.dt_s:  # just before the genuine sample
                     forged.put(k_imu, burst.pop(0).to_json())
                     sent += 1
+            if vehicle == "outage" and isinstance(msg, (GnssFix, GnssRaw)):
+                if AT_S <= t_rel < AT_S + OUTAGE_S:
+                    continue  # withheld
+                if isinstance(msg, GnssFix) and AT_S + OUTAGE_S <= t_rel < AT_S + OUTAGE_S + JUMP_S:
+                    msg = _shift_fix(msg, JUMP_M)
             pub.put(key, msg.to_json())
             if vehicle == "drift" and isinstance(msg, GnssFix) and AT_S <= t_rel < AT_S + 30.0:
                 forged.put(k_fix, _forged_fix(traj, msg.t + 0.5, t_rel + 0.5).to_json())
@@ -244,7 +261,8 @@ class _Subs:
 
 
 def one_run(seed: int, pace: float, workdir: Path, attacks: tuple[str, ...] = tuple(ENDS)) -> dict:
-    sc = load_scenario("demo_product")
+    # the outage needs time after its jump: the demo run on, straight after its last turn
+    sc = demo_scenario(200.0) if "outage" in attacks else load_scenario("demo_product")
     text = (ROOT / "simulators" / "scenarios" / "demo_product.toml").read_text()
     text = text.replace("[service]\n", '[service]\nvehicles = ["*"]\n', 1)
     cfg = workdir / "service.toml"

@@ -186,6 +186,13 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary))
     else:
         print(f"published {result['messages']} messages in {result['wall_s']:.2f} s ({rate:.0f} msg/s)")
+    if result.get("subscriber_lost"):
+        print(
+            "fednav-replay: the subscribers went away during the stream (a link closed or the "
+            "service stopped): messages published meanwhile reached nobody",
+            file=sys.stderr,
+        )
+        return 4
     if result.get("drained") is False:
         print(
             "fednav-replay: the service did not confirm the end of the stream in time: "

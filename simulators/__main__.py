@@ -162,6 +162,13 @@ def _main(argv: list[str] | None = None) -> int:
             print(f"fednav-sim: {exc}", file=sys.stderr)
             return 3
         print(f"fednav-sim: published {stats['messages']} messages in {stats['wall_s']:.1f} s", flush=True)
+        if stats["subscriber_lost"]:
+            print(
+                "fednav-sim: the subscribers went away during the stream (a link closed or the "
+                "service stopped): messages published meanwhile reached nobody",
+                file=sys.stderr,
+            )
+            return 4
         if stats["drained"] is False:
             print(
                 "fednav-sim: the service did not confirm the end of the stream in time: "

@@ -20,7 +20,7 @@ from fednav.service import imu_batch as imu_batch_codec
 from fednav.service import keys as fkeys
 from fednav.service.config import ZenohConfig
 from fednav.service.messages import ImuSample, WireModel
-from fednav.service.transport.zenoh_io import make_config
+from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S, make_config
 
 #: IMU samples per published ImuBatch by default (``--imu-batch``; 1 = one JSON ImuSample each)
 DEFAULT_IMU_BATCH = 10
@@ -87,12 +87,15 @@ def session_config(
     Client mode: the service (a peer) routes our samples to its other clients (dashboards,
     subscribers); two peers connected only through the service would not see each other. A
     ``--zenoh-config`` file is overlaid on these safe defaults (``make_config``); explicit
-    ``--connect`` endpoints replace the file's."""
+    ``--connect`` endpoints replace the file's. A put blocked by a receiver that is behind waits
+    up to ``PUBLISHER_BLOCK_WAIT_S`` (unless the file says otherwise), not Zenoh's 5 s after which
+    the link is closed and the rest of the stream silently dropped."""
     return make_config(
         ZenohConfig(mode="client", listen=[], connect=["tcp/127.0.0.1:7447"]),
         listen=listen or None,
         connect=connect or None,
         config_file=zenoh_config,
+        block_wait_s=PUBLISHER_BLOCK_WAIT_S,
     )
 
 
@@ -117,7 +120,10 @@ def publish_stream(
 
     At the end, :func:`drain` waits (at most ``drain_timeout_s``) for the service(s) to take what
     is still queued; with no fednav service on the keys, a ``linger_s`` pause instead. The result's
-    ``drained``: True, False (a service did not answer in time: the tail may be lost) or None."""
+    ``drained``: True, False (a service did not answer in time, or the subscribers went away
+    during the stream: the tail may be lost) or None; ``subscriber_lost``: the first key's
+    subscribers went away at some point after it matched (a link closed, the service stopped):
+    what was put then reached nobody."""
     session = zenoh.open(session_config(connect=connect, listen=listen, zenoh_config=zenoh_config))
     pubs: dict[str, zenoh.Publisher] = {}
     batches: dict[str, list[ImuSample]] = {}
@@ -137,6 +143,11 @@ def publish_stream(
     n = 0
     t_first = None
     wall0 = None
+    # the first publisher's matching, watched from its first match on: a subscriber that goes
+    # away during the stream (its link closed, the service gone) means what was put meanwhile
+    # went nowhere, which a put does not say
+    unmatched: list[bool] = []
+    listener = None
     try:
         for key, msg in stream:
             batched = imu_batch > 1 and isinstance(msg, ImuSample)
@@ -149,6 +160,9 @@ def publish_stream(
                     time.sleep(0.01)
                 t_first = msg.t
                 wall0 = time.monotonic()
+                listener = p.declare_matching_listener(
+                    lambda status: None if status.matching else unmatched.append(True)
+                )
             if batched:
                 pending = batches.setdefault(key, [])
                 pending.append(msg)
@@ -171,8 +185,14 @@ def publish_stream(
         drained = drain(session, status_keys(pubs), drain_timeout_s) if pubs else None
         if drained is None:  # no fednav service: let the transmission queues empty a little
             time.sleep(linger_s)
+        first = next(iter(pubs.values()), None)
+        lost = bool(unmatched) or (listener is not None and not first.matching_status.matching)
+        if lost:
+            drained = False
     finally:
+        if listener is not None:
+            listener.undeclare()
         for p in pubs.values():
             p.undeclare()
         session.close()
-    return {"messages": n, "wall_s": wall, "drained": drained}
+    return {"messages": n, "wall_s": wall, "drained": drained, "subscriber_lost": lost}

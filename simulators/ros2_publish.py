@@ -193,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fednav.service import keys
     from fednav.service.config import ZenohConfig
-    from fednav.service.transport.zenoh_io import make_config
+    from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S, make_config
     from fednav.simulators.publisher import drain
     from fednav.simulators.scenario import ScenarioError, load_scenario
 
@@ -207,7 +207,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cfg = example_config(carrier=args.carrier, domain_id=args.domain_id)
     seed = sc.seed if args.seed is None else args.seed
-    with zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[args.connect])) as s:
+    conf = make_config(
+        ZenohConfig(mode="client"), listen=[], connect=[args.connect], block_wait_s=PUBLISHER_BLOCK_WAIT_S
+    )
+    with zenoh.open(conf) as s:
         samples = ros_samples(sc, seed, cfg, twist=not args.no_twist)
         n = publish(s, samples, attachment=args.carrier == "rmw_zenoh", speed=args.speed)
         # what is still queued reaches the service before the session closes (publisher.drain);

@@ -6,9 +6,15 @@ import json
 import zenoh
 
 
-def client(port: int) -> zenoh.Session:
-    """Client-mode session to the service on loopback, multicast scouting off."""
+def client(port: int, block_wait_s: float | None = None) -> zenoh.Session:
+    """Client-mode session to the service on loopback, multicast scouting off. ``block_wait_s``:
+    how long one blocking put may wait before Zenoh closes the link (its default 5 s: a
+    publisher faster than a busy service then loses its link and every later put)."""
     c = zenoh.Config()
+    if block_wait_s is not None:
+        c.insert_json5(
+            "transport/link/tx/queue/congestion_control/block/wait_before_close", str(int(block_wait_s * 1e6))
+        )
     c.insert_json5("mode", '"client"')
     c.insert_json5("scouting/multicast/enabled", "false")
     c.insert_json5("listen/endpoints", "[]")

@@ -21,8 +21,8 @@ from fednav.simulators.publisher import publish_stream, status_keys
 N = 3000
 
 
-def imu_stream(vehicle: str = "v1"):
-    for k in range(N):
+def imu_stream(vehicle: str = "v1", n: int = N):
+    for k in range(n):
         yield (
             f"fednav/{vehicle}/sensors/imu/imu0",
             ImuSample(
@@ -35,7 +35,16 @@ class SlowReceiver:
     """A peer listening on ``port``: its subscriber's channel holds 16 samples and is read at
     ~0.3 ms a sample (far slower than the publisher), its status queryable answers at once."""
 
-    def __init__(self, port: int, answer: bool = True, serve_status: bool = True):
+    def __init__(
+        self,
+        port: int,
+        answer: bool = True,
+        serve_status: bool = True,
+        pause_s: float = 0.0,
+        read_s: float = 0.0003,
+        close_after: int | None = None,
+    ):
+        self.pause_s, self.read_s, self.close_after = pause_s, read_s, close_after
         self.session = zenoh.open(make_config(ZenohConfig(mode="peer"), listen=[f"tcp/127.0.0.1:{port}"]))
         self.sub = self.session.declare_subscriber("fednav/v1/sensors/**", zenoh.handlers.FifoChannel(16))
         self.queries = 0
@@ -56,13 +65,20 @@ class SlowReceiver:
             self.held.append(query)
 
     def _read(self) -> None:
+        # ``pause_s``: nothing read at first (a service busy elsewhere), the channel and the
+        # sockets filling; ``close_after``: the session closed after that many (a service stopped)
+        self._stop.wait(self.pause_s)
         while not self._stop.is_set():
             s = self.sub.handler.try_recv()
             if s is None:
                 time.sleep(0.001)
                 continue
             self.got += 1
-            time.sleep(0.0003)
+            if self.close_after is not None and self.got >= self.close_after:
+                self.session.close()
+                return
+            if self.read_s:
+                time.sleep(self.read_s)
 
     def count_when_quiet(self, quiet_s: float = 1.0, timeout_s: float = 60.0) -> int:
         last, since = -1, time.monotonic()
@@ -82,16 +98,15 @@ class SlowReceiver:
         self.session.close()
 
 
-def publish_to(rx_options: dict, **options) -> tuple[dict, float, SlowReceiver]:
-    """Publish the stream at full speed to a SlowReceiver(**rx_options); the publisher's result,
-    how long it took, and the receiver (closed; its counts kept)."""
+def publish_to(rx_options: dict, n: int = N, **options) -> tuple[dict, float, SlowReceiver]:
+    """Publish ``n`` samples at full speed (or ``speed``) to a SlowReceiver(**rx_options); the
+    publisher's result, how long it took, and how many the receiver had when it returned."""
     port = free_port()
     rx = SlowReceiver(port, **rx_options)
+    options.setdefault("speed", 0.0)
     try:
         t0 = time.monotonic()
-        out = publish_stream(
-            imu_stream(), speed=0.0, connect=[f"tcp/127.0.0.1:{port}"], imu_batch=1, **options
-        )
+        out = publish_stream(imu_stream(n=n), connect=[f"tcp/127.0.0.1:{port}"], imu_batch=1, **options)
         took = time.monotonic() - t0
         got_at_return = rx.got
         rx.count_when_quiet()
@@ -132,6 +147,33 @@ def test_a_service_that_does_not_answer_is_reported():
     out, took, _ = publish_to({"answer": False}, drain_timeout_s=2.0)
     assert out["drained"] is False
     assert 2.0 <= took < 30.0
+
+
+#: samples enough to fill the publisher's transmission queue and both sockets (~4 MB: a put then
+#: blocks; measured 19,600 of 200 B)
+BACKLOG_N = 40_000
+
+
+@pytest.mark.integration
+def test_a_receiver_that_reads_nothing_for_longer_than_zenohs_block_limit_loses_nothing():
+    """Zenoh closes a link after one blocking put waited ``wait_before_close`` (5 s by default)
+    and drops every later put without an error: four simulators at ``--speed 0`` against one
+    service lost 70-90 % of their streams. The simulators' sessions wait ``PUBLISHER_BLOCK_WAIT_S``;
+    here the receiver reads nothing for 7 s, then everything."""
+    out, took, got_at_return = publish_to({"pause_s": 7.0, "read_s": 0.0}, n=BACKLOG_N)
+    assert took >= 7.0  # the publisher was held back (else the test shows nothing)
+    assert out["messages"] == BACKLOG_N
+    assert out["drained"] is True and not out["subscriber_lost"], out
+    assert got_at_return >= BACKLOG_N - 16, got_at_return  # at most the channel still unread
+
+
+@pytest.mark.integration
+def test_a_publisher_whose_subscribers_go_away_says_so():
+    """The service stops after 500 samples of a paced stream: what follows reaches nobody, and the
+    result says so (the command line exits 4 with a message) instead of 'published N'."""
+    out, _, got = publish_to({"close_after": 500, "read_s": 0.0}, speed=20.0)
+    assert got == 500
+    assert out["subscriber_lost"] is True and out["drained"] is False, out
 
 
 def test_status_keys_one_per_vehicle_in_order():

@@ -63,6 +63,20 @@ def _explicit(content: dict, loaded: zenoh.Config, key: str) -> bool:
     return json.loads(loaded.get_json(key)) != json.loads(zenoh.Config().get_json(key))
 
 
+#: the Zenoh config key of how long one put with blocking congestion control may wait for room in
+#: the transmission queue before Zenoh closes the link (microseconds; Zenoh's default is 5 s)
+BLOCK_WAIT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+#: that wait for fednav's input publishers (``fednav-sim``, ``fednav-replay``, the fleet simulator,
+#: the ROS 2 publisher), seconds: their back-pressure is meant to be lossless, and with Zenoh's
+#: 5 s a service that read nothing from one of its links for 5 s (a backlog shared by several
+#: publishers) had the publisher's link closed and every later put dropped without an error
+#: (measured: four ``fednav-sim run --speed 0 --imu-batch 1`` of a 300 s demo against one service
+#: delivered 3.7-10.3 k of their 35.1 k messages each, and exited 0). The same bound as the
+#: end-of-stream drain (``simulators.publisher.DRAIN_TIMEOUT_S``); a peer that died is still
+#: found by the session lease (10 s), not by this wait.
+PUBLISHER_BLOCK_WAIT_S = 300.0
+
+
 #: Zenoh link protocols that reach another machine or user (the outputs guard applies to them)
 NETWORK_LINK_PROTOCOLS = ("tcp", "tls", "udp", "quic", "ws", "serial", "unixpipe", "vsock")
 
@@ -107,6 +121,7 @@ def make_config(
     connect: list[str] | None = None,
     config_file: str | None = None,
     outputs_prefix: str | None = None,
+    block_wait_s: float | None = None,
 ) -> zenoh.Config:
     """The session config: fednav's safe defaults, a json5 file overlaid on them, explicit endpoints.
 
@@ -117,7 +132,11 @@ def make_config(
     with only mode and listen does not turn multicast scouting on. ``listen``/``connect`` (the
     command line's ``--listen``/``--connect``; None: not given) replace the endpoints of both.
     ``outputs_prefix`` (the service's prefix) adds :func:`outputs_guard` as access control unless the
-    file configures ``access_control`` itself.
+    file configures ``access_control`` itself. ``block_wait_s`` (an input publisher's
+    :data:`PUBLISHER_BLOCK_WAIT_S`) sets how long a blocking put may wait before Zenoh closes the
+    link (:data:`BLOCK_WAIT_KEY`) unless the file sets it; None keeps Zenoh's 5 s (the service:
+    a subscriber that stops reading loses its link after 5 s instead of holding the service's
+    outputs longer).
     """
     zc = zc or ZenohConfig()
     path = config_file or (str(zc.config_file) if zc.config_file else None)
@@ -142,6 +161,8 @@ def make_config(
         # the service's runtime stamps every sample that arrives without a timestamp, at ingress
         # (before any queue): Health's latency starts there (``Intake``)
         c.insert_json5("timestamping/enabled", "{ router: true, peer: true, client: true }")
+    if block_wait_s is not None and not (path and _explicit(content, c, BLOCK_WAIT_KEY)):
+        c.insert_json5(BLOCK_WAIT_KEY, str(int(block_wait_s * 1e6)))
     if listen is not None:
         c.insert_json5("listen/endpoints", json.dumps(listen))
     if connect is not None:
