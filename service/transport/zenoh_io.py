@@ -81,6 +81,29 @@ PUBLISHER_BLOCK_WAIT_S = 300.0
 NETWORK_LINK_PROTOCOLS = ("tcp", "tls", "udp", "quic", "ws", "serial", "unixpipe", "vsock")
 
 
+def egress_drop_rules() -> list[dict]:
+    """Zenoh QoS overwrite (``qos/network``) for the service's session: every put it sends over a
+    network link (:data:`NETWORK_LINK_PROTOCOLS`) goes with congestion control DROP, whatever the
+    publisher asked. A blocking put waits for room in each matching link's queue, its own outputs
+    and the sensor data it routes to other clients alike, so one subscriber that stops reading held
+    every other client and the service's own intake: measured with a client whose callback never
+    returns, subscribed to ``fednav/**``, 20 fleet vehicles at 1x: no Solution reached another
+    client for 15 s, and 1,760 of 12,020 never did. With this rule a reader that cannot keep up
+    loses its own samples once its link's queue is full (Zenoh's ``wait_before_drop``), and only
+    its own. Not on the service's local unix socket (its ``--shards`` processes, whose inputs are
+    routed through it and must stay lossless), and not on its own subscribers: the intake still
+    back-pressures the sensor publishers (:class:`Intake`)."""
+    return [
+        {
+            "id": "readers-never-hold-the-service",
+            "messages": ["put", "delete"],
+            "flows": ["egress"],
+            "link_protocols": list(NETWORK_LINK_PROTOCOLS),
+            "overwrite": {"congestion_control": "drop"},
+        }
+    ]
+
+
 def outputs_guard(prefix: str) -> dict:
     """Zenoh access control that refuses, from every remote session, publications and queryables
     under the service's output keys (``{prefix}/*/nav/**``, ``{prefix}/*/service/**``) over any
@@ -132,7 +155,8 @@ def make_config(
     with only mode and listen does not turn multicast scouting on. ``listen``/``connect`` (the
     command line's ``--listen``/``--connect``; None: not given) replace the endpoints of both.
     ``outputs_prefix`` (the service's prefix) adds :func:`outputs_guard` as access control unless the
-    file configures ``access_control`` itself. ``block_wait_s`` (an input publisher's
+    file configures ``access_control`` itself, and :func:`egress_drop_rules` as ``qos/network``
+    unless the file configures that. ``block_wait_s`` (an input publisher's
     :data:`PUBLISHER_BLOCK_WAIT_S`) sets how long a blocking put may wait before Zenoh closes the
     link (:data:`BLOCK_WAIT_KEY`) unless the file sets it; None keeps Zenoh's 5 s (the service:
     a subscriber that stops reading loses its link after 5 s instead of holding the service's
@@ -157,6 +181,8 @@ def make_config(
             c.insert_json5(key, safe[key])
     if outputs_prefix is not None and not (path and _explicit(content, c, "access_control")):
         c.insert_json5("access_control", json.dumps(outputs_guard(outputs_prefix)))
+    if outputs_prefix is not None and not (path and _explicit(content, c, "qos/network")):
+        c.insert_json5("qos/network", json.dumps(egress_drop_rules()))
     if outputs_prefix is not None and not (path and _explicit(content, c, "timestamping")):
         # the service's runtime stamps every sample that arrives without a timestamp, at ingress
         # (before any queue): Health's latency starts there (``Intake``)
@@ -171,7 +197,9 @@ def make_config(
 
 
 class Publishers:
-    """Declared publishers per key (reliable; blocking or dropping congestion control)."""
+    """Declared publishers per key (reliable; blocking or dropping congestion control). In the
+    service, blocking holds for its local subscribers and shard sockets only: its session sends
+    every put over a network link with DROP (:func:`egress_drop_rules`)."""
 
     def __init__(self, session: zenoh.Session, block: bool = True):
         self.session = session
