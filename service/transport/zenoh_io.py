@@ -158,9 +158,8 @@ def make_config(
     file configures ``access_control`` itself, and :func:`egress_drop_rules` as ``qos/network``
     unless the file configures that. ``block_wait_s`` (an input publisher's
     :data:`PUBLISHER_BLOCK_WAIT_S`) sets how long a blocking put may wait before Zenoh closes the
-    link (:data:`BLOCK_WAIT_KEY`) unless the file sets it; None keeps Zenoh's 5 s (the service:
-    a subscriber that stops reading loses its link after 5 s instead of holding the service's
-    outputs longer).
+    link (:data:`BLOCK_WAIT_KEY`) unless the file sets it; None keeps Zenoh's 5 s (the service,
+    whose puts over network links do not block: :func:`egress_drop_rules`).
     """
     zc = zc or ZenohConfig()
     path = config_file or (str(zc.config_file) if zc.config_file else None)
