@@ -78,6 +78,28 @@ def test_router_config_defaults_and_overlay(tmp_path):
         router_config(config_file=_write(tmp_path, '{ mode: "peer" }'))
 
 
+def test_the_service_sends_to_readers_without_blocking(tmp_path):
+    """The service's session sends every put over a network link with DROP
+    (tests/test_stuck_reader.py), not over its shards' unix socket; its outputs then travel
+    through a router as DROP too. A publisher's session has no such rule, and a file's own
+    qos/network wins."""
+    from fednav.service.config import ZenohConfig
+    from fednav.service.transport.zenoh_io import make_config
+
+    (rule,) = _get(make_config(ZenohConfig(), outputs_prefix="fednav"), "qos/network")
+    assert rule["flows"] == ["egress"] and rule["overwrite"]["congestion_control"] == "drop"
+    assert rule["key_exprs"] is None  # every key: its outputs and the sensor data it routes
+    assert "unixsock-stream" not in rule["link_protocols"] and "tcp" in rule["link_protocols"]
+    assert _get(make_config(ZenohConfig(mode="client")), "qos/network") == []
+    assert _get(router_config(), "qos/network") == []
+    own = '{ qos: { network: [ { messages: ["put"], flows: ["egress"], overwrite: { priority: "data_low" } }'
+    own += " ] } }"
+    (rule,) = _get(
+        make_config(ZenohConfig(), config_file=_write(tmp_path, own), outputs_prefix="fednav"), "qos/network"
+    )
+    assert rule["overwrite"]["priority"] == "data_low" and rule["overwrite"]["congestion_control"] is None
+
+
 def test_router_command_line_errors(tmp_path):
     def run(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run(
