@@ -6,8 +6,11 @@ status queryable to see a query sent behind that tail (``publisher.drain``) befo
 The receiver here is a plain Zenoh peer with a small channel read slowly, and a status queryable.
 """
 
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -19,6 +22,7 @@ from fednav.simulators.processes import free_port
 from fednav.simulators.publisher import publish_stream, status_keys
 
 N = 3000
+DEMO = Path(__file__).resolve().parents[1] / "simulators" / "scenarios" / "demo_aircraft.toml"
 
 
 def imu_stream(vehicle: str = "v1", n: int = N):
@@ -43,10 +47,11 @@ class SlowReceiver:
         pause_s: float = 0.0,
         read_s: float = 0.0003,
         close_after: int | None = None,
+        key_expr: str = "fednav/v1/sensors/**",
     ):
         self.pause_s, self.read_s, self.close_after = pause_s, read_s, close_after
         self.session = zenoh.open(make_config(ZenohConfig(mode="peer"), listen=[f"tcp/127.0.0.1:{port}"]))
-        self.sub = self.session.declare_subscriber("fednav/v1/sensors/**", zenoh.handlers.FifoChannel(16))
+        self.sub = self.session.declare_subscriber(key_expr, zenoh.handlers.FifoChannel(16))
         self.queries = 0
         self.held: list[zenoh.Query] = []  # a stuck service: queries kept, never answered
         if serve_status:
@@ -174,6 +179,27 @@ def test_a_publisher_whose_subscribers_go_away_says_so():
     out, _, got = publish_to({"close_after": 500, "read_s": 0.0}, speed=20.0)
     assert got == 500
     assert out["subscriber_lost"] is True and out["drained"] is False, out
+
+
+@pytest.mark.integration
+def test_fednav_sim_exits_4_when_its_subscribers_go_away():
+    """The command line says it: exit 4 and a message, not 'published N' and 0 (the receiver stands
+    for a service stopped a few hundred messages into the stream)."""
+    port = free_port()
+    rx = SlowReceiver(port, serve_status=False, read_s=0.0, close_after=300, key_expr="fednav/v1/**")
+    try:
+        sim = subprocess.run(
+            [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "60"]
+            + ["--imu-batch", "1", "--connect", f"tcp/127.0.0.1:{port}"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        rx.close()
+    assert rx.got == 300
+    assert sim.returncode == 4, (sim.returncode, sim.stdout, sim.stderr)
+    assert "the subscribers went away during the stream" in sim.stderr
 
 
 def test_status_keys_one_per_vehicle_in_order():
