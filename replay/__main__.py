@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2 if report.errors else 0
     import zenoh
 
-    from fednav.simulators.publisher import MatchTimeout, publish_stream
+    from fednav.simulators.publisher import MatchTimeout, publish_stream, report_end
 
     progress = Progress(report.total, enabled=not args.json and sys.stderr.isatty())
     try:
@@ -186,20 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary))
     else:
         print(f"published {result['messages']} messages in {result['wall_s']:.2f} s ({rate:.0f} msg/s)")
-    if result.get("subscriber_lost"):
-        print(
-            "fednav-replay: the subscribers went away during the stream (a link closed or the "
-            "service stopped): messages published meanwhile reached nobody",
-            file=sys.stderr,
-        )
-        return 4
-    if result.get("drained") is False:
-        print(
-            "fednav-replay: the service did not confirm the end of the stream in time: "
-            "the last messages may not have reached it",
-            file=sys.stderr,
-        )
-    return 0
+    return report_end(result, "fednav-replay")
 
 
 def _suggest(args, mapping, base: Path, report: Report, summary: dict) -> int:

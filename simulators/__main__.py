@@ -144,7 +144,7 @@ def _main(argv: list[str] | None = None) -> int:
         if args.zenoh_config and not Path(args.zenoh_config).is_file():
             print(f"fednav-sim: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
             return 2
-        from fednav.simulators.publisher import MatchTimeout, publish_stream
+        from fednav.simulators.publisher import MatchTimeout, publish_stream, report_end
         from fednav.simulators.stream import Simulation
         from fednav.simulators.wing import WingSimulation
 
@@ -162,20 +162,7 @@ def _main(argv: list[str] | None = None) -> int:
             print(f"fednav-sim: {exc}", file=sys.stderr)
             return 3
         print(f"fednav-sim: published {stats['messages']} messages in {stats['wall_s']:.1f} s", flush=True)
-        if stats["subscriber_lost"]:
-            print(
-                "fednav-sim: the subscribers went away during the stream (a link closed or the "
-                "service stopped): messages published meanwhile reached nobody",
-                file=sys.stderr,
-            )
-            return 4
-        if stats["drained"] is False:
-            print(
-                "fednav-sim: the service did not confirm the end of the stream in time: "
-                "the last messages may not have reached it",
-                file=sys.stderr,
-            )
-        return 0
+        return report_end(stats, "fednav-sim")
     from fednav.service.config import ConfigError
     from fednav.simulators.evaluate import evaluate, format_table
 

@@ -11,6 +11,7 @@ transmission queue or the socket loses them.
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Iterable
 
@@ -97,6 +98,26 @@ def session_config(
         config_file=zenoh_config,
         block_wait_s=PUBLISHER_BLOCK_WAIT_S,
     )
+
+
+def report_end(result: dict, prog: str) -> int:
+    """What a command line says after :func:`publish_stream` (``result``), on stderr, and its exit
+    code: 4 when the subscribers went away during the stream (what was published meanwhile reached
+    nobody); a warning and 0 when the service did not confirm the end in time; else nothing, 0."""
+    if result.get("subscriber_lost"):
+        print(
+            f"{prog}: the subscribers went away during the stream (a link closed or the "
+            "service stopped): messages published meanwhile reached nobody",
+            file=sys.stderr,
+        )
+        return 4
+    if result.get("drained") is False:
+        print(
+            f"{prog}: the service did not confirm the end of the stream in time: "
+            "the last messages may not have reached it",
+            file=sys.stderr,
+        )
+    return 0
 
 
 def publish_stream(
