@@ -80,7 +80,10 @@ class SlowReceiver:
                 continue
             self.got += 1
             if self.close_after is not None and self.got >= self.close_after:
-                self.session.close()
+                try:
+                    self.session.close()
+                except zenoh.ZError:  # Zenoh's close timed out on a loaded CI machine (once):
+                    pass  # whether the publisher saw it go is what the tests assert
                 return
             if self.read_s:
                 time.sleep(self.read_s)
