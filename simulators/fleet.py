@@ -147,6 +147,9 @@ def publish_fleet(
         if time.monotonic() > deadline:
             raise TimeoutError("no subscriber matched the fleet's keys")
         time.sleep(0.01)
+    from fednav.simulators.publisher import MatchWatch
+
+    watch = MatchWatch(first)
     heap = []
     for i in range(n):
         items, t0 = variants[i % len(variants)]
@@ -174,9 +177,24 @@ def publish_fleet(
         else:
             heapq.heappop(heap)
     wall = time.monotonic() - wall0
-    for p in pubs.values():
+    return {"messages": sent, "wall_s": wall, "vehicles": n, "pubs": pubs, "watch": watch}
+
+
+def end_fleet(session, stats: dict, drain_keys: list[str]) -> dict:
+    """After :func:`publish_fleet`: wait for the services to take what is queued (``drain``), then
+    say whether the subscribers went away meanwhile (``subscriber_lost``), and undeclare. The
+    result as :func:`fednav.simulators.publisher.publish_stream`'s, for ``report_end``."""
+    from fednav.simulators.publisher import drain
+
+    drained = drain(session, drain_keys)
+    if drained is None:
+        time.sleep(0.5)  # no fednav service answers: let the transmission queues empty a little
+    watch = stats.pop("watch")
+    lost = watch.lost()
+    watch.close()
+    for p in stats.pop("pubs").values():
         p.undeclare()
-    return {"messages": sent, "wall_s": wall, "vehicles": n}
+    return {**stats, "drained": False if lost else drained, "subscriber_lost": lost}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -239,11 +257,8 @@ def main(argv: list[str] | None = None) -> int:
             batch_period_s=max(period, 1.0 / args.fix_rate) if math.isfinite(period) else 0.1,
             log=log,
         )
-        from fednav.simulators.publisher import drain
-
         names = vehicle_names(args.vehicles, args.stem)
-        if drain(session, [keys.service(v, "status", args.prefix) for v in names]) is None:
-            time.sleep(0.5)  # no fednav service answers: let the transmission queues empty a little
+        stats = end_fleet(session, stats, [keys.service(v, "status", args.prefix) for v in names])
     if args.log:
         np.save(args.log, np.array(log, dtype=float).reshape(-1, 3))
     print(
@@ -251,7 +266,9 @@ def main(argv: list[str] | None = None) -> int:
         f"in {stats['wall_s']:.1f} s",
         flush=True,
     )
-    return 0
+    from fednav.simulators.publisher import report_end
+
+    return report_end(stats, "fednav-sim fleet")
 
 
 if __name__ == "__main__":

@@ -35,6 +35,26 @@ class MatchTimeout(RuntimeError):
     pass
 
 
+class MatchWatch:
+    """Whether a publisher's subscribers went away after it matched (a link closed, the service
+    stopped): a put then returns as usual and reaches nobody, which the put does not say. Watches
+    one publisher (a stream's first) from its first match on, through Zenoh's matching listener."""
+
+    def __init__(self, publisher: zenoh.Publisher):
+        self._publisher = publisher
+        self._unmatched: list[bool] = []
+        self._listener = publisher.declare_matching_listener(
+            lambda status: None if status.matching else self._unmatched.append(True)
+        )
+
+    def lost(self) -> bool:
+        """The subscribers went away at some point (and may be back), or are gone now."""
+        return bool(self._unmatched) or not self._publisher.matching_status.matching
+
+    def close(self) -> None:
+        self._listener.undeclare()
+
+
 def status_keys(published: Iterable[str]) -> list[str]:
     """The service status queryables (``{prefix}/{vehicle}/service/status``) of the vehicles whose
     keys were published: the keys :func:`drain` queries."""
@@ -164,11 +184,7 @@ def publish_stream(
     n = 0
     t_first = None
     wall0 = None
-    # the first publisher's matching, watched from its first match on: a subscriber that goes
-    # away during the stream (its link closed, the service gone) means what was put meanwhile
-    # went nowhere, which a put does not say
-    unmatched: list[bool] = []
-    listener = None
+    watch: MatchWatch | None = None  # the first publisher's matching, from its first match on
     try:
         for key, msg in stream:
             batched = imu_batch > 1 and isinstance(msg, ImuSample)
@@ -181,9 +197,7 @@ def publish_stream(
                     time.sleep(0.01)
                 t_first = msg.t
                 wall0 = time.monotonic()
-                listener = p.declare_matching_listener(
-                    lambda status: None if status.matching else unmatched.append(True)
-                )
+                watch = MatchWatch(p)
             if batched:
                 pending = batches.setdefault(key, [])
                 pending.append(msg)
@@ -206,13 +220,12 @@ def publish_stream(
         drained = drain(session, status_keys(pubs), drain_timeout_s) if pubs else None
         if drained is None:  # no fednav service: let the transmission queues empty a little
             time.sleep(linger_s)
-        first = next(iter(pubs.values()), None)
-        lost = bool(unmatched) or (listener is not None and not first.matching_status.matching)
+        lost = watch is not None and watch.lost()
         if lost:
             drained = False
     finally:
-        if listener is not None:
-            listener.undeclare()
+        if watch is not None:
+            watch.close()
         for p in pubs.values():
             p.undeclare()
         session.close()

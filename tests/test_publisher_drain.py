@@ -205,6 +205,27 @@ def test_fednav_sim_exits_4_when_its_subscribers_go_away():
     assert "the subscribers went away during the stream" in sim.stderr
 
 
+@pytest.mark.integration
+def test_fednav_sim_fleet_exits_4_when_its_subscribers_go_away():
+    """``fednav-sim fleet`` says it too (its own publishing loop, one watch on its first key)."""
+    port = free_port()
+    rx = SlowReceiver(port, serve_status=False, read_s=0.0, close_after=300, key_expr="fednav/v000/**")
+    try:
+        sim = subprocess.run(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "1", "--stem", "v"]
+            + ["--duration", "20", "--speed", "20", "--imu-batch", "1", "--variants", "1"]
+            + ["--connect", f"tcp/127.0.0.1:{port}"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        rx.close()
+    assert rx.got == 300
+    assert sim.returncode == 4, (sim.returncode, sim.stdout, sim.stderr)
+    assert "fednav-sim fleet: the subscribers went away during the stream" in sim.stderr
+
+
 def test_status_keys_one_per_vehicle_in_order():
     keys = ["fednav/a/sensors/imu/x", "fednav/b/sensors/gnss/y", "fednav/a/init", "odd"]
     assert status_keys(keys) == ["fednav/a/service/status", "fednav/b/service/status"]
