@@ -144,6 +144,23 @@ class OutputSink:
     def on_health(self, vehicle: str, health: Health) -> None:
         self._forward("on_health", vehicle, health)
 
+    def forget(self, vehicle: str) -> None:
+        """A vehicle the service released idle: what is kept per vehicle goes (its last Solutions,
+        the decimation's book, the recording's and the other sinks' own)."""
+        for d in (self.last_solution, self._recorded):  # (other workers' threads write them too)
+            for k in list(d):
+                if k[0] == vehicle:
+                    d.pop(k, None)
+        if self.rr is not None:
+            self.rr.forget(vehicle)
+        for s in self.extra:
+            forget = getattr(s, "forget", None)
+            if forget is not None:
+                try:
+                    forget(vehicle)
+                except Exception as exc:
+                    self._rlog.warn("output_sink_error", f"{type(s).__name__}.forget: {exc!r}")
+
     def on_estimate(self, vehicle: str, out: EstimateOutput) -> None:
         sol = out.solution()
         self.pubs.publish(keys.nav(vehicle, sol.pipeline, "solution", self.prefix), sol)
@@ -242,8 +259,17 @@ class VehicleWorker:
         self.engine = self.loop.engine
         self.counters = self.loop.counters
         self.queued = 0  # items of this vehicle waiting in its pool worker's queue
-        self.retired = False  # moved to another service of the fleet
+        self.retired = False  # moved to another service of the fleet, or released idle
         self.on_retired = None  # (VehicleWorker) -> None, set by the service
+        #: [intake] vehicle_idle_s for a vehicle of a '*' service (0: never released), the
+        #: monotonic arrival of its latest input, and the service's hooks for a released vehicle:
+        #: on_released(worker) when it goes, reroute(worker, item) -> its new worker (or None,
+        #: refused and counted) for an input routed to it just before
+        self.idle_s = 0.0
+        self.last_input = time.monotonic()
+        self.released = False
+        self.on_released = None
+        self.reroute = None
         self.next_state = time.monotonic() + config.fleet.handover_period_s
         self.notes = None  # () -> counted non-refusal events (the ROS 2 bridge's), for Health
         # each vehicle's Health at its own phase of the period (a stable hash of its name): a fleet
@@ -437,10 +463,14 @@ class PoolWorker:
         if self.inline:
             with self._lock:
                 try:  # nothing a message or a sink does may end the intake
-                    self._one(vw, item)
+                    if not vw.released:
+                        self._one(vw, item)
+                        return
                 except Exception:
                     log.exception("worker %d: error", self.index)
                     vw.counters["internal_error"] += 1
+                    return
+            self._rerouted(vw, item)  # released idle since it was routed: to its new worker
             return
         if self.config.intake.overload == "block":
             self.q.put((vw, item))
@@ -463,9 +493,14 @@ class PoolWorker:
             try:
                 if not vw.retired:
                     vw.loop.process_imu_json(items[0][2], items)
+                    return
             except Exception:
                 log.exception("worker %d: error", self.index)
                 vw.counters["internal_error"] += 1
+                return
+        if vw.released:
+            for item in items:
+                self._rerouted(vw, item)
 
     def _one(self, vw: VehicleWorker, item) -> None:
         """One item of one vehicle (an input, a rejection, or the order to retire it)."""
@@ -474,6 +509,20 @@ class PoolWorker:
             self._retire(vw)
         elif not vw.retired:
             vw.loop.process(kind, sensor_id, payload, wall)
+        elif vw.released:
+            self._rerouted(vw, item)
+
+    def _rerouted(self, vw: VehicleWorker, item) -> None:
+        """An input routed to a vehicle just before it was released idle: to the vehicle's new
+        worker (this thread runs it when that worker is on this pool worker and queued: a
+        thread never waits for room in its own queue)."""
+        nw = vw.reroute(vw, item) if vw.reroute is not None else None
+        if nw is None:
+            return
+        if nw.pool_worker is self and not self.inline:
+            self._one(nw, item)
+        else:
+            nw.pool_worker.submit(nw, item)
 
     def _scan(self) -> None:
         """Health (and handover states) of the vehicles that are due: every 50 ms, not per event."""
@@ -482,6 +531,9 @@ class PoolWorker:
             return
         self._next_scan = now + 0.05
         for v in list(self.vehicles):
+            if v.idle_s and now - v.last_input >= v.idle_s and not v.queued:
+                self._release(v, now)
+                continue
             if now >= v.next_health:
                 v.next_health = next_due(v.next_health, now, self.config.output.health_period_s)
                 v.publish_health()
@@ -526,10 +578,28 @@ class PoolWorker:
                 vw.publish_states(*self.fleet)
         except Exception:
             log.exception("vehicle %s: last handover state failed", vw.vehicle)
+        self._drop(vw, vw.on_retired)
+
+    def _drop(self, vw: VehicleWorker, hook) -> None:
+        """A retired or released vehicle leaves this worker; then the service's ``hook``."""
         if vw in self.vehicles:
             self.vehicles.remove(vw)
-        if vw.on_retired is not None:
-            vw.on_retired(vw)
+        if hook is not None:
+            hook(vw)
+
+    def _release(self, vw: VehicleWorker, now: float) -> None:
+        """A vehicle that sent nothing for ``[intake] vehicle_idle_s``: its last solutions and
+        Health out, a note in the recording, then dropped (the service frees its slot)."""
+        vw.final_outputs()
+        vw.retired = vw.released = True
+        if vw.rr is not None:
+            try:
+                t = vw.engine.last_t
+                if t is not None and math.isfinite(t):
+                    vw.rr.log_event(vw.vehicle, t, f"released: no input for {now - vw.last_input:.0f} s")
+            except Exception:
+                log.exception("vehicle %s: release note failed", vw.vehicle)
+        self._drop(vw, vw.on_released)
 
     def request_stop(self) -> None:
         """Ask the thread to finish: it drains its queue, then ends."""
@@ -589,6 +659,7 @@ class Service:
         self.fleet_view = None
         self._rebalance_due = threading.Event()
         self.retired_vehicles = 0
+        self.released_vehicles = 0
         self.rrd_path = rrd or config.rrd or Path("recordings") / f"fednav-{datetime.now():%Y%m%d-%H%M%S}.rrd"
         self.viewer = viewer or config.viewer
         self.listen, self.connect, self.zenoh_config_file = listen, connect, zenoh_config_file
@@ -769,6 +840,9 @@ class Service:
                         states = self.fleet_states.get(vehicle)
                         if states:  # a restarted shard: the vehicle goes on from its last state
                             w.loop.starter = lambda t, w=w, states=states: w.take_over(states, t)
+                    if "*" in self.config.vehicles:
+                        w.idle_s = self.config.intake.vehicle_idle_s
+                        w.on_released, w.reroute = self._released, self._reroute
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
         return w
@@ -789,6 +863,7 @@ class Service:
             fleet_group=self.fleet_group if self.fleet_view is not None else None,
             fleet_members=self.fleet_view.members() if self.fleet_view is not None else [],
             vehicles_moved_away=self.retired_vehicles,
+            vehicles_released_idle=self.released_vehicles,
             inputs_served_elsewhere=getattr(getattr(self, "intake", None), "unwanted", 0),
             inputs_forwarded=sum(f.forwarded for f in self.feeds.values()),
             inputs_forward_lost=sum(f.lost for f in self.feeds.values()),
@@ -885,6 +960,7 @@ class Service:
         if serve_all and vehicle not in self.workers and len(self.workers) >= self.config.intake.max_vehicles:
             return self._refuse("vehicle_limit", vehicle)
         w = self._worker(vehicle)
+        w.last_input = wall
         if pk is None:
             w.received += 1
             w.reject("unknown_key", key)
@@ -979,6 +1055,32 @@ class Service:
         self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
         self.retired_vehicles += 1
         log.info("vehicle %s moved to service %s", w.vehicle, self.fleet_view.owner(w.vehicle))
+
+    def _released(self, w: VehicleWorker) -> None:
+        """A vehicle released idle (PoolWorker._release): its slot, token and outputs' state freed."""
+        with self._lock:
+            if self.workers.get(w.vehicle) is w:
+                del self.workers[w.vehicle]
+            self.released_vehicles += 1
+        self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
+        self.sink.forget(w.vehicle)
+        self.pubs.forget(w.vehicle, self.config.prefix)
+        log.info(
+            "vehicle %s released: no input for %.0f s ([intake] vehicle_idle_s)",
+            w.vehicle,
+            time.monotonic() - w.last_input,
+        )
+
+    def _reroute(self, old: VehicleWorker, item) -> VehicleWorker | None:
+        """The worker for an input that reached ``old`` after its release: the vehicle's new one,
+        or None (refused and counted: the service is at max_vehicles)."""
+        vehicle = old.vehicle
+        if vehicle not in self.workers and len(self.workers) >= self.config.intake.max_vehicles:
+            self._refuse("vehicle_limit", vehicle)
+            return None
+        w = self._worker(vehicle)
+        w.last_input = max(w.last_input, item[0])
+        return w
 
     def _served_list(self) -> list[str]:
         """The configured vehicle names this process serves (its shard's share)."""

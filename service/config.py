@@ -600,6 +600,14 @@ class IntakeConfig(Model):
         "not serve is counted and named (a typo shows); 'served': only the listed vehicles' keys (several "
         "services sharing a fleet on one bus: none receives or counts the others' vehicles)",
     )
+    vehicle_idle_s: float = Field(
+        600.0,
+        ge=0,
+        description="With vehicles = ['*']: a vehicle that sent nothing for this long (wall-clock seconds) "
+        "is released: its last Health published, its worker, state and slot of max_vehicles freed, "
+        "counted in ServiceHealth.vehicles_released_idle; data under its name later starts it anew. "
+        "0: never (a fleet whose names come and go would otherwise fill max_vehicles for good)",
+    )
     workers: int = Field(
         0,
         ge=0,

@@ -794,6 +794,11 @@ class ServiceHealth(WireModel):
     vehicles_moved_away: int = Field(
         0, ge=0, description="Vehicles handed to another service of the fleet since the start"
     )
+    vehicles_released_idle: int = Field(
+        0,
+        ge=0,
+        description="Vehicles released after [intake] vehicle_idle_s without any input, since the start",
+    )
     inputs_served_elsewhere: int = Field(
         0,
         ge=0,

@@ -51,6 +51,12 @@ class _Vehicle:
         self.next_state = float("inf")
         self.health_published = 0
         self.finals = 0
+        self.idle_s = 0.0
+        self.last_input = time.monotonic()
+        self.released = False
+        self.on_released = None
+        self.reroute = None
+        self.rr = None
 
     def publish_health(self) -> None:
         self.health_published += 1
@@ -96,6 +102,36 @@ def test_items_run_once_in_order_never_two_at_once(inline):
     pw.stop(time.monotonic() + 5.0)
     assert a.finals == b.finals == 1
     assert a.queued == b.queued == 0
+
+
+@pytest.mark.parametrize("inline", [True, False], ids=["inline", "worker_thread"])
+def test_an_idle_vehicle_is_released_and_what_reached_it_late_goes_to_its_successor(inline):
+    """``[intake] vehicle_idle_s``: a vehicle with no input for that long is released by the
+    worker's scan (its last outputs, then the service's hook); an input routed to it just before
+    (the intake looked it up, then the scan released it) is handed to the vehicle's new worker,
+    not lost, and the new worker runs it in its place."""
+    busy = [False]
+    pw = PoolWorker(0, _config(0 if inline else 1), None, inline)
+    old, new, busy_one = _Vehicle("a", busy), _Vehicle("a", busy), _Vehicle("b", busy)
+    released: list = []
+    for v in (old, busy_one):
+        v.idle_s = 0.3
+        v.on_released = released.append
+        v.reroute = lambda vw, item: new
+    new.pool_worker = pw
+    pw.vehicles += [old, busy_one]
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:  # b keeps sending; a does not
+        pw.submit(busy_one, (time.monotonic(), "imu", "", b"b"))
+        busy_one.last_input = time.monotonic()
+        time.sleep(0.02)
+    assert released == [old] and old.released and old.retired and old.finals == 1
+    assert pw.vehicles == [busy_one] and not busy_one.released
+    pw.submit(old, (time.monotonic(), "imu", "", b"late"))  # routed to the old one before its release
+    assert wait_until(lambda: new.log == [b"late"])
+    assert old.log == []
+    pw.request_stop()
+    pw.stop(time.monotonic() + 5.0)
 
 
 def test_a_fleets_health_is_spread_over_the_period():

@@ -565,3 +565,35 @@ def test_entities_flushed_together_keep_their_own_times_and_values(tmp_path):
             want_t = np.array([seconds_to_ns(T0 + 0.1 * k + off) for k in range(30)], dtype=np.int64)
             np.testing.assert_array_equal(s.t_ns, want_t)
             np.testing.assert_array_equal(s.values, sign * (100.0 * i + np.arange(30)))
+
+
+def test_forget_writes_a_vehicles_pending_rows_and_drops_its_books(tmp_path):
+    """A vehicle the service released (``[intake] vehicle_idle_s``): what it logged is in the file
+    (rows still buffered at the release and its map track included), nothing of it stays in the
+    sink's books, the other vehicle is untouched, and the vehicle can come back."""
+    path = tmp_path / "forget.rrd"
+    sink = RerunSink(path, recording_id="forget", flush_interval_s=3600.0)  # nothing sent by time
+    for k in range(50):
+        for v in ("gone", "stays"):
+            sink.log_solution(v, _solution("fed", T0 + k * DT, k, "aided"))
+            sink.log_errors(v, "fed", T0 + k * DT, {"east_m": float(k)})
+    sink.forget("gone")
+    root = paths.vehicle_root("gone") + "/"
+    assert not any(p.startswith(root) for p in sink._series)
+    assert not any(p.startswith(root) for p in sink._tracks)
+    assert not any(k[0] == "gone" for k in (*sink._status, *sink._colors, *sink._enu_last))
+    assert any(p.startswith(paths.vehicle_root("stays") + "/") for p in sink._series)
+    sink.log_solution("gone", _solution("fed", T0 + 100.0, 0, "aided"))  # back later
+    sink.close()
+    _, data = read_series(path)
+    gone, stays = data[paths.error("gone", "fed", "east_m")], data[paths.error("stays", "fed", "east_m")]
+    assert len(gone.t_ns) == len(stays.t_ns) == 50
+    rows = {}
+    reader = RrdReader(path)
+    for ch in reader.stream(store=reader.recordings()[0]):
+        if not ch.is_static:
+            rows[ch.entity_path] = rows.get(ch.entity_path, 0) + ch.num_rows
+    assert (
+        rows.get(paths.solution("gone", "fed", "status"), 0)
+        == rows.get(paths.solution("stays", "fed", "status"), 0) + 1
+    ), rows

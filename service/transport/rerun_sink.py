@@ -767,6 +767,37 @@ class RerunSink:
             self._add(paths.health(vehicle, "events"), "text", self._time(vehicle, t), (text, level))
             self._maybe_flush()
 
+    def forget(self, vehicle: str) -> None:
+        """A vehicle the service released (``[intake] vehicle_idle_s``): its buffered rows and its
+        tracks' last points are written, then every per-vehicle book is dropped, so that a fleet
+        whose names come and go does not grow the sink (an innovation window still accumulating
+        is not written). Its time origin, ENU reference and place in the blueprint stay: a vehicle
+        that comes back keeps them."""
+        if self._closed:
+            return
+        root = paths.vehicle_root(vehicle) + "/"
+        with self._lock:
+            if self._closed:
+                return
+            for path in [p for p in self._tracks if p.startswith(root)]:
+                self._send_track(self._tracks.pop(path))
+            series = {p: self._series.pop(p) for p in list(self._series) if p.startswith(root)}
+            self._rows -= sum(len(s.rows) for s in series.values())
+            with self._send_lock:
+                self._send(series)
+            self._styled = {p for p in self._styled if not p.startswith(root)}
+            for d in (self._frames, self._state_last):
+                for k in [k for k in d if k.startswith(root)]:
+                    del d[k]
+            for d in (self._status, self._integ_prev, self._colors, self._enu_last, self._innov):
+                for k in [k for k in d if k[0] == vehicle]:
+                    del d[k]
+            for k in [k for k in self._last_kept if k[1] == vehicle]:
+                del self._last_kept[k]
+            for k in [k for k in self._marker_last if k[0].startswith(root)]:
+                del self._marker_last[k]
+            self._truth_faults.pop(vehicle, None)
+
     def log_imm(self, vehicle: str, msg: ImmModels) -> None:
         """IMM model probabilities (``imm/prob/{model}``), the number of down-weighted rows per
         model (``imm/downweighted/{model}``: R_ii factor above 1) and gate rejections

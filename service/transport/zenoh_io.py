@@ -233,6 +233,19 @@ class Publishers:
                 self._pubs[key] = pub
         pub.put(payload, attachment=attachment)
 
+    def forget(self, vehicle: str, prefix: str) -> None:
+        """Undeclare a vehicle's publishers (its outputs ``{prefix}/{vehicle}/...`` and its fleet
+        handover states ``.../state/{vehicle}/...``): a vehicle released by the service."""
+        own, state = f"{prefix}/{vehicle}/", f"/state/{vehicle}/"
+        with self._lock:
+            gone = [k for k in self._pubs if k.startswith(own) or (state in k and "/_fleet/" in k)]
+            pubs = [self._pubs.pop(k) for k in gone]
+        for p in pubs:
+            try:
+                p.undeclare()
+            except zenoh.ZError:
+                pass
+
     def undeclare_all(self) -> None:
         with self._lock:
             for p in self._pubs.values():
