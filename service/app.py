@@ -811,6 +811,7 @@ class Service:
         from fednav.service.transport.ros2 import RosDecodeError
 
         w = self._worker(self.config.ros2.vehicle)
+        w.last_input = wall
         if len(payload) > MAX_PAYLOAD_BYTES:
             return w.submit_rejection(wall, "oversize", f"ROS 2 payload of {len(payload)} bytes")
         try:
