@@ -185,15 +185,28 @@ def test_a_publisher_whose_subscribers_go_away_says_so():
 
 
 @pytest.mark.integration
-def test_fednav_sim_exits_4_when_its_subscribers_go_away():
+@pytest.mark.parametrize(
+    "command, vehicle, prog",
+    [
+        (["run", str(DEMO), "--speed", "60", "--imu-batch", "1"], "v1", "fednav-sim"),
+        (
+            ["fleet", "--vehicles", "1", "--stem", "v", "--duration", "20", "--speed", "20"]
+            + ["--imu-batch", "1", "--variants", "1"],
+            "v000",
+            "fednav-sim fleet",
+        ),
+    ],
+    ids=["run", "fleet"],
+)
+def test_fednav_sim_exits_4_when_its_subscribers_go_away(command, vehicle, prog):
     """The command line says it: exit 4 and a message, not 'published N' and 0 (the receiver stands
-    for a service stopped a few hundred messages into the stream)."""
+    for a service stopped a few hundred messages into the stream); ``fednav-sim fleet`` too (its
+    own publishing loop, one watch on its first key)."""
     port = free_port()
-    rx = SlowReceiver(port, serve_status=False, read_s=0.0, close_after=300, key_expr="fednav/v1/**")
+    rx = SlowReceiver(port, serve_status=False, read_s=0.0, close_after=300, key_expr=f"fednav/{vehicle}/**")
     try:
         sim = subprocess.run(
-            [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "60"]
-            + ["--imu-batch", "1", "--connect", f"tcp/127.0.0.1:{port}"],
+            [sys.executable, "-m", "fednav.simulators", *command, "--connect", f"tcp/127.0.0.1:{port}"],
             capture_output=True,
             text=True,
             timeout=120,
@@ -202,28 +215,7 @@ def test_fednav_sim_exits_4_when_its_subscribers_go_away():
         rx.close()
     assert rx.got == 300
     assert sim.returncode == 4, (sim.returncode, sim.stdout, sim.stderr)
-    assert "the subscribers went away during the stream" in sim.stderr
-
-
-@pytest.mark.integration
-def test_fednav_sim_fleet_exits_4_when_its_subscribers_go_away():
-    """``fednav-sim fleet`` says it too (its own publishing loop, one watch on its first key)."""
-    port = free_port()
-    rx = SlowReceiver(port, serve_status=False, read_s=0.0, close_after=300, key_expr="fednav/v000/**")
-    try:
-        sim = subprocess.run(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "1", "--stem", "v"]
-            + ["--duration", "20", "--speed", "20", "--imu-batch", "1", "--variants", "1"]
-            + ["--connect", f"tcp/127.0.0.1:{port}"],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-    finally:
-        rx.close()
-    assert rx.got == 300
-    assert sim.returncode == 4, (sim.returncode, sim.stdout, sim.stderr)
-    assert "fednav-sim fleet: the subscribers went away during the stream" in sim.stderr
+    assert f"{prog}: the subscribers went away during the stream" in sim.stderr
 
 
 def test_status_keys_one_per_vehicle_in_order():
