@@ -1059,13 +1059,14 @@ class Service:
 
     def _released(self, w: VehicleWorker) -> None:
         """A vehicle released idle (PoolWorker._release): its slot, token and outputs' state freed."""
-        with self._lock:
-            if self.workers.get(w.vehicle) is w:
-                del self.workers[w.vehicle]
+        with self._lock:  # (under the lock: a new worker of the name is not made meanwhile)
             self.released_vehicles += 1
-        self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
-        self.sink.forget(w.vehicle)
-        self.pubs.forget(w.vehicle, self.config.prefix)
+            if self.workers.get(w.vehicle) is not w:
+                return
+            del self.workers[w.vehicle]
+            self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
+            self.sink.forget(w.vehicle)
+            self.pubs.forget(w.vehicle, self.config.prefix)
         log.info(
             "vehicle %s released: no input for %.0f s ([intake] vehicle_idle_s)",
             w.vehicle,

@@ -125,3 +125,50 @@ def test_idle_vehicles_are_released_and_come_back_fresh(tmp_path):
     for v in ("a1", "a2"):
         got = texts.get(f"/{v}/service/health/events", [])
         assert sum("released: no input for" in t for t in got) == 1, texts
+
+
+def test_ros2_input_keeps_its_vehicle_from_being_released():
+    """The ROS 2 intake routes to its vehicle's worker without ``_route``: it stamps the arrival
+    too, so a vehicle fed only by ROS 2 (even refused samples) is not released while they come."""
+    from fednav.service.app import OutputSink, PoolWorker, Service
+    from fednav.service.config import ServiceConfig
+    from fednav.service.transport import ros2
+
+    cfg = ServiceConfig.model_validate(
+        {
+            "vehicles": ["*"],
+            "pipelines": [{"name": "lc", "kind": "loosely_coupled"}],
+            "intake": {"vehicle_idle_s": 1.0},
+            "ros2": {
+                "vehicle": "rosv",
+                "inputs": [{"topic": "/imu/data", "type": "sensor_msgs/msg/Imu", "sensor_id": "main"}],
+            },
+        }
+    )
+
+    class _Nothing:
+        def __getattr__(self, name):
+            return lambda *a, **k: None
+
+    svc = Service(cfg, record=False)
+    svc.pool = [PoolWorker(0, cfg, None, inline=True)]
+    svc.pubs = svc.liveliness = _Nothing()
+    svc.rr = None
+    svc.sink = OutputSink(cfg.prefix, svc.pubs, None)
+    svc.ros_in = ros2.RosInput(cfg.ros2)
+    key = ros2.topic_key(cfg.ros2, "/imu/data", "sensor_msgs/msg/Imu")
+    try:
+        svc._deliver_ros(time.monotonic(), key, b"\x00\x01\x00\x00not cdr")
+        w = svc.workers["rosv"]
+        assert w.idle_s == 1.0 and w.counters  # the refusal counted
+        for _ in range(8):  # 2 s of ROS 2 samples every 0.25 s: never 1 s without one
+            time.sleep(0.25)
+            wall = time.monotonic()
+            svc._deliver_ros(wall, key, b"\x00\x01\x00\x00not cdr")
+            assert w.last_input == wall
+        assert svc.workers.get("rosv") is w and not w.released and svc.released_vehicles == 0
+        time.sleep(1.5)  # then silence: released
+        assert w.released and "rosv" not in svc.workers and svc.released_vehicles == 1
+    finally:
+        svc.pool[0].request_stop()
+        svc.pool[0].stop(time.monotonic() + 2.0)
