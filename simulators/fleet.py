@@ -19,6 +19,7 @@ import heapq
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -141,13 +142,14 @@ def publish_fleet(
         items, _ = variants[i % len(variants)]
         for it in items[:200]:
             pub(f"{prefix}/{v}/{it.suffix}", it.encoding)
+    from fednav.simulators.publisher import MatchTimeout, MatchWatch
+
     first = next(iter(pubs.values()))
     deadline = time.monotonic() + match_timeout_s
     while not first.matching_status.matching:
         if time.monotonic() > deadline:
-            raise TimeoutError("no subscriber matched the fleet's keys")
+            raise MatchTimeout(f"no subscriber matched the fleet's keys within {match_timeout_s:g} s")
         time.sleep(0.01)
-    from fednav.simulators.publisher import MatchWatch
 
     watch = MatchWatch(first)
     heap = []
@@ -221,13 +223,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--zenoh-config", help="a Zenoh json5 config file (TLS, access control)")
     ap.add_argument("--prefix", default=keys.DEFAULT_PREFIX)
     ap.add_argument("--log", help="write the IMU publication log (npy: vehicle, t, wall) here")
+    ap.add_argument(
+        "--match-timeout", type=float, default=30.0, help="seconds to wait for a service (default 30)"
+    )
     args = ap.parse_args(argv)
-    if args.vehicles < 1 or args.speed <= 0:
-        print("fednav-sim fleet: --vehicles >= 1 and --speed > 0", file=sys.stderr)
+    if args.vehicles < 1 or args.speed <= 0 or args.match_timeout <= 0:
+        print("fednav-sim fleet: --vehicles >= 1, --speed > 0 and --match-timeout > 0", file=sys.stderr)
         return 2
-    import zenoh
+    from fednav.service.transport.zenoh_io import endpoint_error
 
-    from fednav.simulators.publisher import session_config
+    for ep in args.connect or []:
+        if endpoint_error(ep):
+            print(f"fednav-sim fleet: {endpoint_error(ep)}", file=sys.stderr)
+            return 2
+    if args.zenoh_config and not Path(args.zenoh_config).is_file():
+        print(f"fednav-sim fleet: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
+        return 2
+
+    from fednav.simulators.publisher import MatchTimeout, open_session, session_config
 
     data = fleet_scenario(args.scenario, args.imu_rate, args.fix_rate, args.duration)
     n_var = max(1, min(args.variants, args.vehicles))
@@ -246,19 +259,28 @@ def main(argv: list[str] | None = None) -> int:
     print(f"fednav-sim fleet: {n_var} variants built in {time.monotonic() - t_build:.1f} s", flush=True)
     log: list | None = [] if args.log else None
     period = args.imu_batch / args.imu_rate
-    with zenoh.open(session_config(connect=args.connect, zenoh_config=args.zenoh_config)) as session:
-        print("fednav-sim fleet: publishing", flush=True)
-        stats = publish_fleet(
-            vehicle_names(args.vehicles, args.stem),
-            variants,
-            session=session,
-            speed=args.speed,
-            prefix=args.prefix,
-            batch_period_s=max(period, 1.0 / args.fix_rate) if math.isfinite(period) else 0.1,
-            log=log,
+    wait = args.match_timeout
+    try:
+        session = open_session(
+            session_config(connect=args.connect, zenoh_config=args.zenoh_config, connect_wait_s=wait), wait
         )
-        names = vehicle_names(args.vehicles, args.stem)
-        stats = end_fleet(session, stats, [keys.service(v, "status", args.prefix) for v in names])
+        with session:
+            print("fednav-sim fleet: publishing", flush=True)
+            stats = publish_fleet(
+                vehicle_names(args.vehicles, args.stem),
+                variants,
+                session=session,
+                speed=args.speed,
+                prefix=args.prefix,
+                batch_period_s=max(period, 1.0 / args.fix_rate) if math.isfinite(period) else 0.1,
+                log=log,
+                match_timeout_s=wait,
+            )
+            names = vehicle_names(args.vehicles, args.stem)
+            stats = end_fleet(session, stats, [keys.service(v, "status", args.prefix) for v in names])
+    except MatchTimeout as exc:
+        print(f"fednav-sim fleet: {exc}: is fednav-service running on the endpoint?", file=sys.stderr)
+        return 3
     if args.log:
         np.save(args.log, np.array(log, dtype=float).reshape(-1, 3))
     print(

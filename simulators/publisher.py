@@ -11,6 +11,7 @@ transmission queue or the socket loses them.
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from collections.abc import Iterable
@@ -101,7 +102,10 @@ def drain(session: zenoh.Session, keys: list[str], timeout_s: float = DRAIN_TIME
 
 
 def session_config(
-    connect: list[str] | None = None, listen: list[str] | None = None, zenoh_config: str | None = None
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    zenoh_config: str | None = None,
+    connect_wait_s: float | None = None,
 ) -> zenoh.Config:
     """The simulator's Zenoh config: a client of the service on loopback, no discovery.
 
@@ -110,14 +114,30 @@ def session_config(
     ``--zenoh-config`` file is overlaid on these safe defaults (``make_config``); explicit
     ``--connect`` endpoints replace the file's. A put blocked by a receiver that is behind waits
     up to ``PUBLISHER_BLOCK_WAIT_S`` (unless the file says otherwise), not Zenoh's 5 s after which
-    the link is closed and the rest of the stream silently dropped."""
+    the link is closed and the rest of the stream silently dropped. ``connect_wait_s``: how long
+    opening the session waits for the service (or router) to answer (``make_config``)."""
     return make_config(
         ZenohConfig(mode="client", listen=[], connect=["tcp/127.0.0.1:7447"]),
         listen=listen or None,
         connect=connect or None,
         config_file=zenoh_config,
         block_wait_s=PUBLISHER_BLOCK_WAIT_S,
+        connect_wait_s=connect_wait_s,
     )
+
+
+def open_session(config: zenoh.Config, wait_s: float) -> zenoh.Session:
+    """Open a publisher's session (its config from :func:`session_config` with ``connect_wait_s =
+    wait_s``): started before its service, it waits for it; :class:`MatchTimeout` when no endpoint
+    answered in that time (a command line says so and exits 3, not a traceback)."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        endpoints = json.loads(config.get_json("connect/endpoints"))
+        raise MatchTimeout(
+            f"no fednav service or Zenoh router answered on {', '.join(endpoints) or 'its endpoints'} "
+            f"within {wait_s:g} s ({str(exc).split(' at ')[0]})"
+        ) from exc
 
 
 def report_end(result: dict, prog: str) -> int:
@@ -165,7 +185,12 @@ def publish_stream(
     during the stream: the tail may be lost) or None; ``subscriber_lost``: the first key's
     subscribers went away at some point after it matched (a link closed, the service stopped):
     what was put then reached nobody."""
-    session = zenoh.open(session_config(connect=connect, listen=listen, zenoh_config=zenoh_config))
+    session = open_session(
+        session_config(
+            connect=connect, listen=listen, zenoh_config=zenoh_config, connect_wait_s=match_timeout_s
+        ),
+        match_timeout_s,
+    )
     pubs: dict[str, zenoh.Publisher] = {}
     batches: dict[str, list[ImuSample]] = {}
 

@@ -30,6 +30,8 @@ from fednav.service.ros2_config import Ros2Config
 from fednav.service.transport import ros2
 
 RFU_TO_FLU = ros2.FLU_TO_RFU.T
+#: how long the publisher waits for the service (or router) at its endpoint when started first
+CONNECT_WAIT_S = 30.0
 
 #: default topics (the bridge's example configuration in docs/ros2.md uses the same)
 IMU_TOPIC, FIX_TOPIC, VEL_TOPIC = "/imu/data", "/gnss/fix", "/gnss/vel"
@@ -189,12 +191,11 @@ def main(argv: list[str] | None = None) -> int:
         "its status (default: every vehicle's)",
     )
     args = ap.parse_args(argv)
-    import zenoh
 
     from fednav.service import keys
     from fednav.service.config import ZenohConfig
     from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S, make_config
-    from fednav.simulators.publisher import drain
+    from fednav.simulators.publisher import MatchTimeout, drain, open_session
     from fednav.simulators.scenario import ScenarioError, load_scenario
 
     if args.vehicle != "*" and not keys.valid_name(args.vehicle):
@@ -208,9 +209,18 @@ def main(argv: list[str] | None = None) -> int:
     cfg = example_config(carrier=args.carrier, domain_id=args.domain_id)
     seed = sc.seed if args.seed is None else args.seed
     conf = make_config(
-        ZenohConfig(mode="client"), listen=[], connect=[args.connect], block_wait_s=PUBLISHER_BLOCK_WAIT_S
+        ZenohConfig(mode="client"),
+        listen=[],
+        connect=[args.connect],
+        block_wait_s=PUBLISHER_BLOCK_WAIT_S,
+        connect_wait_s=CONNECT_WAIT_S,
     )
-    with zenoh.open(conf) as s:
+    try:
+        session = open_session(conf, CONNECT_WAIT_S)
+    except MatchTimeout as exc:
+        print(f"ros2_publish: {exc}", file=sys.stderr)
+        return 3
+    with session as s:
         samples = ros_samples(sc, seed, cfg, twist=not args.no_twist)
         n = publish(s, samples, attachment=args.carrier == "rmw_zenoh", speed=args.speed)
         # what is still queued reaches the service before the session closes (publisher.drain);

@@ -218,6 +218,48 @@ def test_fednav_sim_exits_4_when_its_subscribers_go_away(command, vehicle, prog)
     assert f"{prog}: the subscribers went away during the stream" in sim.stderr
 
 
+@pytest.mark.integration
+def test_fednav_sim_fleet_says_when_no_service_answers_and_refuses_bad_endpoints():
+    """No subscriber on the endpoint: exit 3 and a message (not a traceback); an endpoint that is
+    not one: exit 2 before anything is built."""
+    port = free_port()
+    base = [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "1", "--duration", "2"]
+    alone = subprocess.run(
+        base + ["--match-timeout", "1", "--connect", f"tcp/127.0.0.1:{port}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert alone.returncode == 3, (alone.returncode, alone.stderr[-2000:])
+    assert f"no fednav service or Zenoh router answered on tcp/127.0.0.1:{port} within 1 s" in alone.stderr
+    assert "Traceback" not in alone.stderr
+    bad = subprocess.run(base + ["--connect", "nonsense"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "fednav-sim fleet:" in bad.stderr, bad.stderr
+
+
+@pytest.mark.integration
+def test_a_simulator_started_before_its_service_waits_for_it():
+    """Started first (a script that starts both at once), ``fednav-sim run`` waits for the service
+    (up to its match timeout) instead of failing at once with Zenoh's error."""
+    port = free_port()
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "100"]
+        + ["--connect", f"tcp/127.0.0.1:{port}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(3.0)
+    assert sim.poll() is None, sim.communicate()
+    rx = SlowReceiver(port, read_s=0.0, key_expr="fednav/v1/**")
+    try:
+        out, err = sim.communicate(timeout=120)
+    finally:
+        rx.close()
+    assert sim.returncode == 0, (sim.returncode, err[-2000:])
+    assert "published" in out and rx.got > 1000, (out, rx.got)
+
+
 def test_status_keys_one_per_vehicle_in_order():
     keys = ["fednav/a/sensors/imu/x", "fednav/b/sensors/gnss/y", "fednav/a/init", "odd"]
     assert status_keys(keys) == ["fednav/a/service/status", "fednav/b/service/status"]
