@@ -118,6 +118,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # Ctrl-C (SIGINT): a stop asked for, not a failure to trace back
+        print("fednav-replay: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     one_blas_thread()
     if args.zenoh_config and not Path(args.zenoh_config).is_file():

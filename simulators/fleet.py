@@ -261,9 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     period = args.imu_batch / args.imu_rate
     wait = args.match_timeout
     try:
-        session = open_session(
-            session_config(connect=args.connect, zenoh_config=args.zenoh_config, connect_wait_s=wait), wait
-        )
+        session = open_session(session_config(connect=args.connect, zenoh_config=args.zenoh_config), wait)
         with session:
             print("fednav-sim fleet: publishing", flush=True)
             stats = publish_fleet(

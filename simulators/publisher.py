@@ -105,7 +105,6 @@ def session_config(
     connect: list[str] | None = None,
     listen: list[str] | None = None,
     zenoh_config: str | None = None,
-    connect_wait_s: float | None = None,
 ) -> zenoh.Config:
     """The simulator's Zenoh config: a client of the service on loopback, no discovery.
 
@@ -114,30 +113,40 @@ def session_config(
     ``--zenoh-config`` file is overlaid on these safe defaults (``make_config``); explicit
     ``--connect`` endpoints replace the file's. A put blocked by a receiver that is behind waits
     up to ``PUBLISHER_BLOCK_WAIT_S`` (unless the file says otherwise), not Zenoh's 5 s after which
-    the link is closed and the rest of the stream silently dropped. ``connect_wait_s``: how long
-    opening the session waits for the service (or router) to answer (``make_config``)."""
+    the link is closed and the rest of the stream silently dropped."""
     return make_config(
         ZenohConfig(mode="client", listen=[], connect=["tcp/127.0.0.1:7447"]),
         listen=listen or None,
         connect=connect or None,
         config_file=zenoh_config,
         block_wait_s=PUBLISHER_BLOCK_WAIT_S,
-        connect_wait_s=connect_wait_s,
     )
 
 
 def open_session(config: zenoh.Config, wait_s: float) -> zenoh.Session:
-    """Open a publisher's session (its config from :func:`session_config` with ``connect_wait_s =
-    wait_s``): started before its service, it waits for it; :class:`MatchTimeout` when no endpoint
-    answered in that time (a command line says so and exits 3, not a traceback)."""
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as exc:
-        endpoints = json.loads(config.get_json("connect/endpoints"))
-        raise MatchTimeout(
-            f"no fednav service or Zenoh router answered on {', '.join(endpoints) or 'its endpoints'} "
-            f"within {wait_s:g} s ({str(exc).split(' at ')[0]})"
-        ) from exc
+    """Open a publisher's client session, waiting up to ``wait_s`` for its service (or router) to
+    answer: a publisher started a moment before its service waits for it (a Zenoh client fails at
+    once by default). :class:`MatchTimeout` when nothing answered in that time (a command line
+    says so and exits 3, not a traceback). Tried in attempts of at most 0.5 s (Zenoh's open holds
+    the interpreter until it returns, so Ctrl-C is seen between attempts). A ``--zenoh-config``
+    file that sets ``connect/timeout_ms`` itself gets one open with its own timeout."""
+    own = json.loads(config.get_json("connect/timeout_ms")) is not None
+    deadline = time.monotonic() + wait_s
+    while True:
+        left = deadline - time.monotonic()
+        if not own:
+            config.insert_json5("connect/timeout_ms", str(max(1, int(min(0.5, left) * 1000))))
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError as exc:
+            if own or time.monotonic() >= deadline:
+                endpoints = json.loads(config.get_json("connect/endpoints"))
+                raise MatchTimeout(
+                    f"no fednav service or Zenoh router answered on "
+                    f"{', '.join(endpoints) or 'its endpoints'} within {wait_s:g} s "
+                    f"({str(exc).split(' at ')[0]})"
+                ) from exc
+            time.sleep(0.05)
 
 
 def report_end(result: dict, prog: str) -> int:
@@ -186,9 +195,7 @@ def publish_stream(
     subscribers went away at some point after it matched (a link closed, the service stopped):
     what was put then reached nobody."""
     session = open_session(
-        session_config(
-            connect=connect, listen=listen, zenoh_config=zenoh_config, connect_wait_s=match_timeout_s
-        ),
+        session_config(connect=connect, listen=listen, zenoh_config=zenoh_config),
         match_timeout_s,
     )
     pubs: dict[str, zenoh.Publisher] = {}

@@ -213,7 +213,6 @@ def main(argv: list[str] | None = None) -> int:
         listen=[],
         connect=[args.connect],
         block_wait_s=PUBLISHER_BLOCK_WAIT_S,
-        connect_wait_s=CONNECT_WAIT_S,
     )
     try:
         session = open_session(conf, CONNECT_WAIT_S)

@@ -260,6 +260,34 @@ def test_a_simulator_started_before_its_service_waits_for_it():
     assert "published" in out and rx.got > 1000, (out, rx.got)
 
 
+@pytest.mark.integration
+def test_ctrl_c_ends_the_wait_for_a_service():
+    """Waiting for its service, the simulator still stops at once on Ctrl-C (SIGINT): exit 130."""
+    import signal
+
+    sim = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "fednav.simulators",
+            "run",
+            str(DEMO),
+            "--connect",
+            f"tcp/127.0.0.1:{free_port()}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(3.0)  # (imports, the scenario, then the wait)
+    assert sim.poll() is None
+    t0 = time.monotonic()
+    sim.send_signal(signal.SIGINT)
+    _, err = sim.communicate(timeout=30)
+    assert sim.returncode == 130 and "interrupted" in err, (sim.returncode, err[-2000:])
+    assert time.monotonic() - t0 < 5.0
+
+
 def test_status_keys_one_per_vehicle_in_order():
     keys = ["fednav/a/sensors/imu/x", "fednav/b/sensors/gnss/y", "fednav/a/init", "odd"]
     assert status_keys(keys) == ["fednav/a/service/status", "fednav/b/service/status"]

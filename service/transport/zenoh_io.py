@@ -145,7 +145,6 @@ def make_config(
     config_file: str | None = None,
     outputs_prefix: str | None = None,
     block_wait_s: float | None = None,
-    connect_wait_s: float | None = None,
 ) -> zenoh.Config:
     """The session config: fednav's safe defaults, a json5 file overlaid on them, explicit endpoints.
 
@@ -160,10 +159,7 @@ def make_config(
     unless the file configures that. ``block_wait_s`` (an input publisher's
     :data:`PUBLISHER_BLOCK_WAIT_S`) sets how long a blocking put may wait before Zenoh closes the
     link (:data:`BLOCK_WAIT_KEY`) unless the file sets it; None keeps Zenoh's 5 s (the service,
-    whose puts over network links do not block: :func:`egress_drop_rules`). ``connect_wait_s`` (a
-    client started before its service): opening the session waits that long for a connect
-    endpoint to answer, retrying every 0.25-1 s, unless the file sets ``connect/timeout_ms``; None
-    keeps Zenoh's default (a client fails at once when nothing answers).
+    whose puts over network links do not block: :func:`egress_drop_rules`).
     """
     zc = zc or ZenohConfig()
     path = config_file or (str(zc.config_file) if zc.config_file else None)
@@ -192,12 +188,6 @@ def make_config(
         c.insert_json5("timestamping/enabled", "{ router: true, peer: true, client: true }")
     if block_wait_s is not None and not (path and _explicit(content, c, BLOCK_WAIT_KEY)):
         c.insert_json5(BLOCK_WAIT_KEY, str(int(block_wait_s * 1e6)))
-    if connect_wait_s is not None and not (path and _explicit(content, c, "connect/timeout_ms")):
-        c.insert_json5("connect/timeout_ms", str(max(1, int(connect_wait_s * 1000))))
-        if not (path and _explicit(content, c, "connect/retry")):
-            c.insert_json5(
-                "connect/retry", "{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }"
-            )
     if listen is not None:
         c.insert_json5("listen/endpoints", json.dumps(listen))
     if connect is not None:
