@@ -78,6 +78,8 @@ def keyed(
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    from fednav.simulators.publisher import timeout_arg
+
     ap = argparse.ArgumentParser(
         prog="fednav-replay", description="Publish recorded sensor logs over Zenoh as live fednav sensors."
     )
@@ -95,7 +97,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
     ap.add_argument("--zenoh-config", default=None, help="Zenoh config file (TLS, access control)")
     ap.add_argument("--vehicle", default=None, help="override the mapping's vehicle name")
-    ap.add_argument("--match-timeout", type=float, default=30.0, help="seconds to wait for the service")
+    ap.add_argument("--match-timeout", type=timeout_arg, default=30.0, help="seconds to wait for the service")
     ap.add_argument("--force", action="store_true", help="publish even when a check fails")
     ap.add_argument(
         "--imu-batch",

@@ -204,6 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from fednav.service.imu_batch import batch_size_arg
+    from fednav.simulators.publisher import timeout_arg
 
     ap = argparse.ArgumentParser(prog="fednav-sim fleet", description=__doc__.split("\n\n")[0])
     ap.add_argument("--vehicles", type=int, default=10, help="number of vehicles (default 10)")
@@ -224,11 +225,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--prefix", default=keys.DEFAULT_PREFIX)
     ap.add_argument("--log", help="write the IMU publication log (npy: vehicle, t, wall) here")
     ap.add_argument(
-        "--match-timeout", type=float, default=30.0, help="seconds to wait for a service (default 30)"
+        "--match-timeout", type=timeout_arg, default=30.0, help="seconds to wait for a service (default 30)"
     )
     args = ap.parse_args(argv)
-    if args.vehicles < 1 or args.speed <= 0 or args.match_timeout <= 0:
-        print("fednav-sim fleet: --vehicles >= 1, --speed > 0 and --match-timeout > 0", file=sys.stderr)
+    if args.vehicles < 1 or not (math.isfinite(args.speed) and args.speed > 0):
+        print("fednav-sim fleet: --vehicles >= 1 and --speed > 0", file=sys.stderr)
         return 2
     from fednav.service.transport.zenoh_io import endpoint_error
 

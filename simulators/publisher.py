@@ -36,6 +36,20 @@ class MatchTimeout(RuntimeError):
     pass
 
 
+def timeout_arg(text: str) -> float:
+    """``--match-timeout S`` of the publishers: a finite number of seconds > 0."""
+    import argparse
+    import math
+
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(s) and s > 0):
+        raise argparse.ArgumentTypeError(f"{text}: use a finite number of seconds > 0")
+    return s
+
+
 class MatchWatch:
     """Whether a publisher's subscribers went away after it matched (a link closed, the service
     stopped): a put then returns as usual and reaches nobody, which the put does not say. Watches

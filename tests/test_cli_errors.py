@@ -79,3 +79,19 @@ def test_ros2_publisher_refuses_a_vehicle_name_that_is_no_key_chunk(capsys):
     assert ros2_main([str(SCENARIOS / "demo_aircraft.toml"), "--vehicle", "a/b"]) == 2
     err = _err(capsys)
     assert "--vehicle 'a/b' is not a valid vehicle name" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-1", "0", "soon"])
+def test_publishers_refuse_a_wait_that_is_no_positive_finite_time(capsys, value):
+    """``--match-timeout`` of fednav-sim fleet and fednav-replay: NaN would wait for ever (every
+    comparison with the deadline false), 0 or less not at all."""
+    with pytest.raises(SystemExit) as exc:
+        sim_main(["fleet", "--match-timeout", value])
+    assert exc.value.code == 2
+    assert "argument --match-timeout" in _err(capsys)
+    from fednav.replay.__main__ import main as replay_main
+
+    with pytest.raises(SystemExit) as exc:
+        replay_main(["mapping.toml", "--match-timeout", value])
+    assert exc.value.code == 2
+    assert "argument --match-timeout" in _err(capsys)
