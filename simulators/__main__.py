@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
 from fednav.service.blas import one_blas_thread
 from fednav.service.imu_batch import batch_size_arg
@@ -135,16 +134,12 @@ def _main(argv: list[str] | None = None) -> int:
         print(f"fednav-sim: {exc}", file=sys.stderr)
         return 2
     if args.cmd == "run":
-        from fednav.service.transport.zenoh_io import endpoint_error
+        from fednav.simulators.publisher import MatchTimeout, publish_stream, report_end, session_args_problem
 
-        for ep in args.connect or []:
-            if endpoint_error(ep):
-                print(f"fednav-sim: {endpoint_error(ep)}", file=sys.stderr)
-                return 2
-        if args.zenoh_config and not Path(args.zenoh_config).is_file():
-            print(f"fednav-sim: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
+        problem = session_args_problem(args.connect, args.zenoh_config)
+        if problem:
+            print(f"fednav-sim: {problem}", file=sys.stderr)
             return 2
-        from fednav.simulators.publisher import MatchTimeout, publish_stream, report_end
         from fednav.simulators.stream import Simulation
         from fednav.simulators.wing import WingSimulation
 

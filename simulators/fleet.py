@@ -19,7 +19,6 @@ import heapq
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -231,17 +230,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.vehicles < 1 or not (math.isfinite(args.speed) and args.speed > 0):
         print("fednav-sim fleet: --vehicles >= 1 and --speed > 0", file=sys.stderr)
         return 2
-    from fednav.service.transport.zenoh_io import endpoint_error
+    from fednav.simulators.publisher import MatchTimeout, open_session, session_args_problem, session_config
 
-    for ep in args.connect or []:
-        if endpoint_error(ep):
-            print(f"fednav-sim fleet: {endpoint_error(ep)}", file=sys.stderr)
-            return 2
-    if args.zenoh_config and not Path(args.zenoh_config).is_file():
-        print(f"fednav-sim fleet: --zenoh-config {args.zenoh_config}: no such file", file=sys.stderr)
+    problem = session_args_problem(args.connect, args.zenoh_config)
+    if problem:
+        print(f"fednav-sim fleet: {problem}", file=sys.stderr)
         return 2
-
-    from fednav.simulators.publisher import MatchTimeout, open_session, session_config
 
     data = fleet_scenario(args.scenario, args.imu_rate, args.fix_rate, args.duration)
     n_var = max(1, min(args.variants, args.vehicles))

@@ -36,6 +36,21 @@ class MatchTimeout(RuntimeError):
     pass
 
 
+def session_args_problem(connect: list[str] | None, zenoh_config: str | None) -> str | None:
+    """What is wrong with a publisher's ``--connect`` endpoints or ``--zenoh-config`` file (one
+    line for the command to print before it exits 2), or None."""
+    from pathlib import Path
+
+    from fednav.service.transport.zenoh_io import endpoint_error
+
+    for ep in connect or []:
+        if endpoint_error(ep):
+            return endpoint_error(ep)
+    if zenoh_config and not Path(zenoh_config).is_file():
+        return f"--zenoh-config {zenoh_config}: no such file"
+    return None
+
+
 def timeout_arg(text: str) -> float:
     """``--match-timeout S`` of the publishers: a finite number of seconds > 0."""
     import argparse
