@@ -45,6 +45,7 @@ from __future__ import annotations
 import logging
 import math
 import struct
+import time
 from collections import Counter, deque
 from dataclasses import dataclass
 from typing import Protocol
@@ -116,6 +117,8 @@ log = logging.getLogger("fednav.service")
 WHOLESALE_REFUSALS = 100
 #: a stream further than this from the running time is reported as a time base mismatch
 TIME_BASE_MISMATCH_S = 60.0
+#: wall seconds between two log warnings of a vehicle's INS lost to an IMU gap or a time jump
+IMU_LOST_LOG_PERIOD_S = 30.0
 #: a pipeline never aided this long after its start is reported once in the log
 UNAIDED_WARNING_S = 30.0
 
@@ -173,6 +176,8 @@ class VehicleEngine:
         self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
         self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
         self._warned: set[tuple[str, str]] = set()
+        self._lost_logged_at = -math.inf  # _log_imu_lost: its last warning (monotonic s), and since
+        self._lost_unlogged = 0
         #: streams whose time is more than TIME_BASE_MISMATCH_S from the IMU time: offset, s (Health)
         self.time_base_mismatch: dict[str, float] = {}
         # IMU nodes (transfer alignment): ids routed to pipelines, never to the vehicle's INS
@@ -648,12 +653,54 @@ class VehicleEngine:
         InitialNav (one refused for its time is kept for this) or the next alignment."""
         self.rejected[reason] += 1
         self.pending.clear()
+        gap = t - self.last_imu_t if self.last_imu_t is not None else None
+        was_running = self.life.initialised
         self.last_imu_t = self.last_t = t
         if reason == "time_jump":  # a new time base: nothing of the old one applies
             self.rules.forget_times()
             self.rules.imu_t = t
             self.streams.clear()
         self.life.on_imu_lost(t, reason)
+        if was_running:
+            self._log_imu_lost(t, reason, gap)
+
+    def _log_imu_lost(self, t: float, reason: str, gap: float | None) -> None:
+        """Say in the log that a running vehicle's INS was lost and what happens now (at most
+        once per ``IMU_LOST_LOG_PERIOD_S`` of wall time, with the count of the ones not logged):
+        a link that dropped the vehicle's messages for a moment (a router restarted, a network
+        outage) shows in the service's log, not only in Health counts and the recording."""
+        now = time.monotonic()
+        self._lost_unlogged += 1
+        if now - self._lost_logged_at < IMU_LOST_LOG_PERIOD_S:
+            return
+        n, self._lost_unlogged, self._lost_logged_at = self._lost_unlogged, 0, now
+        intake = self.config.intake
+        if gap is None:
+            what = f"the IMU stream moved to a new time base at {t:.3f}"
+        elif reason == "imu_gap":
+            what = f"an IMU gap of {gap:.2f} s (over [intake] max_imu_gap_s {intake.max_imu_gap_s:g} s)"
+        elif gap > 0.0:
+            what = (
+                f"the IMU stream resumed {gap:.2f} s after its last sample (beyond [intake] "
+                f"future_window_s {intake.future_window_s:g} s: a link outage, or a clock step)"
+            )
+        else:
+            what = f"the IMU stream went {-gap:.2f} s back (a sensor restarted, or a clock step)"
+        then = (
+            "carried over the gap from the last checkpoint, degraded until the aiding verifies it"
+            if self.life.initialised
+            else "re-initialising (an InitialNav, or alignment)"
+        )
+        more = f" ({n - 1} more since the last such warning)" if n > 1 else ""
+        log.warning(
+            "vehicle %s: INS lost at t=%.3f: %s; %s (Health rejected %s)%s",
+            self.vehicle,
+            t,
+            what,
+            then,
+            reason,
+            more,
+        )
 
     # --- aiding ---------------------------------------------------------------------------------
     def _apply(self, kind: str, sensor_id: str, msg: WireModel, dt_late: float) -> None:

@@ -3,6 +3,8 @@ pipelines set their own status and re-initialisation count; the engine only tell
 happened (``start(..., after_loss=)``, ``mark_lost()``)."""
 
 import ast
+import logging
+import re
 import sys
 from pathlib import Path
 
@@ -190,14 +192,16 @@ def attribute_writers(monkeypatch):
     return writes
 
 
-def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
+def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers, caplog):
     """A second InitialNav consistent with the GNSS fix is a reset request: weighed against the
     verified solution (here it agrees: no restart), counted (``init_reset``), ``degraded`` until
     the vehicle's own fixes agree again (a stale one, the start position 8 s later, is refused
     ``implausible_init``). An
     IMU gap loses the INS for a moment: every pipeline restarts at once from its last verified
     state carried over the gap (one more count), ``degraded`` until verified; the engine writes
-    none of the pipelines' bookkeeping."""
+    none of the pipelines' bookkeeping. The lost INS is said in the log, once, with the gap and
+    what the vehicle does about it."""
+    caplog.set_level(logging.WARNING, logger="fednav.service")
     sc = shortened("demo_aircraft.toml", 30.0)
     cfg = service_config(sc)
     eng = VehicleEngine("v1", cfg, CollectingSink(keep_solutions=True))
@@ -233,6 +237,9 @@ def test_engine_reinitialisation_and_imu_gap_statuses(attribute_writers):
     assert 16.0 <= seen[i_lost][0] < 16.1  # the first sample after the gap: restarted at once
     assert eng.rejected["imu_gap"] == 1 and eng.notes["recovered_from_checkpoint"] == 1
     assert statuses[-1] == ("aided", 1)
+    lost = [r.getMessage() for r in caplog.records if "INS lost" in r.getMessage()]
+    assert len(lost) == 1 and "vehicle v1" in lost[0] and "carried over the gap" in lost[0]
+    assert re.search(r"IMU gap of 1\.0\d s", lost[0]), lost[0]
     writers = {m for _, m in attribute_writers}
     assert writers and "fednav.service.engine" not in writers
     assert writers <= {"fednav.service.pipelines.base", "fednav.service.pipelines.loosely_coupled"}
