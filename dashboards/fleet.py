@@ -44,6 +44,9 @@ from fednav.service import keys
 from fednav.service.transport.rerun_paths import GPS_EPOCH_UNIX_S, gps_minus_utc_s
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+#: ``fednav-fleet record``: how long it waits at its start for the router (a recorder started with
+#: its router, or before it, by a process manager)
+RECORD_WAIT_S = 30.0
 #: a solution whose time is further than this from this machine's clock is not on live time
 LIVE_WINDOW_S = 86_400.0
 #: worst first: the status a vehicle's lane shows when its pipelines disagree
@@ -617,7 +620,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     common.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for replies (default 3)")
     s = sub.add_parser("status", parents=[common], help="list the fleet now")
     s.add_argument("--json", action="store_true", help="print the snapshot as JSON")
+    s.add_argument(
+        "--wait", type=float, default=0.0, help="seconds to wait for the router (default 0: fail at once)"
+    )
     r = sub.add_parser("record", parents=[common], help="record the fleet to one .rrd at a low rate")
+    r.add_argument(
+        "--wait",
+        type=float,
+        default=RECORD_WAIT_S,
+        help=f"seconds to wait for the router to answer at the start (default {RECORD_WAIT_S:g})",
+    )
     r.add_argument("-o", "--out", type=Path, required=True, help="the .rrd to write")
     r.add_argument("--duration", type=float, help="seconds to record (default: until Ctrl-C)")
     r.add_argument("--rate", type=float, default=1.0, help="snapshots per second (default 1)")
@@ -637,18 +649,27 @@ def main(argv: list[str] | None = None) -> int:
         problem = f"--duration {args.duration}: use a positive number of seconds"
     if args.timeout <= 0:
         problem = f"--timeout {args.timeout}: use a positive number of seconds"
+    if not 0 <= args.wait < math.inf:
+        problem = f"--wait {args.wait}: use a number of seconds >= 0"
     if problem:
         print(f"fednav-fleet: {problem}", file=sys.stderr)
         return 2
     import zenoh
 
     from fednav.service.__main__ import zenoh_error_text
+    from fednav.service.transport.zenoh_io import NoAnswer, open_waiting
 
+    config = session_config(args.connect, args.zenoh_config)
     try:
-        session = zenoh.open(session_config(args.connect, args.zenoh_config))
+        session = open_waiting(config, args.wait) if args.wait > 0 else zenoh.open(config)
+    except NoAnswer as exc:
+        print(f"fednav-fleet: {exc}", file=sys.stderr)
+        return 2
     except zenoh.ZError as exc:
         print(f"fednav-fleet: cannot open the Zenoh session ({zenoh_error_text(exc)})", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return 130
     try:
         fleet = Fleet(session, args.prefix, timeout_s=args.timeout)
         if args.cmd == "status":

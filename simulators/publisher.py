@@ -11,7 +11,6 @@ transmission queue or the socket loses them.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from collections.abc import Iterable
@@ -154,28 +153,15 @@ def session_config(
 
 def open_session(config: zenoh.Config, wait_s: float) -> zenoh.Session:
     """Open a publisher's client session, waiting up to ``wait_s`` for its service (or router) to
-    answer: a publisher started a moment before its service waits for it (a Zenoh client fails at
-    once by default). :class:`MatchTimeout` when nothing answered in that time (a command line
-    says so and exits 3, not a traceback). Tried in attempts of at most 0.5 s (Zenoh's open holds
-    the interpreter until it returns, so Ctrl-C is seen between attempts). A ``--zenoh-config``
-    file that sets ``connect/timeout_ms`` itself gets one open with its own timeout."""
-    own = json.loads(config.get_json("connect/timeout_ms")) is not None
-    deadline = time.monotonic() + wait_s
-    while True:
-        left = deadline - time.monotonic()
-        if not own:
-            config.insert_json5("connect/timeout_ms", str(max(1, int(min(0.5, left) * 1000))))
-        try:
-            return zenoh.open(config)
-        except zenoh.ZError as exc:
-            if own or time.monotonic() >= deadline:
-                endpoints = json.loads(config.get_json("connect/endpoints"))
-                raise MatchTimeout(
-                    f"no fednav service or Zenoh router answered on "
-                    f"{', '.join(endpoints) or 'its endpoints'} within {wait_s:g} s "
-                    f"({str(exc).split(' at ')[0]})"
-                ) from exc
-            time.sleep(0.05)
+    answer (:func:`zenoh_io.open_waiting`: a publisher started a moment before its service waits
+    for it). :class:`MatchTimeout` when nothing answered in that time (a command line says so and
+    exits 3, not a traceback)."""
+    from fednav.service.transport.zenoh_io import NoAnswer, open_waiting
+
+    try:
+        return open_waiting(config, wait_s)
+    except NoAnswer as exc:
+        raise MatchTimeout(str(exc)) from exc
 
 
 def report_end(result: dict, prog: str) -> int:

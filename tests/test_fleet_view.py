@@ -232,6 +232,7 @@ def test_command_line_errors():
         (["status", "--connect", "tcp:127.0.0.1:1"], "invalid Zenoh endpoint"),
         (["record", "-o", "x.rrd", "--rate", "0"], "--rate 0.0"),
         (["status", "--zenoh-config", "/nonexistent.json5"], "no such file"),
+        (["record", "-o", "x.rrd", "--wait", "-1"], "--wait -1.0"),
     ):
         r = subprocess.run(
             [sys.executable, "-m", "fednav.dashboards.fleet", *args],
@@ -254,3 +255,97 @@ def test_no_service_is_flagged():
     assert r.returncode == 1
     assert snap["vehicles"] == [] and snap["services"] == []
     assert snap["problems"] == ["no fednav service found under prefix 'fednav'"]
+
+
+def test_a_recorder_waits_for_its_router_and_the_fleet_survives_a_router_restart(tmp_path):
+    """``fednav-fleet record`` started before its router waits for it (``--wait``). The router
+    then stops for 3 s while a vehicle is served and starts again on the same endpoint: the
+    service, the fleet simulator, a plain reader and the recorder are Zenoh clients of it and
+    reconnect by themselves; Solutions reach the reader again, 'aided' once the vehicle's fixes
+    verify its new start, the service says in its log that the vehicle's INS was lost to the gap,
+    the simulator exits 4 (what it published meanwhile reached nobody), every other process 0."""
+    port = free_port()
+    rrd = tmp_path / "fleet.rrd"
+    record = _fleet("record", "-o", str(rrd), "--duration", "30", "--rate", "2", "--wait", "30", port=port)
+    time.sleep(1.0)  # the recorder is waiting for a router that is not there yet
+    assert record.poll() is None
+    router = _router(port)
+    procs: list[Proc] = [router]
+    arrivals: list[float] = []
+    watcher = None
+    try:
+        procs.insert(0, _service(port, "--vehicle", "*"))
+        watcher = _client(port)
+        statuses: list[tuple[float, str]] = []
+
+        def on_solution(sample) -> None:
+            arrivals.append(time.monotonic())
+            statuses.append((arrivals[-1], json.loads(sample.payload.to_bytes())["status"]))
+
+        watcher.declare_subscriber("fednav/*/nav/lc/solution", on_solution)
+        sim = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "1", "--duration", "20"]
+            + ["--connect", f"tcp/127.0.0.1:{port}"],
+            "fednav-sim fleet",
+        )
+        procs.insert(0, sim)
+        assert sim.wait_for("publishing", timeout=60), sim.output()
+        deadline = time.monotonic() + 30
+        while len(arrivals) < 30 and time.monotonic() < deadline:  # 3 s of Solutions at 10 Hz
+            time.sleep(0.2)
+        assert len(arrivals) >= 30, procs[1].output()
+        assert router.p.poll() is None
+        router.signal(signal.SIGTERM)
+        assert router.wait(timeout=30) == 0, router.output()
+        down = time.monotonic()
+        time.sleep(3.0)
+        router = _router(port)
+        procs[-1] = router
+        up = time.monotonic()
+        deadline = up + 30
+        while not any(t > up and st == "aided" for t, st in statuses) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        back = [t for t in arrivals if t > up]
+        assert back, "no Solution after the router restarted"
+        assert procs[1].wait_for("INS lost", timeout=30), procs[1].output()
+        sim_rc = sim.wait(timeout=60)  # to the end of its 20 s
+        procs.remove(sim)
+    finally:
+        rcs = _stop(*procs)
+        if watcher is not None:
+            watcher.close()
+        record.send_signal(signal.SIGINT)
+        rec_out, rec_err = record.communicate(timeout=60)
+    assert rcs == [0] * len(procs), [p.output() for p in procs]
+    # what it published while the router was down reached nobody, and it says so
+    assert sim_rc == 4 and "the subscribers went away" in sim.output(), sim.output()
+    aided = [t for t, st in statuses if t > up and st == "aided"]
+    print(
+        f"router down {up - down:.1f} s; Solutions again {back[0] - up:.2f} s and 'aided' again "
+        f"{aided[0] - up:.2f} s after it came back; after it: {[st for t, st in statuses if t > up][:5]}"
+    )
+    assert aided and aided[0] - up < 20.0
+    lost = [ln for ln in procs[0].output().splitlines() if "INS lost" in ln]
+    # a gap longer than [intake] future_window_s (2 s): the stream resumed that far ahead
+    assert lost and "vehicle veh000" in lost[0] and "the IMU stream resumed" in lost[0], lost
+    # it saw the fleet empty before the service started and while the router was down: flagged
+    assert record.returncode == 1, rec_out + rec_err
+    assert "1 vehicle(s), 1 service(s)" in rec_out, rec_out
+    assert rec_out.count("problem seen") == 1 and "no fednav service found" in rec_out, rec_out
+    rows, _, _, _ = _read(rrd)
+    assert rows.get("/fleet/veh000/position", 0) >= 4, rows
+
+
+def test_a_recorder_without_its_router_gives_up_after_its_wait():
+    port = free_port()
+    t0 = time.monotonic()
+    r = subprocess.run(
+        [sys.executable, "-m", "fednav.dashboards.fleet", "record", "-o", "x.rrd", "--wait", "1.5"]
+        + ["--connect", f"tcp/127.0.0.1:{port}"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2, r.stderr
+    assert "answered on tcp/127.0.0.1" in r.stderr and "within 1.5 s" in r.stderr, r.stderr
+    assert time.monotonic() - t0 >= 1.5

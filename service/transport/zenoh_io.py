@@ -599,6 +599,36 @@ _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|v
 _HOST_PORT = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):([0-9]{1,5})$")
 
 
+class NoAnswer(RuntimeError):
+    """:func:`open_waiting`: nothing answered on the session's endpoints in the time given."""
+
+
+def open_waiting(config: zenoh.Config, wait_s: float) -> zenoh.Session:
+    """Open a client session, waiting up to ``wait_s`` for something (a router, a service) to
+    answer on its endpoints: a process started a moment before its router or service waits for it
+    (a Zenoh client fails at once by default). :class:`NoAnswer` when nothing answered in that
+    time. Tried in attempts of at most 0.5 s (Zenoh's open holds the interpreter until it returns,
+    so Ctrl-C is seen between attempts). A config that sets ``connect/timeout_ms`` itself (a
+    ``--zenoh-config`` file) gets one open with its own timeout."""
+    own = json.loads(config.get_json("connect/timeout_ms")) is not None
+    deadline = time.monotonic() + wait_s
+    while True:
+        left = deadline - time.monotonic()
+        if not own:
+            config.insert_json5("connect/timeout_ms", str(max(1, int(min(0.5, left) * 1000))))
+        try:
+            return zenoh.open(config)
+        except zenoh.ZError as exc:
+            if own or time.monotonic() >= deadline:
+                endpoints = json.loads(config.get_json("connect/endpoints"))
+                raise NoAnswer(
+                    f"no fednav service or Zenoh router answered on "
+                    f"{', '.join(endpoints) or 'its endpoints'} within {wait_s:g} s "
+                    f"({str(exc).split(' at ')[0]})"
+                ) from exc
+            time.sleep(0.05)
+
+
 def endpoint_error(endpoint: str) -> str | None:
     """Why a Zenoh endpoint string is not one (None if it looks right): ``PROTOCOL/HOST:PORT``."""
     m = _ENDPOINT.match(endpoint)
