@@ -228,3 +228,36 @@ def test_shipped_configs_load():
     phone = config_mod.load(folder / "phone_car.toml")
     assert phone.imu.grade == "consumer_mems" and phone.pipelines[0].gnss_correlated_error is not None
     assert config_mod.load(folder / "example.toml").imu.grade == "navigation"
+
+
+def test_fixes_claiming_less_than_the_configured_correlated_error_stay_honest(tmp_path, caplog):
+    """A configuration made for fixes that claim 2.25 m (NMEA without GST, say) meets fixes that
+    claim 0.58 m (0.5 m white + 0.3 m correlated, the truth): the fixes' sigma is below the
+    configured correlated error. The position initialised from a fix must not start more certain
+    than that error (it did: 0.58 m, the fixes then pinned the correlated states, and the filter
+    was ~3x overconfident, NEES/3 6.2, on this drive); the mismatch is logged once."""
+    import logging
+
+    from fednav.service.config import from_dict
+
+    from . import replay_files as rf
+
+    d = rf.trim(rf.simulate_car_drive(tmp_path, "consumer_mems", 62.5, pos_std_m=0.5, gm_std_m=0.3), 12.5)
+    assert d.fixes[0].pos_std_enu_m[0] < 0.6
+    gm = {"sigma_enu_m": [2.2, 2.2, 3.7], "correlation_time_s": 30.0}
+    cfg = from_dict(
+        {
+            "vehicles": ["v1"],
+            "imu": {"grade": "consumer_mems"},
+            "init": {"min_speed_mps": 3.0},
+            "pipelines": [{"name": "lc", "kind": "loosely_coupled", "gnss_correlated_error": gm}],
+        }
+    )
+    caplog.set_level(logging.WARNING, logger="fednav.service")
+    res = rf.evaluate_config(d, cfg)
+    print(res)
+    assert res["solutions"] >= 290
+    assert res["h_err_over_sigma"] < 1.0 and res["nees_per_dof"] < 1.0, res  # honest (conservative)
+    assert res["h_sigma_rms_m"] > 1.5  # the configured correlated error, not the fixes' claim
+    below = [r for r in caplog.records if "below the configured gnss_correlated_error" in r.getMessage()]
+    assert len(below) == 1 and "0.58/0.58/1.17" in below[0].getMessage()

@@ -41,6 +41,7 @@ from fednav.service.estimation.consistency import InnovationBias, InnovationCons
 from fednav.service.estimation.ins_filter import InsFilterBank
 from fednav.service.estimation.measurements.base import SigmaFloors
 from fednav.service.estimation.measurements.gnss_fix import BLOCK as GNSS_ERROR_BLOCK
+from fednav.service.estimation.measurements.gnss_fix import white_std
 from fednav.service.ins import error_model as em
 from fednav.service.ins.alignment import InitStd
 from fednav.service.ins.mechanisation import NavState
@@ -65,13 +66,19 @@ def initial_covariance(std: InitStd, imu: ImuModel, private=()) -> np.ndarray:
     if getattr(std, "pos_from_fix", False):
         # a position taken from a fix carries the receiver's correlated error b: dp = b + n, and
         # the model's error state is db = -b (gnss_fix.py), so Cov(dp, db) = -P_b (independent,
-        # the first fixes' b would count twice: consistent only after a correlation time)
+        # the first fixes' b would count twice: consistent only after a correlation time).
+        # Var(dp) = P_b + Var(n), with n the fix's white part as its update takes it
+        # (gnss_fix.white_std): a fix that claims less than the configured correlated error
+        # (a receiver's sigma below the configuration's) must not start the position more certain
+        # than b itself, or the fixes then pin b and the filter is overconfident from its start
         col = em.N_STATES
         for block in private:
             if block.name == GNSS_ERROR_BLOCK:
                 sd_b = np.asarray(block.initial_std, dtype=float)
-                cross = -np.minimum(np.square(sd_b), 0.99 * sd_b * np.asarray(std.pos_enu_m, dtype=float))
+                sd_p = np.asarray(std.pos_enu_m, dtype=float)
                 i, j = np.arange(3), col + np.arange(3)
+                P[i, i] = np.maximum(P[i, i], np.square(sd_b) + np.square(white_std(sd_p, sd_b)))
+                cross = -np.minimum(np.square(sd_b), 0.99 * sd_b * np.sqrt(P[i, i]))
                 P[i, j] = P[j, i] = cross
             col += block.size
     cov = getattr(std, "cov", None)

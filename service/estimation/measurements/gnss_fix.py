@@ -49,6 +49,7 @@ own velocity (none for a position-only fix).
 
 from __future__ import annotations
 
+import logging
 import math
 from functools import lru_cache
 
@@ -105,10 +106,20 @@ def _plain_rows(n_states: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
 MIN_POS_STD_M = 0.005
 MIN_VEL_STD_MPS = 0.001
 MIN_WHITE_FRACTION = 0.2
+log = logging.getLogger("fednav.service")
 BLOCK = "gnss_error"
 BLOCK_NAMES = ("gnss_err_e_m", "gnss_err_n_m", "gnss_err_u_m")
 LEVER_BLOCK = "gnss_lever_arm"
 LEVER_NAMES = ("gnss_lever_arm_x_m", "gnss_lever_arm_y_m", "gnss_lever_arm_z_m")
+
+
+def white_std(pos_std_m, gm_sigma_m) -> np.ndarray:
+    """The white part of a fix's position error per axis when its correlated part is a state of
+    ``gm_sigma_m``: the fix's claimed 1-sigma is the total, so sqrt(claimed^2 - gm^2), and at
+    least ``MIN_WHITE_FRACTION`` of the claim (a fix claiming less than the configured correlated
+    error: the configuration does not fit the receiver's sigmas)."""
+    c = np.asarray(pos_std_m, dtype=float)
+    return np.sqrt(np.maximum(c**2 - np.square(gm_sigma_m), (MIN_WHITE_FRACTION * c) ** 2))
 
 
 def gauss_markov_block(tau_s: float, sigma_enu_m) -> PrivateStates:
@@ -178,6 +189,21 @@ class GnssFixModel:
             blocks.append(lever_arm_block(lever_arm_std_m, lever_arm_rw_m_per_sqrt_h))
         if blocks:
             self.private_states = tuple(blocks)
+        self._warned_below_gm = False
+
+    def _warn_below_gm(self, pos_std: np.ndarray) -> None:
+        """Log once that the fixes claim less than the configured correlated error."""
+        self._warned_below_gm = True
+        log.warning(
+            "GNSS fixes claim a position sigma (E/N/U %s m) below the configured gnss_correlated_error "
+            "sigma_enu_m (%s m): the configuration does not fit this receiver's sigmas (it was made for "
+            "fixes claiming more, e.g. without GST or in another fix mode); their white part is taken as "
+            "%.0f %% of the claim and the position starts no more certain than the correlated error; "
+            "re-run fednav-replay --suggest-config on a log with these sigmas",
+            "/".join(f"{v:.2f}" for v in pos_std),
+            "/".join(f"{v:.2f}" for v in self.gm_sigma),
+            100 * MIN_WHITE_FRACTION,
+        )
 
     # --- the antenna ------------------------------------------------------------------------------
     def lever_arm(self, ctx: ModelContext | None = None) -> np.ndarray:
@@ -232,7 +258,9 @@ class GnssFixModel:
                 raise ValueError("the correlated GNSS error needs a filter with the 'gnss_error' block")
             dp = dp + np.asarray(ctx.reference[BLOCK], dtype=float)
             H_pos[:, cols] = np.eye(3)
-            pos_std = np.sqrt(np.maximum(pos_std**2 - self.gm_sigma**2, (MIN_WHITE_FRACTION * pos_std) ** 2))
+            if not self._warned_below_gm and np.any(pos_std < self.gm_sigma):
+                self._warn_below_gm(pos_std)
+            pos_std = white_std(pos_std, self.gm_sigma)
         v_a = np.asarray(nav.vel_enu_mps, dtype=float) + dl_vel
         H_vel = np.zeros((3, ctx.n_states))
         H_vel[:, em.VEL] = np.eye(3)
