@@ -25,9 +25,10 @@ with where every number came from:
    or GnssFix's defaults); their white part from the fix-to-fix scatter against the solution's
    own displacement (the in-process run's velocity integrated between two fixes: the receiver's
    slowly varying error cancels over 0.1 s, its white noise does not); the correlated part
-   sqrt(sigma_fix^2 - white^2) becomes ``gnss_correlated_error`` (docs/own_data.md: a fix's sigma
-   is its total error). The correlation time needs a long static log to measure: 30 s, the value
-   measured on real receiver fixes (docs/own_data.md, 31-42 s), unless told otherwise.
+   sqrt(sigma_fix^2 - white^2), at least ``MIN_CORRELATED_FRACTION`` of the sigma, becomes
+   ``gnss_correlated_error`` (docs/own_data.md: a fix's sigma is its total error). The correlation
+   time needs a long static log to measure: 30 s, the value measured on real receiver fixes
+   (docs/own_data.md, 31-42 s), unless told otherwise.
 
 The antenna lever arm is not estimated (measure it); the written file says so.
 """
@@ -58,7 +59,17 @@ NIS_RELATIVE = 1.5
 RUN_S = 120.0  # the in-process run uses the log's first RUN_S seconds
 SETTLE_S = 10.0  # innovations of the first seconds after the start are not used
 DEFAULT_TAU_S = 30.0
-WHITE_ONLY_RATIO = 1.3  # fix sigma below this x its white scatter: the fixes look independent
+WHITE_ONLY_RATIO = 1.3  # fix sigma below 1 / this x its white scatter: the filter would trust them too much
+#: the correlated part is modelled on every axis, at least this fraction of the fixes' sigma. Real
+#: receivers' errors are correlated over tens of seconds, and at 10 Hz even a correlated part well
+#: below the white one dominates once the white part averages out. Until 2026-12-01 it was modelled
+#: only when the sigma exceeded the white scatter 1.3x on every axis: a drive with 0.5 m white + 0.3 m
+#: correlated error (sigma / white scatter measured 1.15-1.26, and 1.09-1.35 on a shorter log: the
+#: scatter of 600-900 fixes is measured to ~10 %) was fused as independent, horizontal error 0.38 m
+#: against a 1-sigma of 0.076 m (5x overconfident); with the states 0.23 m against 0.37 m. A white
+#: receiver gets a correlated state of 30 % of its sigma: its reported sigma a little larger than
+#: needed, the cautious side.
+MIN_CORRELATED_FRACTION = 0.3
 DPSH_PER_RPSS = 180.0 / math.pi * 60.0  # rad/sqrt(s) -> deg/sqrt(h)
 ORDER = tuple(GRADES)  # best first: navigation, tactical, industrial_mems, consumer_mems
 
@@ -435,8 +446,11 @@ def suggest_config(mapping: ReplayMapping, base_dir: Path, report: Report) -> Su
                     else " (the receiver's own sigmas: the mapping's pos_std_m only replaces missing ones)"
                 )
             )
-        elif np.all(ratio > WHITE_ONLY_RATIO):
-            gm = np.sqrt(np.maximum(sigma**2 - white**2, 0.0))
+        elif np.all(np.isfinite(sigma)):  # (sigmas too small: fix them first, then the correlated part)
+            floor = MIN_CORRELATED_FRACTION * sigma
+            gm = np.sqrt(np.maximum(sigma**2 - white**2, floor**2))
+            at_floor = sigma**2 - white**2 < floor**2
+            fixes["correlated_floor_axes"] = [a for a, f in zip("ENU", at_floor, strict=True) if f]
             correlated = {
                 "sigma_enu_m": [round(float(x), 3) for x in gm],
                 "correlation_time_s": DEFAULT_TAU_S,
@@ -516,17 +530,22 @@ def render_toml(mapping: ReplayMapping, s: Suggestion) -> str:
         c = s.correlated
         lines += [
             "# the fixes' sigma exceeds their white scatter: the rest is a slowly varying error,",
-            "# estimated as states (docs/own_data.md); sigma = sqrt(fix sigma^2 - white^2) per axis;",
+            "# estimated as states (docs/own_data.md); sigma = sqrt(fix sigma^2 - white^2) per axis",
+            f"# and at least {MIN_CORRELATED_FRACTION:.0%} of the fix sigma (real receivers' errors are "
+            "correlated; at 10 Hz even a",
+            "# small correlated part, fused as independent, makes the filter overconfident)"
+            + (
+                f": that floor on {'/'.join(f['correlated_floor_axes'])};"
+                if f.get("correlated_floor_axes")
+                else ";"
+            ),
             "# correlation time: the value measured on real receivers (docs/own_data.md: 31-42 s),",
             "# not measurable from a short log",
             f"gnss_correlated_error = {{ sigma_enu_m = [{', '.join(str(x) for x in c['sigma_enu_m'])}], "
             f"correlation_time_s = {c['correlation_time_s']} }}",
         ]
     elif f["white_enu_m"]:
-        lines.append(
-            "# the fixes' sigma matches their white scatter: fused as independent "
-            "(no correlated-error states)"
-        )
+        lines.append("# (the fixes carry no usable sigma: no correlated-error states)")
     else:
         lines.append("# (the fixes' scatter could not be measured: no correlated-error states)")
     for note in s.notes:
