@@ -13,7 +13,9 @@ publisher's default (tcp/127.0.0.1:7447).
 fixes' error from the log and writes a service configuration (to stdout without OUT), with where
 each number came from; it publishes nothing.
 
-Exit codes: 0 done, 1 usage/mapping error, 2 checks failed, 3 no service matched.
+Exit codes: 0 done, 1 usage/mapping error, 2 checks failed, 3 no service matched, 4 the subscribers
+went away during the stream, 5 no fednav service serves the vehicle (the messages reached other
+subscribers only).
 """
 
 from __future__ import annotations
@@ -196,7 +198,7 @@ def _main(argv: list[str] | None = None) -> int:
         print(json.dumps(summary))
     else:
         print(f"published {result['messages']} messages in {result['wall_s']:.2f} s ({rate:.0f} msg/s)")
-    return report_end(result, "fednav-replay")
+    return report_end(result, "fednav-replay", [vehicle])
 
 
 def _suggest(args, mapping, base: Path, report: Report, summary: dict) -> int:

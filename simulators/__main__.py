@@ -157,7 +157,7 @@ def _main(argv: list[str] | None = None) -> int:
             print(f"fednav-sim: {exc}", file=sys.stderr)
             return 3
         print(f"fednav-sim: published {stats['messages']} messages in {stats['wall_s']:.1f} s", flush=True)
-        return report_end(stats, "fednav-sim")
+        return report_end(stats, "fednav-sim", [args.vehicle])
     from fednav.service.config import ConfigError
     from fednav.simulators.evaluate import evaluate, format_table
 

@@ -283,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     from fednav.simulators.publisher import report_end
 
-    return report_end(stats, "fednav-sim fleet")
+    return report_end(stats, "fednav-sim fleet", vehicle_names(args.vehicles, args.stem))
 
 
 if __name__ == "__main__":

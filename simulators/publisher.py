@@ -164,10 +164,25 @@ def open_session(config: zenoh.Config, wait_s: float) -> zenoh.Session:
         raise MatchTimeout(str(exc)) from exc
 
 
-def report_end(result: dict, prog: str) -> int:
+def report_end(result: dict, prog: str, vehicles: list[str] | None = None) -> int:
     """What a command line says after :func:`publish_stream` (``result``), on stderr, and its exit
     code: 4 when the subscribers went away during the stream (what was published meanwhile reached
-    nobody); a warning and 0 when the service did not confirm the end in time; else nothing, 0."""
+    nobody); 5 when no fednav service serves the vehicle(s) (``vehicles``; the end-of-stream
+    status queries had no reply, :func:`drain`: the messages reached other subscribers only, e.g.
+    a service serving other vehicles, which counts them as ``unserved_vehicle``); a warning and 0
+    when the service did not confirm the end in time; else nothing, 0."""
+    if result.get("drained") is None and result.get("messages") and not result.get("subscriber_lost"):
+        vs = list(vehicles or [])
+        names = ", ".join(repr(v) for v in vs[:3]) + (f" and {len(vs) - 3} more" if len(vs) > 3 else "")
+        names = names or "the published vehicle(s)"
+        print(
+            f"{prog}: no fednav service serves vehicle {names}: the messages reached other subscribers "
+            "only (a service serving other vehicles refuses them as unserved_vehicle); start the "
+            'service with --vehicle (or vehicles = [...] / ["*"] in its config) for this name, or '
+            "publish under the name it serves",
+            file=sys.stderr,
+        )
+        return 5
     if result.get("subscriber_lost"):
         print(
             f"{prog}: the subscribers went away during the stream (a link closed or the "

@@ -219,6 +219,29 @@ def test_fednav_sim_exits_4_when_its_subscribers_go_away(command, vehicle, prog)
 
 
 @pytest.mark.integration
+def test_fednav_sim_exits_5_when_no_service_serves_its_vehicle():
+    """Every message reached a subscriber, but nothing answers the vehicle's status at the end:
+    no fednav service serves that name (a service serving other vehicles, which refuses the data
+    as unserved_vehicle, or another client on the bus). Exit 5 naming the vehicle, not 0: a
+    mapping's vehicle that differs from the service's is an easy first-hour mistake."""
+    port = free_port()
+    rx = SlowReceiver(port, serve_status=False, read_s=0.0, key_expr="fednav/car1/**")
+    try:
+        sim = subprocess.run(
+            [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "0", "--imu-batch", "10"]
+            + ["--vehicle", "car1", "--connect", f"tcp/127.0.0.1:{port}"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        rx.close()
+    assert rx.got > 1000
+    assert sim.returncode == 5, (sim.returncode, sim.stdout, sim.stderr[-2000:])
+    assert "fednav-sim: no fednav service serves vehicle 'car1'" in sim.stderr, sim.stderr
+
+
+@pytest.mark.integration
 def test_fednav_sim_fleet_says_when_no_service_answers_and_refuses_bad_endpoints():
     """No subscriber on the endpoint: exit 3 and a message (not a traceback); an endpoint that is
     not one: exit 2 before anything is built."""
