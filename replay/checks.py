@@ -80,8 +80,24 @@ MIN_TURN_EPOCHS = 8  # turning windows needed for the yaw and time-offset checks
 MIN_HORIZONTAL_ACCEL_MPS2 = 0.3  # RMS horizontal acceleration needed to check forward/right
 LAG_ERROR_S = 0.05  # IMU vs GNSS stamps: an error above this (1.5 m along track at 30 m/s)
 LAG_WARN_S = 0.02
-LAG_MIN_CORRELATION = 0.8
-MAX_LAG_S = 30.0  # lags searched (covers the 18 leap seconds)
+LAG_MIN_CORRELATION = 0.8  # below this the lag found does not confirm (nor correct) the stamps
+#: lags searched, both ways: the 18 leap seconds, and a receiver's time to first fix (a cold start:
+#: 30-60 s) when boot_offset_s = "auto" puts the IMU's first sample at the first fix. Bounded also
+#: by the data: at least half the fixes' windows in motion must lie inside the IMU's log
+#: stamps going backwards or repeating that the reader skipped: above this share of a stream's
+#: samples the stamps themselves are wrong (an error), below a logger's few bad rows (a warning)
+MAX_SKIPPED_BACK_FRACTION = 0.01
+MAX_LAG_S = 120.0
+LAG_COARSE_STEP_S = 0.1  # the whole range at this step (1 s windows: the peak is seconds wide) ...
+LAG_MEDIUM_STEP_S = 0.02  # ... its best peaks at this step, then the best to the millisecond
+LAG_PEAKS = 3  # coarse peaks examined
+LAG_DISTINCT_S = 1.0  # peaks at least this far apart are different offsets
+LAG_EDGE_S = 0.5  # a best lag this close to an end of the lags searched may lie beyond it
+LAG_AMBIGUOUS = 0.02  # another peak scoring within this of the best: the lag is not determined
+#: not confirmed, but a strong signal that the stamps are wrong (an error, with the number to set):
+#: the best lag's correlation at least this, and this much better than the stamps' as they are
+LAG_STRONG_CORRELATION = 0.5
+LAG_CLEARLY_BETTER = 0.3
 GYRO_SCALE_OK = (0.8, 1.25)  # yaw rate / course rate
 DEG_PER_RAD = 180.0 / math.pi
 
@@ -139,9 +155,12 @@ class Report:
         lines += [f"  {n}" for n in self.notes]
         lines += [f"ERROR: {e}" for e in self.errors]
         lines += [f"warning: {w}" for w in self.warnings]
-        lines.append(
-            "checks passed" if not self.errors else f"{len(self.errors)} error(s): nothing published"
-        )
+        if self.errors:
+            lines.append(f"{len(self.errors)} error(s): nothing published")
+        elif self.warnings:
+            lines.append(f"checks passed with {len(self.warnings)} warning(s): read them before publishing")
+        else:
+            lines.append("checks passed")
         return "\n".join(lines)
 
 
@@ -451,22 +470,51 @@ def _corr(x: np.ndarray, y: np.ndarray) -> float:
     return float((x * y).sum() / d) if d > 0 else 0.0
 
 
-def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) -> dict | None:
+def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) -> dict:
     """How late the IMU's stamps are against the GNSS's (s): the lag L maximising the correlation
     of the IMU's rotation over [ta + L, tb + L] (its magnitude: whatever the axes) with the
-    course change over [ta, tb]. None without enough turns. The IMU's event at true time T is
-    stamped T + L: subtract L from its stamps (``time_offset_s -= L``)."""
+    course change over [ta, tb]. The IMU's event at true time T is stamped T + L: subtract L from
+    its stamps (``time_offset_s -= L``).
+
+    Lags within +-``max_lag_s`` where at least half the windows lie inside the IMU's log are
+    searched: every ``LAG_COARSE_STEP_S``, then the best ``LAG_PEAKS`` peaks (ranked by the
+    correlation times the share of the course's turning inside the IMU's log: a lag that leaves
+    half the turns outside explains only half) every ``LAG_MEDIUM_STEP_S``, then the best to the
+    millisecond. Returns ``lag_s`` (None when there is none, with ``reason``), ``correlation``,
+    ``zero_correlation`` (at the stamps as they are; None when they do not overlap),
+    ``turn_windows``, ``searched_s`` (the range), ``at_edge`` (the best lag at an end of it) and
+    ``runner_up`` (the best other peak, at least ``LAG_DISTINCT_S`` away, or None)."""
     turning = kin.turn / (kin.tb - kin.ta) > TURN_RATE_RPS
-    if turning.sum() < MIN_TURN_EPOCHS:
-        return None
+    n_turn = int(turning.sum())
+    out: dict = {"lag_s": None, "turn_windows": n_turn}
+    if n_turn < MIN_TURN_EPOCHS:
+        out["reason"] = (
+            f"too few turns: {n_turn} windows turning faster than {math.degrees(TURN_RATE_RPS):.0f} deg/s, "
+            f"{MIN_TURN_EPOCHS} needed"
+        )
+        return out
     sel = np.flatnonzero(turning | (np.arange(len(kin)) % max(1, len(kin) // 1500) == 0))[:4000]
     ta, tb, g = kin.ta[sel], kin.tb[sel], kin.turn[sel]
     tc, th, _ = imu.cumulative()
     gaps = imu.gap_times()
-    max_lag_s = min(max_lag_s, 0.5 * float(tb[-1] - ta[0]))
+    need = max(MIN_TURN_EPOCHS, 0.5 * len(g))
+    g_total = float(g.sum())
+    # at least half the windows inside the IMU's log: a <= ta + L and tb + L <= b for the median
+    lo = max(-max_lag_s, float(tc[0] - np.median(ta)))
+    hi = min(max_lag_s, float(tc[-1] - np.median(tb)))
+    out["searched_s"] = [lo, hi]
+    no_overlap = (
+        f"the IMU's log does not hold half the fixes' windows in motion at any lag within +-{max_lag_s:.0f} s"
+    )
+    if lo > hi:
+        out["reason"] = no_overlap
+        return out
 
-    def scores(lags: np.ndarray) -> np.ndarray:
-        out = np.full(len(lags), -np.inf)
+    def scan(lags: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Correlation at each lag (-inf where too few windows are inside the IMU's log) and the
+        share of the course's turning those windows hold."""
+        corr = np.full(len(lags), -np.inf)
+        cover = np.zeros(len(lags))
         for c0 in range(0, len(lags), 128):
             L = lags[c0 : c0 + 128, None]
             a, b = ta[None, :] + L, tb[None, :] + L
@@ -474,20 +522,48 @@ def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) ->
             valid = (a >= tc[0]) & (b <= tc[-1])
             if len(gaps):
                 valid &= np.searchsorted(gaps, a, "right") == np.searchsorted(gaps, b, "right")
-            for r in range(len(L)):
-                v = valid[r]
-                if v.sum() >= max(MIN_TURN_EPOCHS, 0.5 * len(g)) and (v & (g > 0)).any():
-                    out[c0 + r] = _corr(rot[r, v], g[v])
-        return out
+            w = valid.astype(float)
+            n = w.sum(axis=1)
+            ok = (n >= need) & (valid & (g > 0)).any(axis=1)
+            n = np.maximum(n, 1.0)
+            dx = (rot - ((rot * w).sum(axis=1) / n)[:, None]) * w
+            dy = (g[None, :] - ((g * w).sum(axis=1) / n)[:, None]) * w
+            den = np.sqrt((dx * dx).sum(axis=1) * (dy * dy).sum(axis=1))
+            c = np.divide((dx * dy).sum(axis=1), den, out=np.zeros(len(L)), where=den > 0)
+            corr[c0 : c0 + len(L)] = np.where(ok, c, -np.inf)
+            cover[c0 : c0 + len(L)] = (w * g).sum(axis=1) / g_total if g_total > 0 else 1.0
+        return corr, cover
 
-    coarse = 0.02 if max_lag_s > 2.0 else 0.005
-    lags = np.arange(-max_lag_s, max_lag_s + 0.5 * coarse, coarse)
-    sc = scores(lags)
-    if not np.isfinite(sc).any():
-        return None
-    best = lags[int(np.argmax(sc))]
-    fine = np.arange(best - 2 * coarse, best + 2 * coarse + 1e-4, 0.001)
-    sf = scores(fine)
+    step = LAG_COARSE_STEP_S
+    grid = np.arange(math.ceil(lo / step), math.floor(hi / step) + 1) * step
+    lags = np.unique(np.concatenate([grid, [lo, hi]]))
+    corr, cover = scan(lags)
+    if not np.isfinite(corr).any():
+        out["reason"] = no_overlap
+        return out
+    score = np.where(np.isfinite(corr), corr * cover, -np.inf)
+    # the coarse peaks (local maxima, not a better peak's shoulders), best first, each at least
+    # LAG_DISTINCT_S from a better one
+    padded = np.concatenate([[-np.inf], score, [-np.inf]])
+    local = np.isfinite(score) & (score >= padded[:-2]) & (score >= padded[2:])
+    peaks: list[float] = []
+    for k in np.flatnonzero(local)[np.argsort(-score[local], kind="stable")]:
+        if len(peaks) == LAG_PEAKS:
+            break
+        if all(abs(lags[k] - p) >= LAG_DISTINCT_S for p in peaks):
+            peaks.append(float(lags[k]))
+    cands = []  # (score, lag, correlation) at the medium step around each peak
+    for p in peaks:
+        m = np.clip(p + np.arange(-step, step + 1e-9, LAG_MEDIUM_STEP_S), lo, hi)
+        cm, vm = scan(m)
+        sm = np.where(np.isfinite(cm), cm * vm, -np.inf)
+        j = int(np.argmax(sm))
+        cands.append((float(sm[j]), float(m[j]), float(cm[j])))
+    cands.sort(key=lambda c: -c[0])
+    best = cands[0][1]
+    fine = np.arange(best - 2 * LAG_MEDIUM_STEP_S, best + 2 * LAG_MEDIUM_STEP_S + 1e-4, 0.001)
+    fine = fine[(fine >= lo) & (fine <= hi)]
+    sf, _ = scan(fine)
     j = int(np.argmax(sf))
     lag = float(fine[j])
     if 0 < j < len(fine) - 1 and np.all(np.isfinite(sf[j - 1 : j + 2])):
@@ -495,7 +571,47 @@ def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) ->
         den = y0 - 2 * y1 + y2
         if den < 0:
             lag += 0.001 * 0.5 * (y0 - y2) / den
-    return {"lag_s": lag, "correlation": float(sf[j]), "turn_windows": int(turning.sum())}
+    c_zero = float(scan(np.zeros(1))[0][0])
+    others = [c for c in cands[1:] if abs(c[1] - lag) >= LAG_DISTINCT_S]
+    out.update(
+        lag_s=lag,
+        correlation=float(sf[j]),
+        zero_correlation=c_zero if math.isfinite(c_zero) else None,
+        at_edge=bool(lag - lo < LAG_EDGE_S or hi - lag < LAG_EDGE_S),
+        score=cands[0][0],
+        runner_up=(
+            {"lag_s": others[0][1], "correlation": others[0][2], "score": others[0][0]} if others else None
+        ),
+    )
+    return out
+
+
+def lag_doubt(lag: dict) -> str | None:
+    """Why the lag :func:`estimate_lag` found does not confirm the alignment of the stamps (None:
+    it does). Another peak scoring almost as well (a drive that repeats itself: laps) casts doubt
+    only when it is nearer zero, the stamps as they are, than the best."""
+    if lag.get("lag_s") is None:
+        return lag.get("reason", "no lag found")
+    why = []
+    L = lag["lag_s"]
+    if lag["correlation"] < LAG_MIN_CORRELATION:
+        why.append(
+            f"the IMU's rotation follows the course with a correlation of {lag['correlation']:.2f} at best "
+            f"(at a lag of {L:+.3f} s), {LAG_MIN_CORRELATION} needed"
+        )
+    if lag["at_edge"]:
+        lo, hi = lag["searched_s"]
+        why.append(
+            f"the best lag, {L:+.3f} s, is at an end of the lags searched ({lo:+.1f} to {hi:+.1f} s): "
+            "the offset may lie beyond"
+        )
+    ru = lag["runner_up"]
+    if ru is not None and abs(ru["lag_s"]) < abs(L) and ru["score"] >= lag["score"] - LAG_AMBIGUOUS:
+        why.append(
+            f"another lag, {ru['lag_s']:+.2f} s (correlation {ru['correlation']:.2f}), fits almost as well "
+            f"as {L:+.3f} s (a drive that repeats itself?)"
+        )
+    return "; ".join(why) or None
 
 
 #: horizontal signed 2x2 maps (fednav right/forward from the mapped x/y): what each one means
@@ -519,18 +635,50 @@ def _horizontal_misfit(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.mean((x[:, 0] - gain * y[:, 0]) ** 2 + (x[:, 1] - y[:, 1]) ** 2))
 
 
+def _alignment_advice(stream: StreamMapping, derived: bool) -> str:
+    """What to do when the IMU's stamps cannot be aligned with the GNSS's."""
+    if stream.time_base == "boot" and derived:
+        return (
+            "boot_offset_s = 'auto' without a stream carrying both clocks assumes the IMU's and the GNSS's "
+            "logs started together (a receiver's first fix often comes 30 s or more after power-on): write "
+            "boot_offset_s (the GPS time of the device's boot) in the mapping, or check that both logs "
+            "started together"
+        )
+    if stream.time_base == "boot":
+        return (
+            "check boot_offset_s (the GPS time of the device's boot) and that both logs cover the same drive"
+        )
+    return (
+        "check the stream's time_base, time_offset_s and leap_seconds, and that both logs cover the same "
+        "drive"
+    )
+
+
 def motion_check(
-    stream: StreamMapping, imu: ImuData, kin: Kinematics, report: Report, fix_label: str, leap: int
+    stream: StreamMapping,
+    imu: ImuData,
+    kin: Kinematics,
+    report: Report,
+    fix_label: str,
+    leap: int,
+    derived: bool = False,
+    warned: bool = False,
 ) -> dict:
     """Axes, signs, gyro unit and time offset of an IMU against the GNSS's motion (module doc).
-    Appends errors / warnings / a note to ``report``; returns the figures."""
+    Appends errors / warnings / a note to ``report``; returns the figures. ``derived``: the
+    stream's boot offset came from ``"auto"``; ``warned``: its derivation was already warned of
+    as unconfirmed (the same doubt is not said twice; errors still are)."""
     name = f"IMU {stream.sensor_id!r}"
     out: dict = {"against": fix_label, "windows": len(kin)}
     lag = estimate_lag(imu, kin)
     shift = 0.0
-    if lag is not None:
+    doubt = lag_doubt(lag)
+    if lag["lag_s"] is None:
+        if not warned:
+            report.notes.append(f"{name}: time offset against {fix_label} not checked: {doubt}")
+    else:
         out["time_offset"] = lag
-        L = lag["lag_s"]
+        L, c, c0 = lag["lag_s"], lag["correlation"], lag["zero_correlation"]
         fix_hint = (
             f"boot_offset_s = {float(stream.boot_offset_s) - L:.3f}"
             if stream.time_base == "boot"
@@ -539,17 +687,40 @@ def motion_check(
         why = ""
         if abs(abs(L) - leap) < 0.5:
             why = " (the leap seconds: is one stream in UTC and the other in GPS time? check time_base)"
+        at_zero = f"{c0:.2f}" if c0 is not None else "none: the logs do not overlap"
         text = (
             f"{name}'s stamps are {abs(L):.3f} s {'late' if L > 0 else 'early'} against {fix_label}'s "
             f"(its rotation against the course over {lag['turn_windows']} turning windows, correlation "
-            f"{lag['correlation']:.2f}){why}: set {fix_hint} in stream {stream.sensor_id!r}"
+            f"{c:.2f}){why}: set {fix_hint} in stream {stream.sensor_id!r}"
         )
-        if lag["correlation"] >= LAG_MIN_CORRELATION and abs(L) > LAG_ERROR_S:
-            report.errors.append(text)
+        if doubt is None:
+            if abs(L) > LAG_ERROR_S:
+                report.errors.append(text)
+                shift = L
+            elif abs(L) > LAG_WARN_S:
+                report.warnings.append(text)
+                shift = L
+        elif (
+            abs(L) > LAG_ERROR_S
+            and c >= LAG_STRONG_CORRELATION
+            and (c0 is None or c - c0 >= LAG_CLEARLY_BETTER)
+        ):
+            # not confirmed, yet the stamps as they are fit clearly worse: the service would refuse
+            # the fixes (its innovation gate) and coast
+            report.errors.append(
+                f"{name}'s stamps look {abs(L):.3f} s {'late' if L > 0 else 'early'} against {fix_label}'s: "
+                f"at that lag its rotation follows the course with a correlation of {c:.2f} over "
+                f"{lag['turn_windows']} turning windows, at the stamps as they are {at_zero}{why} (not "
+                f"confirmed: {doubt}): set {fix_hint} in stream {stream.sensor_id!r} and run --check again; "
+                f"{_alignment_advice(stream, derived)}"
+            )
             shift = L
-        elif lag["correlation"] >= LAG_MIN_CORRELATION and abs(L) > LAG_WARN_S:
-            report.warnings.append(text)
-            shift = L
+        elif not warned:
+            report.warnings.append(
+                f"TIME ALIGNMENT NOT CONFIRMED: {name}'s stamps against {fix_label}'s: {doubt}; "
+                f"correlation at the stamps as they are {at_zero}. The service may refuse the fixes and "
+                f"coast if they are off: {_alignment_advice(stream, derived)}"
+            )
     w_bar, f_bar, valid = imu_means(imu, kin.ta, kin.tb, shift)
     if valid.sum() < MIN_MOTION_EPOCHS:
         report.warnings.append(f"{name}: too little IMU data beside the fixes in motion to check its axes")
@@ -641,12 +812,12 @@ def motion_check(
         report.notes.append(f"{name}: too few turns to check the gyro's yaw axis, sign and unit")
     report.errors.extend(problems)
     if not problems:
-        lag_txt = (
-            f", time offset {out['time_offset']['lag_s']:+.3f} s (correlation "
-            f"{out['time_offset']['correlation']:.2f})"
-            if "time_offset" in out
-            else ""
-        )
+        lag_txt = ""
+        if "time_offset" in out:
+            lag_txt = (
+                f", time offset {out['time_offset']['lag_s']:+.3f} s (correlation "
+                f"{out['time_offset']['correlation']:.2f}{', NOT confirmed' if doubt else ''})"
+            )
         report.notes.append(
             f"motion: {name} against {fix_label} over {len(f_exp)} windows in motion: axes "
             f"{declared or 'matrix'} fit{lag_txt}"
@@ -798,10 +969,12 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
     """Read every stream once (as it will be published) and check it. ``boot_offset_s = 'auto'``
     is resolved first (:func:`resolve_boot_offsets`); ``report.mapping`` is the mapping to publish."""
     report = Report()
-    mapping, notes, errors = resolve_boot_offsets(mapping, base)
+    derived = {s.sensor_id for s in mapping.streams if s.boot_offset_s == "auto"}
+    mapping, notes, errors, doubted = _resolve_boot_offsets(mapping, base)
     report.mapping = mapping
     report.notes += notes
     report.errors += errors
+    report.warnings += list(doubted.values())
     imu_streams = [s for s in mapping.streams if s.kind == "imu"]
     if not imu_streams:
         report.errors.append("no IMU stream: the service needs an IMU to navigate")
@@ -817,7 +990,8 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
         try:
             rows, first, dts = _read(stream, base, mapping, stats, sr)
         except SourceError as exc:
-            report.errors.append(str(exc))
+            if not any(str(exc) in e for e in errors):  # said once: resolving the offsets read it
+                report.errors.append(str(exc))
             continue
         finally:
             sr.skipped = {k: v for k, v in stats.items() if not k.startswith(("_", "sigma_"))}
@@ -853,11 +1027,21 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
             sr.rate_hz = 1.0 / float(np.median(dts))
         else:
             report.warnings.append(f"{label}: rate unknown (a single message)")
-        back = sr.backwards + sr.skipped.get("stamp_not_increasing", 0)
-        if back:
+        skipped_back = sr.skipped.get("stamp_not_increasing", 0)
+        back = sr.backwards + skipped_back
+        line = stats.get("_first_line_stamp_not_increasing")
+        where = f" (the first at line {line})" if line else ""
+        if sr.backwards or skipped_back > MAX_SKIPPED_BACK_FRACTION * (sr.count + skipped_back):
             report.errors.append(
-                f"{label}: {back} stamp(s) go backwards or repeat: the stamps are not monotonic "
+                f"{label}: {back} stamp(s) go backwards or repeat{where}: the stamps are not monotonic "
                 "(wrong stamp field, or files concatenated out of order)"
+            )
+        elif skipped_back:
+            # a logger's few duplicated or swapped rows: the reader dropped them (each interval
+            # starts at the last sample taken), the rest is sound
+            report.warnings.append(
+                f"{label}: {skipped_back} stamp(s) go backwards or repeat{where}: those samples are "
+                "skipped (a logger's repeated or swapped rows)"
             )
         if sr.repeated:
             report.warnings.append(f"{label}: {sr.repeated} repeated stamp(s) (same time twice)")
@@ -927,20 +1111,42 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
             continue
         fs, _, kin = ref
         report.motion[stream.sensor_id] = motion_check(
-            stream, imu, kin, report, f"gnss_fix {fs.sensor_id!r}", mapping.leap_seconds
+            stream,
+            imu,
+            kin,
+            report,
+            f"gnss_fix {fs.sensor_id!r}",
+            mapping.leap_seconds,
+            derived=stream.sensor_id in derived,
+            warned=stream.sensor_id in doubted,
         )
     return report
 
 
 # --- boot offsets -----------------------------------------------------------------------------------------
-def resolve_boot_offsets(mapping: ReplayMapping, base: Path) -> tuple[ReplayMapping, list[str], list[str]]:
+def resolve_boot_offsets(
+    mapping: ReplayMapping, base: Path, warnings: list[str] | None = None
+) -> tuple[ReplayMapping, list[str], list[str]]:
     """``boot_offset_s = "auto"`` -> a number: from a stream that carries both clocks (a ROS bag's
     receive times beside an IMU's boot-time header stamps; NMEA lines led by the logger's stamp),
     else the first fix minus the stream's first stamp (both logs started together); an IMU's
-    offset is then refined by the lag of its rotation against the GNSS course (turns needed).
+    offset is then refined by the lag of its rotation against the GNSS course (turns needed; from
+    the first fix searched over +-``MAX_LAG_S``: a late first fix is found). An offset the motion
+    does not confirm is used as derived, with a warning saying why (appended to ``warnings``).
     Returns (mapping with numbers, notes saying how each was derived, errors)."""
+    mapping, notes, errors, doubted = _resolve_boot_offsets(mapping, base)
+    if warnings is not None:
+        warnings.extend(doubted.values())
+    return mapping, notes, errors
+
+
+def _resolve_boot_offsets(
+    mapping: ReplayMapping, base: Path
+) -> tuple[ReplayMapping, list[str], list[str], dict[str, str]]:
+    """:func:`resolve_boot_offsets`, the warnings by the stream's sensor_id."""
     notes: list[str] = []
     errors: list[str] = []
+    doubted: dict[str, str] = {}
     for i, s in enumerate(mapping.streams):
         if s.boot_offset_s != "auto":
             continue
@@ -1003,18 +1209,49 @@ def resolve_boot_offsets(mapping: ReplayMapping, base: Path) -> tuple[ReplayMapp
             imu.t = imu.t + off
             kin = fix_kinematics(fx)
             coarse = "first fix" in how
-            lag = estimate_lag(imu, kin, MAX_LAG_S if coarse else 2.0) if kin is not None else None
-            if lag is not None and lag["correlation"] >= LAG_MIN_CORRELATION:
-                off -= lag["lag_s"]
+            if kin is None:
+                lag = {
+                    "lag_s": None,
+                    "reason": f"the fixes show too little motion (above {MIN_SPEED_MPS} m/s) to align the "
+                    "IMU's rotation with the course",
+                }
+            else:
+                lag = estimate_lag(imu, kin, MAX_LAG_S if coarse else 2.0)
+            doubt = lag_doubt(lag)
+            if doubt is None:
+                L = lag["lag_s"]
+                off -= L
+                late = ""
+                if coarse and abs(L) > 1.0:
+                    late = (
+                        f": the first fix came {L:.1f} s after the IMU's first sample (a receiver's time to "
+                        "first fix?)"
+                        if L > 0
+                        else f": the IMU's log started {-L:.1f} s after the first fix"
+                    )
                 refine = (
-                    f", then {-lag['lag_s']:+.3f} s from its rotation against the course of the fixes "
-                    f"({lag['turn_windows']} turning windows, correlation {lag['correlation']:.2f})"
+                    f", then {-L:+.3f} s from its rotation against the course of the fixes "
+                    f"({lag['turn_windows']} turning windows, correlation {lag['correlation']:.2f}){late}"
                 )
             else:
-                refine = ", not refined (too few turns to align the IMU's rotation with the course)"
+                refine = f", NOT refined by the motion ({doubt})"
+                c0 = lag.get("zero_correlation")
+                doubted[s.sensor_id] = (
+                    f"TIME ALIGNMENT NOT CONFIRMED: boot_offset_s = 'auto' of stream {s.sensor_id!r} gives "
+                    f"{off:.3f} s from {how}, which the motion does not confirm: {doubt}"
+                    + (f"; correlation at the derived offset {c0:.2f}" if c0 is not None else "")
+                    + (
+                        ". Its receive stamps include the receiver's output latency (typically 20-100 ms): "
+                        "write boot_offset_s in the mapping if you know it better"
+                        if not coarse
+                        else ". It assumes the IMU's and the GNSS's logs started together (a receiver's "
+                        "first fix often comes 30 s or more after power-on): write boot_offset_s (the GPS "
+                        "time of the device's boot) in the mapping, or check that both logs started together"
+                    )
+                )
         mapping = with_stream(mapping, i, boot_offset_s=round(off, 6))
         notes.append(
             f"boot_offset_s of stream {s.sensor_id!r} derived: {off:.3f} s, from {how}{refine}; write "
             f"boot_offset_s = {off:.3f} in the mapping to use it as it is"
         )
-    return mapping, notes, errors
+    return mapping, notes, errors, doubted

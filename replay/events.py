@@ -80,21 +80,23 @@ class ImuBuilder:
             self._skip("bad_time")
             note(self.skipped, "_bad_time_t", float(t))
             return None
-        prev, self._prev = self._prev, (t, w, f)
+        prev = self._prev
+        if prev is None and (self.form == "rate" or dt is None):
+            self._prev = (t, w, f)  # the first sample only opens the first interval
+            return None
         if self.form == "rate":
-            if prev is None:
-                return None
             dt = t - prev[0]
             dtheta, dvel = 0.5 * (prev[1] + w) * dt, 0.5 * (prev[2] + f) * dt
         else:
             if dt is None:
-                if prev is None:
-                    return None
                 dt = t - prev[0]
             dtheta, dvel = w, f
         if dt <= 0.0:
+            # a repeated or swapped row: skipped, and the next interval starts at the last sample
+            # taken (from this one it would overlap the interval already published)
             self._skip("stamp_not_increasing")
             return None
+        self._prev = (t, w, f)
         if dt > MAX_DT_S:
             self._skip("gap")
             return None
