@@ -904,12 +904,16 @@ def stamp_looks_like(raw: float, stream: StreamMapping) -> str:
     a = abs(raw)
     if a < 1.0e7:
         return "seconds since the device booted: set time_base = 'boot' with boot_offset_s (or 'auto')"
-    if 1.0e11 < a < 1.0e13:
-        return "milliseconds: the stamps need dividing by 1000 (not a supported unit: convert the column)"
-    if 1.0e14 < a < 1.0e16:
-        return "microseconds: convert the stamps to seconds"
-    if 1.0e17 < a < 1.0e19:
-        return "nanoseconds: convert the stamps to seconds"
+    scalable = stream.source.lower().endswith((".csv", ".ubx"))  # tick_s scales CSV and UBX stamps
+    for lo, unit, tick in (
+        (1.0e11, "milliseconds", "0.001"),
+        (1.0e14, "microseconds", "1e-6"),
+        (1.0e17, "nanoseconds", "1e-9"),
+    ):
+        if lo < a < lo * 100.0:
+            return f"{unit}: " + (
+                f"set tick_s = {tick} in the stream" if scalable else "convert the stamps to seconds"
+            )
     if 1.0e9 < a < 2.5e9 and stream.time_base == "gps":
         return "POSIX seconds (UTC): set time_base = 'unix'"
     if 3.0e8 < a < 1.0e9 and stream.time_base in ("unix", "utc"):

@@ -145,7 +145,11 @@ class StreamMapping(_Model):
     )
     time_offset_s: float = Field(0.0, description="Added to every converted stamp, s")
     tick_s: float | None = Field(
-        None, gt=0, description="UBX ESF-RAW: duration of one sensor time-tag tick, s (receiver manual)"
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="Seconds per unit of the source's stamps: UBX ESF-RAW, one sensor time-tag tick "
+        "(receiver manual); a CSV, its t and dt column's unit (0.001 for milliseconds)",
     )
     rinex_options: dict[str, Any] = Field(
         default_factory=dict, description="RINEX: keyword options passed to iter_gnss_raw (its documentation)"
