@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from fednav.replay import checks
-from fednav.replay.mapping import from_dict
+from fednav.replay.mapping import MappingError, from_dict
 from fednav.replay.sources import SourceError, stream_events
 
 HEADER = "t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z"
@@ -260,7 +260,7 @@ def test_millisecond_stamps_are_named_and_tick_s_reads_them(tmp_path):
     inc += [f"{10 * k},0,0,0,0,0,0.0981,10" for k in range(1, 30)]
     ev, _ = read(tmp_path, "\n".join(inc) + "\n", name="inc.csv", form="increment", tick_s=0.001, **boot)
     assert len(ev) == 29 and all(e.msg.dt_s == pytest.approx(0.01) for e in ev)
-    with pytest.raises(SourceError, match="tick_s = inf: it must be a finite number"):
+    with pytest.raises(MappingError, match="tick_s: Input should be a finite number"):  # refused at load
         read(tmp_path, text, tick_s=float("inf"), **boot)
     # stamps in seconds are not touched by the test (a 10 Hz IMU, a 1 s gap)
     ev, stats = read(tmp_path, "\n".join([HEADER, *imu_rows(40, step=0.1)]) + "\n", name="10hz.csv")
