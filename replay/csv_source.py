@@ -200,14 +200,6 @@ def _open(path: Path) -> IO[str]:
         raise SourceError(f"{path}: {exc}") from None
 
 
-def _tick(stream: StreamMapping, path: Path) -> float | None:
-    """``tick_s``: seconds per unit of the file's t (and dt) columns; None: seconds."""
-    tick = stream.tick_s
-    if tick is not None and not (math.isfinite(tick) and tick > 0.0):
-        raise SourceError(f"{path}: tick_s = {tick!r}: it must be a finite number of seconds > 0")
-    return tick
-
-
 def _unresolved(stream: StreamMapping) -> bool:
     """A boot-time stream whose ``boot_offset_s = 'auto'`` has not been derived (the checks'
     resolve_boot_offsets failed, or a caller skipped it): the file is read in full first, so that a
@@ -244,7 +236,7 @@ def events(
     path = base / stream.source
     cols = RATE_COLUMNS if stream.form == "rate" else INCREMENT_COLUMNS
     other = ("increment", INCREMENT_COLUMNS) if stream.form == "rate" else ("rate", RATE_COLUMNS)
-    tick = _tick(stream, path)
+    tick = stream.tick_s  # (the mapping refuses one that is not a finite number > 0)
     b = _Builder(stream.matrix(), stream.gyro_scale(), stream.accel_scale(), stream.form, stats=stats)
     suffix = key_suffix(stream.kind, stream.sensor_id)
     with _open(path) as f:
@@ -331,7 +323,7 @@ def registry_events(
     entry = sensors.get(stream.kind)
     path = base / stream.source
     suffix = key_suffix(stream.kind, stream.sensor_id)
-    tick = _tick(stream, path)
+    tick = stream.tick_s  # (the mapping refuses one that is not a finite number > 0)
     unresolved = _unresolved(stream)
     with _open(path) as f:
         table = _Table(f, path)
