@@ -521,7 +521,10 @@ def _health_tab(v: str, pipelines: Sequence[str]) -> rrb.Vertical:
         _ts("queue depth", [h("queue_depth")]),
         _ts("latency intake -> publish (ms)", [h("latency_p50_ms"), h("latency_p99_ms")]),
         _ts("messages received / accepted", [h("received"), h("accepted")]),
-        _ts("messages rejected / dropped (overload)", [h("rejected_total"), h("dropped_overload")]),
+        _ts(
+            "messages rejected (total, by reason) / dropped (overload)",
+            [h("rejected_total"), f"{h('rejected')}/**", h("dropped_overload")],
+        ),
         grid_columns=2,
     )
     status = _states(

@@ -328,11 +328,15 @@ def _faults_summary(v: str, p: str, data: dict[str, Series]) -> dict[str, Any] |
 
 
 def _health_summary(v: str, data: dict[str, Series]) -> dict[str, Any] | None:
-    out = {}
+    out: dict[str, Any] = {}
     for name in paths.HEALTH_SCALARS:
         s = data.get(paths.health(v, name))
         if s is not None and len(s):
             out[name] = _f(s.values[-1])
+    root = paths.health_rejected(v, "_")[:-1]
+    reasons = {e[len(root) :]: _f(x.values[-1]) for e, x in data.items() if e.startswith(root) and len(x)}
+    if reasons:
+        out["rejected"] = dict(sorted(reasons.items(), key=lambda kv: -kv[1]))
     return out or None
 
 
@@ -939,7 +943,14 @@ def render_text(s: dict[str, Any]) -> str:
                     + ", ".join(f"{k} {v}" for k, v in st.items())
                 )
     for v, h in s["health"].items():
-        lines.append(f"health {v} (last): " + ", ".join(f"{k} {_fmt(x, 'g')}" for k, x in h.items()))
+        why = h.get("rejected") or {}
+        reasons = " (" + ", ".join(f"{k} {_fmt(x, 'g')}" for k, x in why.items()) + ")" if why else ""
+        text = ", ".join(
+            f"{k} {_fmt(x, 'g')}" + (reasons if k == "rejected_total" else "")
+            for k, x in h.items()
+            if k != "rejected"
+        )
+        lines.append(f"health {v} (last): " + text)
     for v, ins in s.get("inputs", {}).items():
         for sensor, x in ins.items():
             gaps = f", {len(x['gaps'])} gap(s) over 2 s" if x["gaps"] else ""

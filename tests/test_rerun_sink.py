@@ -14,7 +14,7 @@ import pytest
 from rerun.chunk import RrdReader
 
 from fednav.dashboards.blueprints import blueprint_factory
-from fednav.dashboards.inspect import inspect_rrd, read_series
+from fednav.dashboards.inspect import inspect_rrd, read_series, render_text
 from fednav.service.messages import (
     ActiveFault,
     Faults,
@@ -280,7 +280,9 @@ def test_summary_integrity_faults_health(recording):
     assert f["sharing_last"]["gnss"]["14"] == 0.5
     hl = s["health"][VEHICLE]
     assert hl["received"] == 2100 and hl["accepted"] == 2079 and hl["rejected_total"] == 21
+    assert hl["rejected"] == {"late": 20, "nan": 1}  # why, per reason (Health rejected), most first
     assert hl["latency_p99_ms"] == 4.0
+    assert "rejected_total 21 (late 20, nan 1)" in render_text(s)
 
 
 def test_entities_follow_the_layout(recording):

@@ -324,6 +324,11 @@ def health(vehicle: str, leaf: str | None = None) -> str:
     return base if leaf is None else f"{base}/{part(leaf)}"
 
 
+def health_rejected(vehicle: str, reason: str) -> str:
+    """The count of a vehicle's inputs refused for ``reason`` (Health ``rejected``)."""
+    return f"{health(vehicle, 'rejected')}/{part(reason)}"
+
+
 @dataclass(frozen=True)
 class ParsedPath:
     """An entity path split into its layout parts.

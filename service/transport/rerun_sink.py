@@ -754,6 +754,9 @@ class RerunSink:
             for name, v in values.items():
                 if v is not None:
                     self._add(paths.health(vehicle, name), "scalar", tn, float(v))
+            for reason, n in health.rejected.items():  # what was refused and why (its total above)
+                if n:
+                    self._add(paths.health_rejected(vehicle, reason), "scalar", tn, float(n))
             self._maybe_flush()
 
     def log_event(self, vehicle: str, t: float, text: str, level: str = "INFO") -> None:
