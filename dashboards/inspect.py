@@ -357,8 +357,10 @@ STOPPED_HEALTH_ROWS = 3
 
 
 def _status_timeline(status: Series | None, t_end: float | None) -> dict[str, Any]:
-    """Status changes, time per status, re-initialisations (back to initialising after the
-    first status)."""
+    """Status changes, time per status, re-initialisations: back to ``initialising`` (the INS
+    lost) or to ``unaided`` (a restart: a pipeline is unaided from its start until aided) from
+    another status after the first (a restart straight to unaided, e.g. after a time jump whose
+    alignment took less than a solution period, used to go uncounted)."""
     if status is None or len(status) == 0:
         return {"changes": [], "time_in_s": {}, "reinitialisations": 0}
     t = status.t_ns / 1e9
@@ -367,7 +369,8 @@ def _status_timeline(status: Series | None, t_end: float | None) -> dict[str, An
     dur: dict[str, float] = defaultdict(float)
     for i, v in enumerate(vals):
         dur[v] += (t[i + 1] if i + 1 < len(vals) else end) - t[i]
-    reinit = sum(1 for i, v in enumerate(vals) if i > 0 and v == "initialising")
+    fresh = ("initialising", "unaided")
+    reinit = sum(1 for i, v in enumerate(vals) if i > 0 and v in fresh and vals[i - 1] not in fresh)
     changes = [{"t": float(a), "status": v} for a, v in zip(t, vals, strict=True)]
     return {
         "changes": changes,

@@ -229,3 +229,14 @@ def test_view_rebuild_blueprint(stanford_rrd, capsys):
     assert view.main([str(path), "--rebuild-blueprint", "--print-command"]) == 0
     out = capsys.readouterr()
     assert ".rbl" in out.out and "'raim': 'integrity'" in out.err
+
+
+def test_a_restart_straight_to_unaided_counts_as_a_reinitialisation():
+    """A restart shows as unaided (or initialising while the INS is lost) after another status;
+    unaided at the start, and initialising followed by unaided, count once."""
+    from fednav.dashboards.inspect import Series, _status_timeline
+
+    vals = ["unaided", "aided", "degraded", "unaided", "aided", "initialising", "unaided", "aided"]
+    s = Series(np.arange(len(vals), dtype=np.int64) * 1_000_000_000, vals)
+    tl = _status_timeline(s, None)
+    assert tl["reinitialisations"] == 2
