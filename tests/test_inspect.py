@@ -240,3 +240,51 @@ def test_a_restart_straight_to_unaided_counts_as_a_reinitialisation():
     s = Series(np.arange(len(vals), dtype=np.int64) * 1_000_000_000, vals)
     tl = _status_timeline(s, None)
     assert tl["reinitialisations"] == 2
+
+
+def _innov_rows(factors: dict[str, float], epochs: int = 500) -> dict:
+    from scipy.stats import chi2
+
+    lo, hi = float(chi2.ppf(0.025, epochs) / epochs), float(chi2.ppf(0.975, epochs) / epochs)
+    return {
+        k: {"epochs": epochs, "windows": 50, "nis": f * f, "interval95": [lo, hi], "factor": f}
+        for k, f in factors.items()
+    }
+
+
+def test_a_fault_in_the_data_is_named_not_called_overconfidence():
+    """The demo's injected faults read as overconfidence: one satellite's pseudorange far off while
+    the receiver's other rows are consistent is that row's fault; gate refusals of fixes whose used
+    innovations are consistent are faulty fixes refused. A filter whose every row is off is
+    overconfident."""
+    from fednav.dashboards.inspect import _truth_verdict, _verdict
+
+    raw = {
+        "gnss_raw/main": {
+            "rows": _innov_rows({"C01.pr": 1.0, "C03.pr": 74.6, "C25.pr": 0.95, "C28.pr": 1.02})
+        }
+    }
+    verdict, _ = _verdict(None, {}, None, raw)
+    assert verdict.startswith("consistent (innovations") and "C03.pr 74" not in verdict.split(";")[0], verdict
+    assert "faulty data, not overconfidence: gnss_raw/main C03.pr" in verdict, verdict
+    fix = {"gnss_fix/main": {"rows": _innov_rows({"pos_e": 0.8, "pos_n": 0.95, "pos_u": 1.1})}}
+    gate = {
+        "gnss_fix/pos_e": {
+            "test": "innovation gate |r|/sqrt(S)",
+            "refused": 5,
+            "flagged": 5,
+            "implied_factor": 2.45,
+        }
+    }
+    verdict, _ = _verdict(None, gate, None, fix)
+    assert verdict.startswith("consistent") and "gnss_fix/pos_e (5 rows refused by the gate" in verdict, (
+        verdict
+    )
+    bad = {"gnss_fix/main": {"rows": _innov_rows({"pos_e": 2.5, "pos_n": 2.6, "pos_u": 2.4, "vel_e": 2.2})}}
+    verdict, _ = _verdict(None, gate, None, bad)
+    assert verdict.startswith("overconfident in north by 2.6x (innovations"), verdict
+    assert _truth_verdict({"east_m": 0.0, "north_m": 0.002, "up_m": 0.0}).startswith("consistent: ")
+    assert _truth_verdict({"east_m": 0.12, "north_m": 0.01, "up_m": 0.0}).startswith(
+        "overconfident in east: "
+    )
+    assert _truth_verdict({}) is None
