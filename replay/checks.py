@@ -903,7 +903,13 @@ def stamp_looks_like(raw: float, stream: StreamMapping) -> str:
     """What a raw stamp (as written in the source) looks like, for messages."""
     a = abs(raw)
     if a < 1.0e7:
-        return "seconds since the device booted: set time_base = 'boot' with boot_offset_s (or 'auto')"
+        tow = (
+            " (or GPS seconds of the week, 0-604800: set time_offset_s = the week's start, "
+            "GPS week x 604800, with time_base = 'gps')"
+            if a < 604800.0
+            else ""
+        )
+        return "seconds since the device booted: set time_base = 'boot' with boot_offset_s (or 'auto')" + tow
     scalable = stream.source.lower().endswith((".csv", ".ubx"))  # tick_s scales CSV and UBX stamps
     for lo, unit, tick in (
         (1.0e11, "milliseconds", "0.001"),
