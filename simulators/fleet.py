@@ -185,17 +185,19 @@ def end_fleet(session, stats: dict, drain_keys: list[str]) -> dict:
     """After :func:`publish_fleet`: wait for the services to take what is queued (``drain``), then
     say whether the subscribers went away meanwhile (``subscriber_lost``), and undeclare. The
     result as :func:`fednav.simulators.publisher.publish_stream`'s, for ``report_end``."""
-    from fednav.simulators.publisher import drain
+    from fednav.simulators.publisher import drain, services_visible
 
     drained = drain(session, drain_keys)
+    seen = None
     if drained is None:
         time.sleep(0.5)  # no fednav service answers: let the transmission queues empty a little
+        seen = services_visible(session, {k.split("/", 1)[0] for k in drain_keys})
     watch = stats.pop("watch")
     lost = watch.lost()
     watch.close()
     for p in stats.pop("pubs").values():
         p.undeclare()
-    return {**stats, "drained": False if lost else drained, "subscriber_lost": lost}
+    return {**stats, "drained": False if lost else drained, "subscriber_lost": lost, "services_seen": seen}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -129,6 +129,19 @@ def drain(session: zenoh.Session, keys: list[str], timeout_s: float = DRAIN_TIME
     return unanswered == 0
 
 
+def services_visible(session: zenoh.Session, prefixes: Iterable[str], timeout_s: float = 1.0) -> bool:
+    """Whether any fednav service's liveliness token (``{prefix}/_services/*``) is visible to this
+    session: with :func:`drain` answered by none, it tells "no service serves these vehicles" (a
+    service is there) from "this client may not ask" (a router's access control lets a simulator
+    neither query status nor see the tokens)."""
+    for prefix in prefixes:
+        if any(
+            r.ok is not None for r in session.liveliness().get(f"{prefix}/_services/*", timeout=timeout_s)
+        ):
+            return True
+    return False
+
+
 def session_config(
     connect: list[str] | None = None,
     listen: list[str] | None = None,
@@ -168,21 +181,32 @@ def report_end(result: dict, prog: str, vehicles: list[str] | None = None) -> in
     """What a command line says after :func:`publish_stream` (``result``), on stderr, and its exit
     code: 4 when the subscribers went away during the stream (what was published meanwhile reached
     nobody); 5 when no fednav service serves the vehicle(s) (``vehicles``; the end-of-stream
-    status queries had no reply, :func:`drain`: the messages reached other subscribers only, e.g.
-    a service serving other vehicles, which counts them as ``unserved_vehicle``); a warning and 0
-    when the service did not confirm the end in time; else nothing, 0."""
+    status queries had no reply, :func:`drain`, while a service is visible,
+    :func:`services_visible`: the messages reached other subscribers only, e.g. a service serving
+    other vehicles, which counts them as ``unserved_vehicle``); a warning and 0 when no service is
+    visible at all (none on the bus, or access control) or the service did not confirm the end in
+    time; else nothing, 0."""
     if result.get("drained") is None and result.get("messages") and not result.get("subscriber_lost"):
         vs = list(vehicles or [])
         names = ", ".join(repr(v) for v in vs[:3]) + (f" and {len(vs) - 3} more" if len(vs) > 3 else "")
         names = names or "the published vehicle(s)"
+        if result.get("services_seen"):
+            print(
+                f"{prog}: no fednav service serves vehicle {names}: the messages reached other "
+                "subscribers only (a service serving other vehicles refuses them as unserved_vehicle); "
+                'start the service with --vehicle (or vehicles = [...] / ["*"] in its config) for this '
+                "name, or publish under the name it serves",
+                file=sys.stderr,
+            )
+            return 5
+        # no service visible: none on the bus (other subscribers only), or a router's access
+        # control that lets this client neither ask a status nor see the services: not an error
         print(
-            f"{prog}: no fednav service serves vehicle {names}: the messages reached other subscribers "
-            "only (a service serving other vehicles refuses them as unserved_vehicle); start the "
-            'service with --vehicle (or vehicles = [...] / ["*"] in its config) for this name, or '
-            "publish under the name it serves",
+            f"{prog}: warning: no fednav service confirmed vehicle {names} (none answered its status "
+            "at the end of the stream and none is visible: no service on the bus, or this client may "
+            "not ask, e.g. behind a router's access control)",
             file=sys.stderr,
         )
-        return 5
     if result.get("subscriber_lost"):
         print(
             f"{prog}: the subscribers went away during the stream (a link closed or the "
@@ -280,8 +304,10 @@ def publish_stream(
                 pubs[key].put(imu_batch_codec.encode_samples(pending))
         wall = time.monotonic() - (wall0 or time.monotonic())
         drained = drain(session, status_keys(pubs), drain_timeout_s) if pubs else None
-        if drained is None:  # no fednav service: let the transmission queues empty a little
+        seen = None
+        if drained is None:  # no fednav service answered: let the transmission queues empty a little
             time.sleep(linger_s)
+            seen = services_visible(session, {k.split("/", 1)[0] for k in pubs})
         lost = watch is not None and watch.lost()
         if lost:
             drained = False
@@ -291,4 +317,4 @@ def publish_stream(
         for p in pubs.values():
             p.undeclare()
         session.close()
-    return {"messages": n, "wall_s": wall, "drained": drained, "subscriber_lost": lost}
+    return {"messages": n, "wall_s": wall, "drained": drained, "subscriber_lost": lost, "services_seen": seen}
