@@ -54,6 +54,10 @@ _SHUTDOWN_DRAIN_S = 5.0
 #: control item of a pool worker: the vehicle moved to another service of the fleet
 RETIRE = "__retire__"
 _MAX_LOGGED_NAMES = 100
+#: a vehicle of a '*' service that has accepted no message yet (only refused ones: another
+#: client's data under a vehicle's sensor keys) is released after this long without input, not
+#: [intake] vehicle_idle_s: foreign names must not hold max_vehicles slots for minutes
+NEVER_ACCEPTED_IDLE_S = 10.0
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
 STATUS_ENCODING = "application/json;fednav.Status/1"
 CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
@@ -276,6 +280,10 @@ class VehicleWorker:
         # started at once does not publish every vehicle's Health in the same scan (a burst that
         # holds the intake for ~0.3 ms per vehicle, the latency tail of every vehicle behind it)
         self.next_health = time.monotonic() + config.output.health_period_s * health_phase(vehicle)
+
+    def accepted_any(self) -> bool:
+        """Whether the vehicle has taken any message (else only refused ones)."""
+        return self.loop.accepted > 0
 
     @property
     def received(self) -> int:
@@ -531,7 +539,8 @@ class PoolWorker:
             return
         self._next_scan = now + 0.05
         for v in list(self.vehicles):
-            if v.idle_s and now - v.last_input >= v.idle_s and not v.queued:
+            idle = v.idle_s if v.accepted_any() else min(v.idle_s, NEVER_ACCEPTED_IDLE_S)
+            if idle and now - v.last_input >= idle and not v.queued:
                 self._release(v, now)
                 continue
             if now >= v.next_health:
@@ -958,6 +967,11 @@ class Service:
         serve_all = "*" in self.config.vehicles
         if not serve_all and vehicle not in self.config.vehicles:
             return self._refuse("unserved_vehicle", vehicle)
+        if pk is None and vehicle not in self.workers:
+            # a key that is no sensor input (another client's data under the prefix): counted for
+            # the service, no vehicle made of it (150 foreign names made 150 vehicles, each with
+            # its token, Health and a max_vehicles slot for [intake] vehicle_idle_s)
+            return self._refuse("unknown_key", vehicle)
         if serve_all and vehicle not in self.workers and len(self.workers) >= self.config.intake.max_vehicles:
             return self._refuse("vehicle_limit", vehicle)
         w = self._worker(vehicle)

@@ -172,3 +172,37 @@ def test_ros2_input_keeps_its_vehicle_from_being_released():
     finally:
         svc.pool[0].request_stop()
         svc.pool[0].stop(time.monotonic() + 2.0)
+
+
+def test_another_clients_keys_under_the_prefix_make_no_vehicle(tmp_path):
+    """Keys that are no sensor input under a vehicle-like name (a dashboard's commands, a
+    diagnostics blob: another client on the bus) are counted for the service (ServiceHealth
+    ``unknown_key``), not made vehicles with a token, Health and a max_vehicles slot."""
+    port = free_port()
+    svc = start_service(port, config=_config(tmp_path, 600.0), table="service")
+    session = zenoh_client(port)
+    healths: list[dict] = []
+    sub = session.declare_subscriber(
+        "fednav/_services/*/health", lambda s: healths.append(json.loads(s.payload.to_bytes()))
+    )
+    try:
+        for k in range(5):
+            session.put(f"fednav/ghost{k}/cmd/zoom", b"2")
+            session.put(f"fednav/diag{k}/blob", b"\x00" * 100)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            h = ServiceHealth.model_validate(healths[-1]) if healths else None
+            if h is not None and h.refused_before_routing.get("unknown_key", 0) >= 10:
+                break
+            time.sleep(0.2)
+        assert h is not None and h.refused_before_routing.get("unknown_key", 0) == 10, h
+        assert h.active_vehicles == [] and not _alive(session, "ghost0")
+        # a real vehicle still gets its slot (max_vehicles = 2)
+        _publish(Publisher(session), "real1", 1.0)
+        assert wait_idle(port, vehicle="real1")
+    finally:
+        sub.undeclare()
+        svc.signal(signal.SIGTERM)
+        rc = svc.wait(timeout=30)
+        session.close()
+    assert rc == 0

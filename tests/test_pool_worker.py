@@ -57,6 +57,10 @@ class _Vehicle:
         self.on_released = None
         self.reroute = None
         self.rr = None
+        self.took_any = True
+
+    def accepted_any(self) -> bool:
+        return self.took_any
 
     def publish_health(self) -> None:
         self.health_published += 1
@@ -207,3 +211,31 @@ def test_latency_window_percentiles_are_numpys(size, count):
         float(np.percentile(window, 99)),
         float(window.max()),
     )
+
+
+def test_a_vehicle_that_took_nothing_is_released_after_a_short_silence(monkeypatch):
+    """Another client's data under a vehicle's sensor keys, all refused: that name made a vehicle
+    that held a max_vehicles slot for [intake] vehicle_idle_s (600 s); with nothing ever accepted
+    it goes after NEVER_ACCEPTED_IDLE_S of silence, a vehicle that took data keeps its idle time."""
+    from fednav.service import app
+
+    monkeypatch.setattr(app, "NEVER_ACCEPTED_IDLE_S", 0.2)
+    busy = [False]
+    pw = PoolWorker(0, _config(0), None, True)
+    ghost, real = _Vehicle("ghost", busy), _Vehicle("real", busy)
+    ghost.took_any = False
+    released: list = []
+    for v in (ghost, real):
+        v.idle_s = 600.0
+        v.on_released = released.append
+        v.last_input = time.monotonic()
+    pw.vehicles += [ghost, real]
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline and not released:  # the real one keeps sending (the scans run)
+        pw.submit(real, (time.monotonic(), "imu", "", b"x"))
+        real.last_input = time.monotonic()
+        time.sleep(0.02)
+    assert released == [ghost] and ghost.released
+    assert pw.vehicles == [real] and not real.released
+    pw.request_stop()
+    pw.stop(time.monotonic() + 5.0)
