@@ -11,10 +11,13 @@ endpoint) that ask what every fednav service already offers (docs/fleet.md):
   ``{prefix}/{vehicle}/service/alive`` (one per served vehicle);
 * queryables ``{prefix}/{vehicle}/service/status`` (health per pipeline), ``.../service/config``
   and ``{prefix}/{vehicle}/nav/{pipeline}/solution`` (the latest Solution). Every reply names the
-  Zenoh session that sent it (``Reply.replier_id``): that is the service of the vehicle. Queries
-  ask every queryable (``QueryTarget.ALL``) and keep every reply (``ConsolidationMode.NONE``), so
-  a vehicle two services answer for is seen twice and flagged;
-* ServiceHealth on ``{prefix}/_services/{zid}/health`` (record only: a subscription).
+  Zenoh session that sent it (``Reply.replier_id``): that is the service of the vehicle when that
+  session holds a service token (a replier without one, e.g. a Zenoh storage keeping ``fednav/**``,
+  is named under ``other_repliers``, not counted). Queries ask every queryable
+  (``QueryTarget.ALL``) and keep every reply (``ConsolidationMode.NONE``), so a vehicle two
+  services answer for is seen twice and flagged;
+* ServiceHealth on ``{prefix}/_services/{zid}/health`` (record only: a subscription; a service
+  whose token is gone or whose ServiceHealth is older than ``HEALTH_STALE_S`` leaves the load plot).
 
 A service whose configuration differs from the others' (other pipelines or pipeline settings) is
 named, as is a service under another prefix (found by its ``*/_services/*`` token), instead of
@@ -47,6 +50,8 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 #: ``fednav-fleet record``: how long it waits at its start for the router (a recorder started with
 #: its router, or before it, by a process manager)
 RECORD_WAIT_S = 30.0
+#: ``fednav-fleet record``: a service whose last ServiceHealth (1 Hz) is older than this has left
+HEALTH_STALE_S = 3.0
 #: a solution whose time is further than this from this machine's clock is not on live time
 LIVE_WINDOW_S = 86_400.0
 #: worst first: the status a vehicle's lane shows when its pipelines disagree
@@ -173,7 +178,7 @@ class Fleet:
         now_gps = gps_now_s() if now_gps is None else now_gps
         # narrow selectors: an access control (secure/router.json5) allows a liveliness query only
         # inside the key expressions it lists
-        service_tokens = {k.split("/")[-1] for k in _tokens(self.session, f"{p}/_services/*", self.timeout_s)}
+        service_tokens = self._service_zids()
         alive = {k.split("/")[1] for k in _tokens(self.session, f"{p}/*/service/alive", self.timeout_s)}
         others = []
         for k in _tokens(self.session, "**/_services/*", self.timeout_s):
@@ -181,17 +186,26 @@ class Fleet:
             if other != p:
                 others.append({"zid": k.rsplit("/", 1)[-1], "prefix": other})
 
+        sol_replies = _get(self.session, f"{p}/*/nav/*/solution", self.timeout_s)
+        status_replies = _get(self.session, f"{p}/*/service/status", self.timeout_s)
+        repliers = {zid or "?" for _, zid, _ in sol_replies + status_replies}
+        if repliers - service_tokens:  # a service declares its queryables just before its token
+            service_tokens |= self._service_zids()
+        # a replier without a service token (a Zenoh storage keeping fednav/**, a recorder's
+        # replay, ...) is no fednav service: named once, its replies are not counted as a service's
+        other_repliers = sorted(repliers - service_tokens)
+
         solutions: dict[tuple[str, str], dict[str, dict]] = {}  # (vehicle, zid) -> pipeline -> Solution
-        for key, zid, payload in _get(self.session, f"{p}/*/nav/*/solution", self.timeout_s):
+        for key, zid, payload in sol_replies:
             d = _json(payload)
-            if d is not None:
+            if d is not None and (zid or "?") in service_tokens:
                 parts = key.split("/")
                 solutions.setdefault((parts[1], zid or "?"), {})[parts[3]] = d
 
         status: dict[str, dict[str, dict]] = {}  # vehicle -> zid -> status JSON
-        for key, zid, payload in _get(self.session, f"{p}/*/service/status", self.timeout_s):
+        for key, zid, payload in status_replies:
             d = _json(payload)
-            if d is not None:
+            if d is not None and (zid or "?") in service_tokens:
                 status.setdefault(key.split("/")[1], {})[zid or "?"] = d
         services: dict[str, dict] = {
             z: {"zid": z, "alive": True, "vehicles": [], "pipelines": [], "received": 0}
@@ -264,8 +278,13 @@ class Fleet:
             "services": list(services.values()),
             "vehicles": list(vehicles.values()),
             "other_prefixes": others,
+            "other_repliers": other_repliers,
             "problems": problems,
         }
+
+    def _service_zids(self) -> set[str]:
+        """The zids holding a ``{prefix}/_services/{zid}`` liveliness token: the running services."""
+        return {k.split("/")[-1] for k in _tokens(self.session, f"{self.prefix}/_services/*", self.timeout_s)}
 
 
 # --- status ----------------------------------------------------------------------------------------
@@ -287,6 +306,11 @@ def format_status(snap: dict) -> str:
             (s["zid"], str(len(s["vehicles"])), ",".join(s["pipelines"]) or "-", str(s["received"]), cfg)
         )
     lines += _table(rows)
+    if snap.get("other_repliers"):
+        lines.append(
+            f"other repliers (answer on {snap['prefix']}/** without a service token; not services): "
+            + ", ".join(snap["other_repliers"])
+        )
     rows = [("VEHICLE", "SERVICE", "PIPELINE", "STATUS", "LAST T (GPS s)", "AGE", "LAG")]
     for v in snap["vehicles"]:
         if not v["services"]:
@@ -404,7 +428,8 @@ class FleetRecorder:
     (GeoLineStrings, thinned), ``/enu/{vehicle}`` (Points2D: east, -north from the first vehicle's
     first position), ``/status/{vehicle}`` (StateChange: the worst status of its pipelines, or
     "no answer" / "served twice"; per pipeline under ``/status/{vehicle}/{pipeline}`` when it has
-    several), ``/load/vehicles/{zid}`` and ``/load/messages_per_s/{zid}`` (Scalars)."""
+    several), ``/load/vehicles/{zid}`` and ``/load/messages_per_s/{zid}`` (Scalars) of each
+    service holding its token (and whose ServiceHealth is not stale)."""
 
     def __init__(self, path: str | Path, track_every: int = 5):
         import rerun as rr
@@ -427,6 +452,7 @@ class FleetRecorder:
         self.vehicles_seen: set[str] = set()
         self.services_seen: set[str] = set()
         self.services_named: set[str] = set()
+        self.services_live: set[str] = set()  # the services whose load the last snapshot logged
         self.enu_bounds = (math.inf, -math.inf, math.inf, -math.inf)  # x (east), y (-north)
 
     def _color(self, v: str) -> int:
@@ -461,7 +487,15 @@ class FleetRecorder:
         self.states[path] = state
         self.rec.log(path, self.rr.StateChange(state=state))
 
-    def log(self, snap: dict, service_health: dict[str, dict], wall: float) -> None:
+    def log(
+        self,
+        snap: dict,
+        service_health: dict[str, dict],
+        wall: float,
+        stale_health: frozenset[str] | set[str] = frozenset(),
+    ) -> None:
+        """One snapshot. ``service_health``: the latest ServiceHealth per zid (current ones);
+        ``stale_health``: the zids whose ServiceHealth stopped (older than ``HEALTH_STALE_S``)."""
         import numpy as np
 
         from fednav.service import earth
@@ -515,7 +549,19 @@ class FleetRecorder:
         }
         answering = {s["zid"]: len(s["vehicles"]) for s in snap["services"]}
         prev_wall, self.counts_wall = self.counts_wall, wall
-        for zid in sorted(set(answering) | set(service_health)):
+        # a service counts while it holds its token and its ServiceHealth (if it sent any) is
+        # current: a killed service's last ServiceHealth must not count its vehicles forever
+        live = {s["zid"] for s in snap["services"] if s.get("alive", True)} - set(stale_health)
+        for zid in sorted(self.services_live - live):
+            # a departed service's series end with one 0: a line that simply stops would read (and
+            # answer Rerun's latest-at queries, e.g. on hover) as its last load to the end of the
+            # recording; the drop to 0 shows where it left and the sum over services stays the
+            # fleet; nothing after it (no flat 0 for the rest of the recording). It comes back as
+            # the same series if its token and ServiceHealth do.
+            for what in ("vehicles", "messages_per_s"):
+                self.rec.log(f"/load/{what}/{zid}", rr.Scalars(0.0))
+        self.services_live = live
+        for zid in sorted(live):
             self.services_seen.add(zid)
             sh = service_health.get(zid)
             n_veh = len(sh.get("active_vehicles", [])) if sh else answering.get(zid, 0)
@@ -552,14 +598,14 @@ class FleetRecorder:
 
 def record(fleet: Fleet, out: Path, duration_s: float | None, rate_hz: float, stop: threading.Event) -> dict:
     """Snapshots at ``rate_hz`` into ``out`` until ``duration_s`` (None: until ``stop``)."""
-    health: dict[str, dict] = {}
+    health: dict[str, tuple[float, dict]] = {}  # zid -> (time.monotonic() of arrival, ServiceHealth)
     lock = threading.Lock()
 
     def on_health(sample) -> None:
         d = _json(sample.payload.to_bytes())
         if d is not None:
             with lock:
-                health[str(sample.key_expr).split("/")[-2]] = d
+                health[str(sample.key_expr).split("/")[-2]] = (time.monotonic(), d)
 
     sub = fleet.session.declare_subscriber(f"{fleet.prefix}/_services/*/health", on_health)
     recorder = FleetRecorder(out)
@@ -571,9 +617,11 @@ def record(fleet: Fleet, out: Path, duration_s: float | None, rate_hz: float, st
         while not stop.is_set():
             snap = fleet.snapshot()
             problems.update(snap["problems"])
+            now = time.monotonic()
             with lock:
-                sh = dict(health)
-            recorder.log(snap, sh, time.time())
+                sh = {z: d for z, (t, d) in health.items() if now - t <= HEALTH_STALE_S}
+                stale = set(health) - set(sh)
+            recorder.log(snap, sh, time.time(), stale)
             k += 1
             if duration_s is not None and time.monotonic() - t0 >= duration_s:
                 break

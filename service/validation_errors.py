@@ -62,16 +62,29 @@ def format_errors(err: ValidationError, model: type[BaseModel], heading: str) ->
 _RANGE_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal"}
 
 
+#: (reason, the error types that give it), first match wins
+_REASONS = (
+    ("malformed_json", {"json_invalid", "json_type"}),
+    ("non_finite", {"finite_number"}),
+    ("absurd_value", {"value_error"}),
+    ("out_of_range", _RANGE_ERRORS),
+)
+
+
 def classify(err) -> str:
     """Rejection reason of a pydantic validation error, as Health counts it (the service's worker
     and the ROS 2 bridge both use it)."""
     types = {e["type"] for e in err.errors()}
-    if "json_invalid" in types or "json_type" in types:
-        return "malformed_json"
-    if "finite_number" in types:
-        return "non_finite"
-    if "value_error" in types:
-        return "absurd_value"
-    if types & _RANGE_ERRORS:
-        return "out_of_range"
-    return "schema"
+    return next((reason for reason, ts in _REASONS if types & ts), "schema")
+
+
+def reason_and_text(err) -> tuple[str, str]:
+    """:func:`classify`'s reason and the message of the error that gave it, with its field (a log
+    line naming one reason with another error's text, 'non_finite: ... Extra inputs are not
+    permitted', misleads)."""
+    reason = classify(err)
+    errors = err.errors(include_url=False)
+    ts = dict(_REASONS).get(reason)
+    e = next((e for e in errors if ts is None or e["type"] in ts), errors[0])
+    loc = ".".join(str(p) for p in e["loc"])
+    return reason, f"{loc}: {e['msg']}" if loc else e["msg"]

@@ -33,7 +33,7 @@ log = logging.getLogger("fednav.service")
 MAX_PAYLOAD_BYTES = 1 << 20
 #: wall seconds without a message from a stream after which Health calls it stale
 STALE_WALL_S = 2.0
-from fednav.service.validation_errors import classify  # noqa: E402  (one set of rules)
+from fednav.service.validation_errors import classify, reason_and_text  # noqa: E402  (one set of rules)
 
 
 class RateLimitedLog:
@@ -173,7 +173,8 @@ class VehicleLoop:
         try:
             msg = model.model_validate_json(payload)
         except ValidationError as err:
-            self.reject(classify(err), f"{kind}/{sensor_id}: {err.errors()[0]['msg']}")
+            reason, text = reason_and_text(err)
+            self.reject(reason, f"{kind}/{sensor_id}: {text}")
             return
         self._handle(kind, sensor_id, msg, wall)
 

@@ -349,3 +349,181 @@ def test_a_recorder_without_its_router_gives_up_after_its_wait():
     assert r.returncode == 2, r.stderr
     assert "answered on tcp/127.0.0.1" in r.stderr and "within 1.5 s" in r.stderr, r.stderr
     assert time.monotonic() - t0 >= 1.5
+
+
+def _series_times(rrd: Path, entity: str) -> list[tuple[float, float]]:
+    """(wall_time as Unix seconds, value) of each temporal row of one Scalars entity, in time order."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(rrd)
+    out: list[tuple[float, float]] = []
+    for ch in reader.stream(store=reader.recordings()[0]):
+        if ch.is_static or ch.entity_path != entity:
+            continue
+        batch: pa.RecordBatch = ch.to_record_batch()
+        ns = batch.column("wall_time").cast(pa.int64()).to_pylist()
+        values = pc.list_element(batch.column("Scalars:scalars"), 0).to_pylist()
+        out += [(t / 1e9, v) for t, v in zip(ns, values, strict=True)]
+    return sorted(out)
+
+
+def test_a_killed_service_leaves_the_recorded_load(tmp_path):
+    """Two services serving ``*`` (each serves both vehicles: no sharding), ``record --rate 2``
+    running; one service is killed (SIGKILL: no goodbye). Its ``/load/vehicles/{zid}`` series
+    ends within a few seconds (a 0 where it left, nothing after), the other service's goes on."""
+    port = free_port()
+    router = _router(port)
+    procs = [router]
+    watcher = _client(port)
+    zids: list[str] = []
+
+    def on_health(sample) -> None:
+        z = str(sample.key_expr).split("/")[2]
+        if z not in zids:
+            zids.append(z)
+
+    sub = watcher.declare_subscriber("fednav/_services/*/health", on_health)
+    rrd = tmp_path / "fleet.rrd"
+    doomed = None
+
+    def wait_zids(n: int) -> None:
+        deadline = time.monotonic() + 20
+        while len(zids) < n and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(zids) == n, zids
+
+    try:
+        procs.insert(0, _service(port, "--vehicle", "*"))
+        wait_zids(1)
+        doomed = _service(port, "--vehicle", "*")
+        wait_zids(2)
+        kept_zid, doomed_zid = zids
+        sim = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "2", "--duration", "40"]
+            + ["--connect", f"tcp/127.0.0.1:{port}"],
+            "fednav-sim fleet",
+        )
+        procs.insert(0, sim)
+        assert sim.wait_for("publishing", timeout=60), sim.output()
+        record = _fleet("record", "-o", str(rrd), "--duration", "13", "--rate", "2", port=port)
+        time.sleep(5.0)  # a few snapshots with both services
+        assert record.poll() is None
+        doomed.p.kill()
+        doomed.wait(timeout=30)
+        killed = time.time()
+        rec_out, rec_err = record.communicate(timeout=60)
+    finally:
+        if doomed is not None:
+            doomed.kill()  # only if a failure left it running
+        sub.undeclare()
+        watcher.close()
+        rcs = _stop(*procs)
+    assert rcs[1:] == [0, 0], [p.output() for p in procs]  # the kept service and the router
+    assert record.returncode in (0, 1), rec_out + rec_err  # 1: every vehicle served twice
+    rows, _, scalars, _ = _read(rrd)
+    gone = _series_times(rrd, f"/load/vehicles/{doomed_zid}")
+    kept = _series_times(rrd, f"/load/vehicles/{kept_zid}")
+    print(
+        f"killed at {killed:.1f}; its load: {[(round(t - killed, 1), v) for t, v in gone]}; "
+        f"the other's last row {kept[-1][0] - killed:.1f} s after"
+    )
+    assert rows[f"/load/vehicles/{doomed_zid}"] == len(gone)
+    assert [v for t, v in gone if t < killed - 0.5][-2:] == [2.0, 2.0], gone  # it was counted
+    # its series ends: a 0 where it left (its token went with its link; or 3 s without
+    # ServiceHealth), nothing after it
+    assert gone[-1][0] <= killed + 4.0, gone
+    assert gone[-1][1] == 0.0 and scalars[f"/load/vehicles/{doomed_zid}"][-1] == 0.0
+    assert [v for t, v in gone if t > killed] in ([0.0], [2.0, 0.0], [2.0, 2.0, 0.0]), gone
+    # the recording goes on with the other service alone: the load adds up to the fleet's 2
+    assert kept[-1][0] > killed + 6.0, kept
+    assert all(v == 2.0 for t, v in kept if t > killed + 1.0), kept
+
+
+def test_a_zenoh_storage_on_the_fleets_keys_is_no_service():
+    """A plain Zenoh storage (the latest sample of every key under ``fednav/**``, answering
+    queries there) replies to ``fednav-fleet status``'s solution queries beside the service: it
+    holds no ``fednav/_services/{zid}`` token, so it is no service. Nothing is served twice, it
+    is named once under ``other_repliers`` (and on one line of the table), exit 0."""
+    import threading
+
+    port = free_port()
+    router = _router(port)
+    procs = [router]
+    storage = _client(port)
+    latest: dict[str, bytes] = {}
+    lock = threading.Lock()
+
+    def keep(sample) -> None:
+        with lock:
+            latest[str(sample.key_expr)] = sample.payload.to_bytes()
+
+    def answer(query) -> None:
+        with lock:
+            items = list(latest.items())
+        for key, payload in items:
+            if zenoh.KeyExpr(key).intersects(query.key_expr):
+                query.reply(key, payload)
+
+    sub = storage.declare_subscriber("fednav/**", keep)
+    qbl = storage.declare_queryable("fednav/**", answer)
+    storage_zid = str(storage.zid())
+    solutions = ["fednav/veh000/nav/lc/solution", "fednav/veh001/nav/lc/solution"]
+    try:
+        procs.insert(0, _service(port, "--vehicle", "*"))
+        sim = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "2", "--duration", "40"]
+            + ["--connect", f"tcp/127.0.0.1:{port}"],
+            "fednav-sim fleet",
+        )
+        procs.insert(0, sim)
+        assert sim.wait_for("publishing", timeout=60), sim.output()
+        deadline = time.monotonic() + 30
+        while not all(k in latest for k in solutions) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert all(k in latest for k in solutions), sorted(latest)[:20]
+        # the storage does answer a solution query of another client, with its own zid
+        asker = _client(port)
+        try:
+            replies = [
+                str(r.replier_id.zid)
+                for r in asker.get(
+                    "fednav/*/nav/*/solution",
+                    timeout=3.0,
+                    target=zenoh.QueryTarget.ALL,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                )
+                if r.ok is not None and r.replier_id is not None
+            ]
+        finally:
+            asker.close()
+        assert replies.count(storage_zid) == 2, replies
+        snap, deadline = None, time.monotonic() + 20
+        while time.monotonic() < deadline:  # until the service answers for both vehicles
+            status = _fleet("status", "--json", port=port)
+            out, err = status.communicate(timeout=60)
+            snap = json.loads(out)
+            if len(snap["vehicles"]) == 2 and all(v["services"] for v in snap["vehicles"]):
+                break
+            time.sleep(0.5)
+        table = _fleet("status", port=port)
+        text, text_err = table.communicate(timeout=60)
+    finally:
+        sub.undeclare()
+        qbl.undeclare()
+        storage.close()
+        rcs = _stop(*procs)
+    assert rcs[1:] == [0, 0], [p.output() for p in procs]
+    print(text)
+    assert status.returncode == 0, out + err
+    assert table.returncode == 0, text + text_err
+    assert [v["vehicle"] for v in snap["vehicles"]] == ["veh000", "veh001"]
+    (service,) = snap["services"]
+    assert service["zid"] != storage_zid and service["vehicles"] == ["veh000", "veh001"]
+    for v in snap["vehicles"]:
+        assert not v["served_twice"] and v["services"] == [service["zid"]], v
+        assert list(v["by_service"]) == [service["zid"]]
+    assert snap["other_repliers"] == [storage_zid]
+    assert snap["problems"] == []
+    lines = [ln for ln in text.splitlines() if storage_zid in ln]
+    assert len(lines) == 1 and lines[0].startswith("other repliers"), text
+    assert "(twice!)" not in text

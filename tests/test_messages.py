@@ -85,3 +85,15 @@ def test_schemas_are_2020_12_with_uri_ids_and_every_field_described():
             if not ps.get("description")
         ]
         assert not undescribed, undescribed
+
+
+def test_a_refusal_names_the_error_that_gave_its_reason():
+    """A message with two problems (an extra field, a NaN): the reason is non_finite and its text
+    the NaN's, with the field ('non_finite: ... Extra inputs are not permitted' misled)."""
+    from fednav.service.validation_errors import reason_and_text
+
+    raw = b'{"t": 1.0, "dt_s": 0.01, "dtheta_rad": [NaN, 0, 0], "dvel_mps": [0, 0, 9.8], "junk": 1}'
+    with pytest.raises(ValidationError) as ei:
+        ImuSample.model_validate_json(raw)
+    reason, text = reason_and_text(ei.value)
+    assert reason == "non_finite" and text.startswith("dtheta_rad.0: ") and "finite" in text, text

@@ -76,13 +76,20 @@ class RosUnavailable(RuntimeError):
     pass
 
 
+def _why(err, where: str) -> tuple[str, str]:
+    """(reason, text) of a validation error, the text the error's that gave the reason."""
+    reason, text = reason_and_text(err)
+    return reason, f"{where}{text}"
+
+
 class RosDecodeError(ValueError):
     def __init__(self, reason: str, text: str):
         super().__init__(text)
         self.reason = reason
 
 
-from fednav.service.validation_errors import classify  # noqa: E402  (one set of rules)
+from fednav.service.validation_errors import classify as classify  # noqa: E402  (one set of rules)
+from fednav.service.validation_errors import reason_and_text  # noqa: E402
 
 
 def _wire(model: type[WireModel], data: dict, what: str) -> WireModel:
@@ -91,7 +98,7 @@ def _wire(model: type[WireModel], data: dict, what: str) -> WireModel:
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise RosDecodeError(classify(err), f"{what}: {err.errors()[0]['msg']}") from None
+        raise RosDecodeError(*_why(err, f"{what}: ")) from None
 
 
 @functools.cache
@@ -703,7 +710,7 @@ class RosInput:
         try:
             m = decode(msg, self._t(stamp_ns), inp.sensor_id)
         except ValidationError as err:
-            raise RosDecodeError(classify(err), f"{kind}/{inp.sensor_id}: {err.errors()[0]['msg']}") from None
+            raise RosDecodeError(*_why(err, f"{kind}/{inp.sensor_id}: ")) from None
         except ValueError as exc:
             raise RosDecodeError("absurd_value", f"{kind}/{inp.sensor_id}: {exc}") from None
         return [] if m is None else [(kind, inp.sensor_id, m)]
@@ -763,7 +770,7 @@ class RosInput:
                 t, dt_s, w, a, prev.rate_flu_rps, prev.accel_flu_mps2, self.cfg.imu_integration
             )
         except ValidationError as err:
-            raise RosDecodeError(classify(err), f"imu/{inp.sensor_id}: {err.errors()[0]['msg']}") from None
+            raise RosDecodeError(*_why(err, f"imu/{inp.sensor_id}: ")) from None
         self.stamps.remember(t, stamp_ns)
         return [("imu", inp.sensor_id, sample)]
 
@@ -790,7 +797,7 @@ class RosInput:
         try:  # the fix is checked alone first: with or without a Twist, a bad one goes no further
             position = gnss_fix_from_ros(fix, None)
         except ValidationError as err:
-            raise RosDecodeError(classify(err), f"gnss_fix/{sid}: {err.errors()[0]['msg']}") from None
+            raise RosDecodeError(*_why(err, f"gnss_fix/{sid}: ")) from None
         self.stamps.remember(t, stamp_ns, replace=False)
         if sid not in self._with_twist:  # no Twist topic for this receiver: position only
             return [("gnss_fix", sid, position)]
@@ -824,7 +831,7 @@ class RosInput:
         try:
             gnss_fix_from_ros(probe, tw)
         except ValidationError as err:
-            raise RosDecodeError(classify(err), f"gnss_fix/{sid}: Twist: {err.errors()[0]['msg']}") from None
+            raise RosDecodeError(*_why(err, f"gnss_fix/{sid}: Twist: ")) from None
         fixes = self._fix.get(sid, [])
         best = min(fixes, key=lambda o: abs(o.stamp_ns - stamp_ns), default=None)
         if best is not None and abs(best.stamp_ns - stamp_ns) < self._tol_ns:
@@ -842,7 +849,7 @@ class RosInput:
         try:  # both halves were validated on arrival
             return gnss_fix_from_ros(fix, twist)
         except ValidationError as err:
-            raise RosDecodeError(classify(err), f"gnss_fix/{sid}: {err.errors()[0]['msg']}") from None
+            raise RosDecodeError(*_why(err, f"gnss_fix/{sid}: ")) from None
 
 
 def imu_sample_from_rates(
