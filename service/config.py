@@ -691,6 +691,37 @@ class FleetConfig(Model):
     )
 
 
+#: the settings of a service configuration that change what a vehicle's solutions are (the rest:
+#: transport, recording, capacity, scheduling): services that share a fleet must agree on these
+NAVIGATION_INTAKE = (
+    "late_tolerance_s",
+    "max_lead_s",
+    "max_imu_gap_s",
+    "future_window_s",
+    "time_jump_samples",
+    "sensor_ids",
+)
+
+
+def navigation_settings(cfg: dict) -> dict:
+    """What of a service configuration (as ``model_dump(mode="json")``, or the ``service/config``
+    queryable's JSON) changes a vehicle's navigation: prefix, pipelines, IMU model,
+    initialisation, solution rate, major interval and the intake's acceptance rules. Until
+    2026-12-01 the fleet group digested only the prefix and the pipelines: a service with another
+    IMU grade and 1 Hz solutions split a fleet with the others, and fednav-fleet status called
+    its configuration "same"."""
+    intake = cfg.get("intake") or {}
+    return {
+        "prefix": cfg.get("prefix"),
+        "pipelines": cfg.get("pipelines"),
+        "imu": cfg.get("imu"),
+        "init": cfg.get("init"),
+        "solution_rate_hz": (cfg.get("output") or {}).get("solution_rate_hz"),
+        "major_interval_s": cfg.get("major_interval_s"),
+        "intake": {k: intake.get(k) for k in NAVIGATION_INTAKE},
+    }
+
+
 class ServiceConfig(Model):
     prefix: str = "fednav"
     vehicles: list[str] = Field(default_factory=lambda: ["v1"], description="Vehicles served ('*' = all)")
@@ -750,12 +781,14 @@ class ServiceConfig(Model):
         return self
 
     def fleet_group(self) -> str:
-        """The fleet group (``fleet.group``, else a digest of the prefix and the pipelines)."""
+        """The fleet group (``fleet.group``, else a digest of :func:`navigation_settings`: services
+        that would navigate a vehicle differently never split a fleet)."""
         if self.fleet.group:
             return self.fleet.group
         import hashlib
+        import json
 
-        text = self.prefix + "|" + "|".join(p.model_dump_json() for p in self.pipelines)
+        text = json.dumps(navigation_settings(self.model_dump(mode="json")), sort_keys=True)
         return "g" + hashlib.blake2b(text.encode(), digest_size=6).hexdigest()
 
     @model_validator(mode="after")

@@ -79,3 +79,32 @@ def test_recording_kinds_mark_pipelines_without_tests_or_integrity_plain():
         "uw_c_chi2": "underwater:centralized",
         "uw_untested": "underwater:untested",
     }
+
+
+def test_the_fleet_group_is_what_changes_navigation():
+    """Services that would navigate a vehicle differently (another IMU model, initialisation,
+    solution rate, intake acceptance rules, pipelines) never split a fleet; capacity, scheduling,
+    transport and recording settings do not matter."""
+    from fednav.service.config import ServiceConfig
+
+    def group(extra: dict) -> str:
+        return ServiceConfig.model_validate({"vehicles": ["*"], **extra}).fleet_group()
+
+    base = group({})
+    for same in (
+        {"intake": {"max_vehicles": 5}},
+        {"intake": {"workers": 2, "vehicle_idle_s": 60}},
+        {"rrd_vehicle_interval_s": 1.0},
+        {"output": {"health_period_s": 2.0}},
+    ):
+        assert group(same) == base, same
+    for other in (
+        {"imu": {"grade": "consumer_mems"}},
+        {"output": {"solution_rate_hz": 1.0}},
+        {"init": {"min_speed_mps": 3.0}},
+        {"intake": {"max_imu_gap_s": 1.0}},
+        {"major_interval_s": 0.05},
+        {"pipelines": [{"name": "lc", "kind": "loosely_coupled", "innovation_gate_sigma": 4.0}]},
+        {"prefix": "other"},
+    ):
+        assert group(other) != base, other
