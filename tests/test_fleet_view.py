@@ -405,8 +405,8 @@ def test_a_killed_service_leaves_the_recorded_load(tmp_path):
         )
         procs.insert(0, sim)
         assert sim.wait_for("publishing", timeout=60), sim.output()
-        record = _fleet("record", "-o", str(rrd), "--duration", "13", "--rate", "2", port=port)
-        time.sleep(5.0)  # a few snapshots with both services
+        record = _fleet("record", "-o", str(rrd), "--duration", "14", "--rate", "2", port=port)
+        time.sleep(6.0)  # a few snapshots with both services
         assert record.poll() is None
         doomed.p.kill()
         doomed.wait(timeout=30)
