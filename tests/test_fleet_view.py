@@ -63,6 +63,19 @@ def _fleet(*args: str, port: int) -> subprocess.Popen:
     )
 
 
+def _fleet_sim(port: int, vehicles: int, duration_s: float, *extra: str) -> Proc:
+    """``fednav-sim fleet`` of ``vehicles`` through the router on ``port``, once publishing."""
+    sim = Proc(
+        [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(vehicles)]
+        + ["--duration", str(duration_s), *extra, "--connect", f"tcp/127.0.0.1:{port}"],
+        "fednav-sim fleet",
+    )
+    if not sim.wait_for("publishing", timeout=60):
+        sim.kill()
+        raise AssertionError(sim.output())
+    return sim
+
+
 def _client(port: int) -> zenoh.Session:
     c = zenoh.Config.from_file(str(FLEET / "reader.json5"))
     c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
@@ -110,13 +123,8 @@ def test_fleet_status_and_record_of_five_vehicles(tmp_path):
     rrd = tmp_path / "out" / "fleet.rrd"
     try:
         procs.insert(0, _service(port, "--vehicle", "*"))
-        sim = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "5", "--duration", "40"]
-            + ["--speed", "4", "--connect", f"tcp/127.0.0.1:{port}"],
-            "fednav-sim fleet",
-        )
+        sim = _fleet_sim(port, 5, 40, "--speed", "4")
         procs.insert(0, sim)
-        assert sim.wait_for("publishing", timeout=60), sim.output()
         record = _fleet("record", "-o", str(rrd), "--duration", "6", "--rate", "2", port=port)
         # status while the simulator publishes (10 s of it): every vehicle aided
         snap, deadline = None, time.monotonic() + 9
@@ -283,13 +291,8 @@ def test_a_recorder_waits_for_its_router_and_the_fleet_survives_a_router_restart
             statuses.append((arrivals[-1], json.loads(sample.payload.to_bytes())["status"]))
 
         watcher.declare_subscriber("fednav/*/nav/lc/solution", on_solution)
-        sim = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "1", "--duration", "20"]
-            + ["--connect", f"tcp/127.0.0.1:{port}"],
-            "fednav-sim fleet",
-        )
+        sim = _fleet_sim(port, 1, 20)
         procs.insert(0, sim)
-        assert sim.wait_for("publishing", timeout=60), sim.output()
         deadline = time.monotonic() + 30
         while len(arrivals) < 30 and time.monotonic() < deadline:  # 3 s of Solutions at 10 Hz
             time.sleep(0.2)
@@ -398,13 +401,8 @@ def test_a_killed_service_leaves_the_recorded_load(tmp_path):
         doomed = _service(port, "--vehicle", "*")
         wait_zids(2)
         kept_zid, doomed_zid = zids
-        sim = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "2", "--duration", "40"]
-            + ["--connect", f"tcp/127.0.0.1:{port}"],
-            "fednav-sim fleet",
-        )
+        sim = _fleet_sim(port, 2, 40)
         procs.insert(0, sim)
-        assert sim.wait_for("publishing", timeout=60), sim.output()
         record = _fleet("record", "-o", str(rrd), "--duration", "14", "--rate", "2", port=port)
         time.sleep(6.0)  # a few snapshots with both services
         assert record.poll() is None
@@ -470,13 +468,8 @@ def test_a_zenoh_storage_on_the_fleets_keys_is_no_service():
     solutions = ["fednav/veh000/nav/lc/solution", "fednav/veh001/nav/lc/solution"]
     try:
         procs.insert(0, _service(port, "--vehicle", "*"))
-        sim = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "2", "--duration", "40"]
-            + ["--connect", f"tcp/127.0.0.1:{port}"],
-            "fednav-sim fleet",
-        )
+        sim = _fleet_sim(port, 2, 40)
         procs.insert(0, sim)
-        assert sim.wait_for("publishing", timeout=60), sim.output()
         deadline = time.monotonic() + 30
         while not all(k in latest for k in solutions) and time.monotonic() < deadline:
             time.sleep(0.2)

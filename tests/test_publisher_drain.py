@@ -218,6 +218,17 @@ def test_fednav_sim_exits_4_when_its_subscribers_go_away(command, vehicle, prog)
     assert f"{prog}: the subscribers went away during the stream" in sim.stderr
 
 
+def _run_car1(port: int) -> subprocess.CompletedProcess:
+    """``fednav-sim run`` of the demo as fast as taken, under the name car1."""
+    return subprocess.run(
+        [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "0", "--imu-batch", "10"]
+        + ["--vehicle", "car1", "--connect", f"tcp/127.0.0.1:{port}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
 @pytest.mark.integration
 def test_fednav_sim_exits_5_when_no_service_serves_its_vehicle():
     """A fednav service serving v1 takes a stream under another name (counted unserved_vehicle) and
@@ -228,13 +239,7 @@ def test_fednav_sim_exits_5_when_no_service_serves_its_vehicle():
     port = free_port()
     svc = start_service(port, extra=["--vehicle", "v1"])
     try:
-        sim = subprocess.run(
-            [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "0", "--imu-batch", "10"]
-            + ["--vehicle", "car1", "--connect", f"tcp/127.0.0.1:{port}"],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        sim = _run_car1(port)
     finally:
         svc.signal()
         assert svc.wait(timeout=60) == 0, svc.output()
@@ -244,13 +249,7 @@ def test_fednav_sim_exits_5_when_no_service_serves_its_vehicle():
     port = free_port()
     rx = SlowReceiver(port, serve_status=False, read_s=0.0, key_expr="fednav/car1/**")
     try:
-        sim = subprocess.run(
-            [sys.executable, "-m", "fednav.simulators", "run", str(DEMO), "--speed", "0", "--imu-batch", "10"]
-            + ["--vehicle", "car1", "--connect", f"tcp/127.0.0.1:{port}"],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        sim = _run_car1(port)
     finally:
         rx.close()
     assert rx.got > 1000
