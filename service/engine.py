@@ -139,6 +139,13 @@ _PACK_ROW = struct.Struct("=8d").pack_into
 class VehicleEngine:
     """Drives all configured pipelines of one vehicle from a time-ordered event stream."""
 
+    #: :meth:`_log_imu_lost`'s last warning (monotonic s) and the losses since: class defaults,
+    #: set on the instance at a vehicle's first loss only (two more instance attributes in
+    #: ``__init__`` took the engine past CPython's 30 shared keys, +0.8 % instructions per
+    #: vehicle-second on every attribute read: benchmarks/instructions.py)
+    _lost_logged_at = -math.inf
+    _lost_unlogged = 0
+
     def __init__(
         self, vehicle: str, config: ServiceConfig, sink: EngineSink, counters: Counter | None = None
     ):
@@ -176,8 +183,6 @@ class VehicleEngine:
         self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
         self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
         self._warned: set[tuple[str, str]] = set()
-        self._lost_logged_at = -math.inf  # _log_imu_lost: its last warning (monotonic s), and since
-        self._lost_unlogged = 0
         #: streams whose time is more than TIME_BASE_MISMATCH_S from the IMU time: offset, s (Health)
         self.time_base_mismatch: dict[str, float] = {}
         # IMU nodes (transfer alignment): ids routed to pipelines, never to the vehicle's INS
