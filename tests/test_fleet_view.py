@@ -504,7 +504,10 @@ def test_a_zenoh_storage_on_the_fleets_keys_is_no_service():
         sub.undeclare()
         qbl.undeclare()
         storage.close()
-        rcs = _stop(*procs)
+        # one after the other, the router last (this test is about status, not shutdown: once in
+        # four CI runs the service, SIGTERMed together with the router and the simulator under
+        # load, had not exited 60 s later; noted in docs/fleet.md, not understood yet)
+        rcs = [rc for p in procs for rc in _stop(p)]
     assert rcs[1:] == [0, 0], [p.output() for p in procs]
     print(text)
     assert status.returncode == 0, out + err
