@@ -9,7 +9,11 @@ Printed per run (handover on, then the same with handed-over states never used: 
   percentile);
 - rejoin: the same for the vehicles the joining service takes.
 
-Usage: .venv/bin/python benchmarks/fleet_failover.py [--vehicles 100] [--imu-rate 100] [--json]
+``--kill-after S``: the kill S seconds after the simulator started publishing (default 33: the
+fleet's demo aircraft climbs; 75 is 10 s into its 3 deg/s turn); ``--no-cold``: the handover run only.
+
+Usage: .venv/bin/python benchmarks/fleet_failover.py [--vehicles 100] [--imu-rate 100]
+       [--kill-after 33] [--no-cold] [--json]
 """
 
 from __future__ import annotations
@@ -97,7 +101,7 @@ def _takeover(watch: FleetWatch, moved: list[str], t_event_wall: float, last_t: 
     }
 
 
-def run(n: int, imu_rate: float, handover: bool, tmp: Path) -> dict:
+def run(n: int, imu_rate: float, handover: bool, tmp: Path, kill_after: float = 33.0) -> dict:
     cfg = tmp / f"svc_{handover}.toml"
     cfg.write_text(
         'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
@@ -138,9 +142,10 @@ def run(n: int, imu_rate: float, handover: bool, tmp: Path) -> dict:
         )
         procs.append(gen)
         assert gen.wait_for("publishing", timeout=300), gen.output()
+        t_pub = time.monotonic()
         time.sleep(25.0)
         t_settled = time.monotonic()
-        time.sleep(8.0)
+        time.sleep(max(8.0, t_pub + kill_after - time.monotonic()))
         asg = watch.assignment(t_settled)
         served = [v for vs in asg.values() for v in vs]
         dup = sum(watch.duplicates(v, t_settled) for v in names)
@@ -186,12 +191,14 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--vehicles", type=int, default=100)
     ap.add_argument("--imu-rate", type=float, default=100.0)
+    ap.add_argument("--kill-after", type=float, default=33.0)
+    ap.add_argument("--no-cold", action="store_true")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     res = []
     with tempfile.TemporaryDirectory() as d:
-        for handover in (True, False):
-            r = run(args.vehicles, args.imu_rate, handover, Path(d))
+        for handover in (True,) if args.no_cold else (True, False):
+            r = run(args.vehicles, args.imu_rate, handover, Path(d), args.kill_after)
             res.append(r)
             if not args.json:
                 print(json.dumps(r), flush=True)

@@ -335,6 +335,11 @@ class VehicleWorker:
                 continue
             Pb = np.clip(np.diagonal(p.bank.P[0])[9:15], 0.0, None)
             monitor = getattr(p, "monitor", None)  # MHSS integrity: its satellite exclusions
+            ins = getattr(p.bank, "ins", None)  # its motion: a state carried through a turn
+            acc = ins.last_acc_enu_mps2 if ins is not None else np.zeros(3)
+            rate = ins.last_wib_b_rps if ins is not None else np.zeros(3)
+            if not (np.isfinite(acc).all() and np.isfinite(rate).all()):
+                acc, rate = np.zeros(3), np.zeros(3)
             out.append(
                 HandoverState(
                     t=nav.t,
@@ -349,6 +354,8 @@ class VehicleWorker:
                     P9=[float(v) for v in est.P9.ravel()],
                     gyro_bias_rps=tuple(float(v) for v in nav.gyro_bias_rps),
                     accel_bias_mps2=tuple(float(v) for v in nav.accel_bias_mps2),
+                    acc_enu_mps2=tuple(float(v) for v in acc),
+                    rate_body_rps=tuple(float(v) for v in rate),
                     bias_std=tuple(float(v) for v in np.sqrt(Pb)),
                     status=status,
                     excluded=monitor.book.healthy_for(nav.t) if monitor is not None else {},

@@ -738,6 +738,16 @@ class HandoverState(WireModel):
     )
     gyro_bias_rps: Vec3 = Field(description="Gyro bias estimate, body, rad/s")
     accel_bias_mps2: Vec3 = Field(description="Accelerometer bias estimate, body, m/s^2")
+    acc_enu_mps2: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="The vehicle's acceleration east/north/up over the INS's last major interval, "
+        "m/s^2: the taking service carries velocity and position over the gap with it (a turn)",
+    )
+    rate_body_rps: Vec3 = Field(
+        (0.0, 0.0, 0.0),
+        description="Body angular rate (bias corrected) over the INS's last major interval, rad/s: "
+        "the taking service turns the attitude over the gap with it",
+    )
     bias_std: tuple[float, float, float, float, float, float] = Field(
         description="1-sigma of the gyro (rad/s) and accelerometer (m/s^2) bias estimates"
     )

@@ -296,6 +296,11 @@ class Ins:
 
     _prev_T = 0.1
 
+    @property
+    def last_acc_enu_mps2(self) -> np.ndarray:
+        """The acceleration (ENU, gravity and Coriolis included: dv/dt) over the last major interval."""
+        return self._dv_prev_n / self._prev_T
+
     # --- closed-loop feedback ----------------------------------------------------------------
     def correct(
         self,

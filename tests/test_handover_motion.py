@@ -1,0 +1,100 @@
+"""A vehicle handed over to another service of its fleet in a turn (app.VehicleWorker.take_over,
+fleet.handover_nav): the state carries the vehicle's acceleration and body rate, so the taking
+service carries it over the gap (0.7 s: a kill -9 between two 1 Hz state publications) along the
+turn instead of straight on. The control, the same state without its motion (what a state
+published before 2026-12-01 gave), shows what the test guards: the demo aircraft's 3 deg/s turn
+at 115 m/s (6 m/s^2) leaves a constant velocity 4 m/s off, against 0.5 m/s claimed, and the
+vehicle restarts from its next GNSS fix (an operator's audit saw 15-20 m for ~4 s)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fednav.service import keys
+from fednav.simulators.evaluate import service_config
+from fednav.simulators.stream import Simulation
+
+from .scenario_utils import shortened
+
+SEED = 4
+GAP_S = 0.7
+
+
+class _Pubs:
+    def __init__(self):
+        self.solutions = []
+
+    def publish(self, key: str, msg) -> None:
+        if type(msg).__name__ == "Solution":
+            self.solutions.append(msg)
+
+
+def _worker(cfg):
+    from fednav.service.app import OutputSink, VehicleWorker
+
+    pubs = _Pubs()
+    return VehicleWorker("v1", cfg, OutputSink(keys.DEFAULT_PREFIX, pubs, None), pubs, None, None), pubs
+
+
+def _hand_over_in_the_turn(with_motion: bool):
+    """Service a serves the demo aircraft until 32 s (12 s into its 3 deg/s turn, before the GNSS
+    fault at 40 s) and publishes its state; service b takes over GAP_S later. Returns b's
+    (seconds after the takeover, horizontal error m, velocity error m/s) per Solution, b's
+    engine notes and the state used."""
+    sc = shortened("demo_product.toml", 55.0)  # 20 s straight, then the 35 s turn
+    cfg = service_config(sc, ["lc"])
+    t_state = sc.t0_gps_s + 32.0
+    t_cut = t_state + GAP_S
+    a, _ = _worker(cfg)
+    b, pubs = _worker(cfg)
+    state, truth = None, {}
+    for key, msg in Simulation(sc, seed=SEED):
+        pk = keys.parse_input(key)
+        if pk.kind == "truth":
+            truth[round(msg.t, 3)] = msg
+            continue
+        if msg.t <= t_state:
+            a.loop.process(pk.kind, pk.sensor_id, msg)
+            continue
+        if state is None:  # a's last state, through the wire
+            (state,) = a.handover_states("service-a")
+            if not with_motion:
+                state = state.model_copy(
+                    update={"acc_enu_mps2": (0.0, 0.0, 0.0), "rate_body_rps": (0.0, 0.0, 0.0)}
+                )
+            payloads = {state.pipeline: state.to_json()}
+            b.loop.starter = lambda t, payloads=payloads: b.take_over(payloads, t)
+        if msg.t > t_cut and msg.t < t_cut + 8.0:
+            b.loop.process(pk.kind, pk.sensor_id, msg)
+    rows = []
+    for s in pubs.solutions:
+        tr = truth.get(round(s.t, 3))
+        if tr is not None:
+            dn = math.radians(s.lat_deg - tr.lat_deg) * 6.371e6
+            de = math.radians(s.lon_deg - tr.lon_deg) * 6.371e6 * math.cos(math.radians(tr.lat_deg))
+            dv = float(np.linalg.norm(np.subtract(s.vel_enu_mps, tr.vel_enu_mps)))
+            rows.append((s.t - t_cut, math.hypot(de, dn), dv))
+    return rows, dict(b.engine.notes), state
+
+
+@pytest.mark.parametrize("with_motion", [True, False], ids=["motion_carried", "control_without"])
+def test_a_hand_over_in_a_turn_carries_the_state_along_the_turn(with_motion):
+    rows, notes, state = _hand_over_in_the_turn(with_motion)
+    assert notes.get("handed_over_from:service-a") == 1, notes
+    assert len(rows) >= 60, len(rows)
+    first_dv = rows[0][2]
+    worst_h = max(h for _, h, _ in rows)
+    if with_motion:
+        # the turn's centripetal acceleration, ~6 m/s^2, and its 3 deg/s yaw rate are in the state
+        assert 5.0 < float(np.linalg.norm(state.acc_enu_mps2)) < 7.5, state.acc_enu_mps2
+        assert abs(math.degrees(state.rate_body_rps[2])) == pytest.approx(3.0, abs=0.5), state.rate_body_rps
+        assert first_dv < 0.5, rows[:3]  # 0.10 m/s on this seed
+        assert "reset:lc" not in notes, notes  # the takeover holds: no restart from a fix
+        assert worst_h < 3.0, worst_h  # 1.9 m on this seed
+    else:
+        assert first_dv > 3.0, rows[:3]  # 4.4 m/s on this seed
+        assert notes.get("reset:lc") == 1, notes  # its first fix disagreed: restarted from it
+        assert worst_h > 5.0, worst_h  # 6.5 m on this seed
