@@ -7,6 +7,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 from pathlib import Path
 
 from fednav.service import config as config_mod
@@ -202,10 +203,61 @@ def main(argv: list[str] | None = None) -> int:
     while not stop.wait(0.2):
         pass
     if supervisor is not None:
-        supervisor.stop()
+        supervisor.stop()  # (bounded: each shard has its own watchdog; killed after 60 s)
+    shutdown_watchdog(svc)
     svc.stop()
     print("fednav-service stopped", flush=True)
     return 0
+
+
+#: a stop (all but the recording's close) that takes longer than this is stuck: the stacks of
+#: every thread are written to stderr and the process exits with SHUTDOWN_STUCK_EXIT
+SHUTDOWN_WATCHDOG_S = 30.0
+SHUTDOWN_STUCK_EXIT = 3
+
+
+def shutdown_watchdog(
+    svc, limit_s: float = SHUTDOWN_WATCHDOG_S, backstop_after_s: float = 10.0
+) -> threading.Thread:
+    """Bound a stop's time: SIGINT/SIGTERM must end the process. The drain of the vehicles' queues
+    is bounded (5 s), the recording is closed before the Zenoh session, and a Zenoh call can
+    block at shutdown (a callback thread waiting for the GIL while a close waits for it; a router
+    going away at the same moment): after ``limit_s`` outside the recording's close (which may
+    take long for a large file) the watchdog dumps every thread's stack to stderr, says which
+    stage was stuck and exits the process. Behind it, faulthandler's own timer (a C thread: it
+    fires even when a deadlock holds the GIL, and during the interpreter's exit) does the same
+    ``backstop_after_s`` later (exit code 1), re-armed while the recording is being closed."""
+    import faulthandler
+    import os
+
+    from fednav.service.app import RECORDING_STAGE
+
+    backstop_s = limit_s + backstop_after_s
+    faulthandler.dump_traceback_later(backstop_s, exit=True, file=sys.stderr)
+
+    def watch() -> None:
+        spent, last = 0.0, time.monotonic()
+        while True:
+            time.sleep(0.25)
+            now = time.monotonic()
+            if svc.stopping != RECORDING_STAGE:
+                spent += now - last
+            else:
+                faulthandler.dump_traceback_later(backstop_s - spent, exit=True, file=sys.stderr)
+            last = now
+            if spent > limit_s:
+                print(
+                    f"fednav-service: shutdown stuck for {limit_s:.0f} s in stage {svc.stopping!r}; "
+                    "exiting (every thread's stack follows)",
+                    file=sys.stderr,
+                    flush=True,
+                )
+                faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+                os._exit(SHUTDOWN_STUCK_EXIT)
+
+    t = threading.Thread(target=watch, name="fednav-shutdown-watchdog", daemon=True)
+    t.start()
+    return t
 
 
 if __name__ == "__main__":

@@ -58,6 +58,9 @@ _MAX_LOGGED_NAMES = 100
 #: client's data under a vehicle's sensor keys) is released after this long without input, not
 #: [intake] vehicle_idle_s: foreign names must not hold max_vehicles slots for minutes
 NEVER_ACCEPTED_IDLE_S = 10.0
+#: Service.stopping while the recording is closed (the one stage of a stop that may take long:
+#: a large recording's optimisation; the shutdown watchdog of __main__ does not count it)
+RECORDING_STAGE = "recording"
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
 STATUS_ENCODING = "application/json;fednav.Status/1"
 CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
@@ -689,6 +692,8 @@ class Service:
         self._logged: set[tuple[str, str]] = set()
         self._lock = threading.Lock()
         self.session = None
+        #: the stage stop() is in (None: running), for the shutdown watchdog's message
+        self.stopping: str | None = None
 
     # --- lifecycle ------------------------------------------------------------------------------
     def start(self) -> None:
@@ -1157,25 +1162,35 @@ class Service:
     def stop(self) -> None:
         if self.session is None:
             return
+        self.stopping = "health"
         self._health_stop.set()
         self._health_thread.join(timeout=5.0)
+        self.stopping = "intake"
         self.intake.stop()
         if self.intake.unwanted:
             log.info("intake: %d inputs of vehicles served elsewhere dropped unread", self.intake.unwanted)
+        self.stopping = "watches"
         for watch in self._watches:
             watch.stop()
         if self.ros_intake is not None:
             self.ros_intake.stop()
+        self.stopping = "workers"
         for pw in self.pool:
             pw.request_stop()
         deadline = time.monotonic() + _SHUTDOWN_DRAIN_S
         for pw in self.pool:
             pw.stop(deadline)
+        self.stopping = "queries"
         self.queries.stop()
+        self.stopping = "liveliness"
         self.liveliness.undeclare_all()
         if self.rr is not None:
+            self.stopping = RECORDING_STAGE
             self.rr.close()
+        self.stopping = "publishers"
         self.pubs.undeclare_all()
+        self.stopping = "session"
         self.session.close()
         self.session = None
+        self.stopping = "done"
         log.info("fednav-service stopped; recording %s", self.rrd_path if self.record else None)
