@@ -187,8 +187,11 @@ class Fleet:
                 others.append({"zid": k.rsplit("/", 1)[-1], "prefix": other})
 
         sol_replies = _get(self.session, f"{p}/*/nav/*/solution", self.timeout_s)
+        # a '*' service answers for its ServiceHealth: its max_vehicles, whether it is full and
+        # the vehicles it refused for that lately (a fixed-list service has no such limit)
+        health_replies = _get(self.session, f"{p}/_services/*/health", self.timeout_s)
         status_replies = _get(self.session, f"{p}/*/service/status", self.timeout_s)
-        repliers = {zid or "?" for _, zid, _ in sol_replies + status_replies}
+        repliers = {zid or "?" for _, zid, _ in sol_replies + status_replies + health_replies}
         if repliers - service_tokens:  # a service declares its queryables just before its token
             service_tokens |= self._service_zids()
         # a replier without a service token (a Zenoh storage keeping fednav/**, a recorder's
@@ -207,6 +210,15 @@ class Fleet:
             d = _json(payload)
             if d is not None and (zid or "?") in service_tokens:
                 status.setdefault(key.split("/")[1], {})[zid or "?"] = d
+        capacity: dict[str, dict] = {}  # zid -> its ServiceHealth's capacity fields
+        for key, zid, payload in health_replies:
+            d = _json(payload)
+            if d is not None and (zid or "?") in service_tokens and key.split("/")[-2] == zid:
+                capacity[zid] = {
+                    "max_vehicles": d.get("max_vehicles"),
+                    "full": bool(d.get("full")),
+                    "refusing": list(d.get("refusing_vehicles") or []),
+                }
         services: dict[str, dict] = {
             z: {"zid": z, "alive": True, "vehicles": [], "pipelines": [], "received": 0}
             for z in sorted(service_tokens)
@@ -246,6 +258,32 @@ class Fleet:
                 problems.append(f"vehicle {v} is served by {len(zids)} services: {', '.join(zids)}")
             elif not zids:
                 problems.append(f"vehicle {v} has a liveliness token but no service answers for it")
+
+        # capacity: a service at max_vehicles is named; a vehicle it refused that no service serves
+        # is a vehicle, unserved, and a problem (the fleet, or that service, needs more room)
+        refused: dict[str, list[str]] = {}
+        for zid, c in capacity.items():
+            svc = services.get(zid)
+            if svc is not None:
+                svc.update(c)
+            for v in c["refusing"]:
+                refused.setdefault(v, []).append(zid)
+        for v, zids in sorted(refused.items()):
+            if vehicles.get(v, {}).get("services"):
+                continue  # another service has it (spilled over in a fleet group)
+            vehicles[v] = {
+                "vehicle": v,
+                "alive": v in alive,
+                "service": None,
+                "services": [],
+                "served_twice": False,
+                "pipelines": {},
+                "by_service": {},
+                "refused_by": zids,
+            }
+            limits = ", ".join(f"{z} (max_vehicles {capacity[z]['max_vehicles']})" for z in zids)
+            problems.append(f"vehicle {v} is not served: refused by a service at its limit: {limits}")
+        vehicles = dict(sorted(vehicles.items()))
 
         # configurations: the one most services share is the reference; the others are named
         for zid, svc in services.items():
@@ -302,9 +340,8 @@ def format_status(snap: dict) -> str:
     rows = [("SERVICE", "VEHICLES", "PIPELINES", "MESSAGES", "CONFIG")]
     for s in snap["services"]:
         cfg = "differs: " + s["config_differs"] if s["config_differs"] else ("same" if s["config"] else "-")
-        rows.append(
-            (s["zid"], str(len(s["vehicles"])), ",".join(s["pipelines"]) or "-", str(s["received"]), cfg)
-        )
+        count = str(len(s["vehicles"])) + (f" (full: max {s['max_vehicles']})" if s.get("full") else "")
+        rows.append((s["zid"], count, ",".join(s["pipelines"]) or "-", str(s["received"]), cfg))
     lines += _table(rows)
     if snap.get("other_repliers"):
         lines.append(
@@ -314,7 +351,8 @@ def format_status(snap: dict) -> str:
     rows = [("VEHICLE", "SERVICE", "PIPELINE", "STATUS", "LAST T (GPS s)", "AGE", "LAG")]
     for v in snap["vehicles"]:
         if not v["services"]:
-            rows.append((v["vehicle"], "-", "-", NO_ANSWER, "-", "-", "-"))
+            why = "refused (service full)" if v.get("refused_by") else NO_ANSWER
+            rows.append((v["vehicle"], "-", "-", why, "-", "-", "-"))
         for zid, info in v["by_service"].items():
             name = zid[:8] + (" (twice!)" if v["served_twice"] else "")
             for pname, r in info["pipelines"].items():

@@ -61,6 +61,8 @@ NEVER_ACCEPTED_IDLE_S = 10.0
 #: Service.stopping while the recording is closed (the one stage of a stop that may take long:
 #: a large recording's optimisation; the shutdown watchdog of __main__ does not count it)
 RECORDING_STAGE = "recording"
+#: ServiceHealth.refusing_vehicles: the vehicles refused for vehicle_limit this recently
+REFUSING_WINDOW_S = 10.0
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
 STATUS_ENCODING = "application/json;fednav.Status/1"
 CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
@@ -687,6 +689,12 @@ class Service:
         self.pool: list[PoolWorker] = []
         self.unrouted = Counter()  # data refused before any vehicle: by reason
         self.unserved = Counter()  # messages per vehicle name not served (first _MAX_LOGGED_NAMES)
+        #: vehicle -> when its input was last refused for vehicle_limit (ServiceHealth)
+        self._limit_refused: dict[str, float] = {}
+        #: a '*' service at max_vehicles: its 'full' token (and in a fleet group its 'holds'
+        #: tokens) are declared; see _capacity
+        self._full_declared = False
+        self._full_grace: threading.Timer | None = None
         self.started = time.monotonic()
         self._health_stop = threading.Event()
         self._logged: set[tuple[str, str]] = set()
@@ -728,7 +736,7 @@ class Service:
         fleet_id = None
         if cfg.fleet.sharding == "rendezvous":
             self.fleet_group = cfg.fleet_group()
-            self.fleet_view = fleet.FleetView(zid)
+            self.fleet_view = fleet.FleetView(zid, holds_me=self.workers.__contains__)
             self.fleet_states = fleet.StateCache(cfg.intake.max_vehicles * 10)
             fleet_id = (self.fleet_group, zid)
         elif self.shard_group is not None:
@@ -742,9 +750,13 @@ class Service:
         self._watches = []
         if self.fleet_view is not None:
             base = f"{cfg.prefix}/_fleet/{self.fleet_group}"
+            services = f"{cfg.prefix}/_services/*"
             self._watches = [
                 zenoh_io.Watch(self.session, f"{base}/state/**", self._on_state),
                 zenoh_io.Watch(self.session, f"{base}/member/*", self._on_member, liveliness=True),
+                # capacity: the members at their max_vehicles and what each of them holds
+                zenoh_io.Watch(self.session, f"{services}/holds/*", self._on_holds, liveliness=True),
+                zenoh_io.Watch(self.session, f"{services}/full", self._on_full, liveliness=True),
             ]
             self._fleet_token = keys.fleet_member(self.fleet_group, zid, cfg.prefix)
         elif self.shard_group is not None and self.feeds:  # shard 0 hears the other shards' states
@@ -784,6 +796,9 @@ class Service:
                 self.session, self.ros_in.key_exprs(), self._deliver_ros, order_key=header_stamp_s
             )
         # one queryable per vehicle selector: status, config and each pipeline's latest solution
+        # (a '*' service's {prefix}/*/** also answers for its ServiceHealth: fednav-fleet status
+        # reads which services are full and what they refuse)
+        self._health_key = keys.service_health(str(self.session.zid()), cfg.prefix)
         qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
@@ -793,7 +808,6 @@ class Service:
             threading.Timer(1.5 * cfg.fleet.handover_period_s, self._join_fleet).start()
         for v in [] if sel else self._served_list():
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
-        self._health_key = keys.service_health(str(self.session.zid()), cfg.prefix)
         self._health_thread = threading.Thread(
             target=self._health_loop, name="fednav-service-health", daemon=True
         )
@@ -867,7 +881,56 @@ class Service:
                         w.on_released, w.reroute = self._released, self._reroute
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
+                    self._capacity()
         return w
+
+    def _capacity(self) -> None:
+        """A '*' service reaching its max_vehicles declares itself full (a fleet member first one
+        ``holds`` token per vehicle it keeps, then the ``full`` token: a member that sees it full
+        always knows what it holds), and withdraws that when a vehicle leaves (the ``full`` token
+        first). A fleet member then takes new vehicles only after 1.5 handover periods, as when it
+        joins: the members that took its vehicles meanwhile hand them back with their last states.
+        Called under ``self._lock``."""
+        if "*" not in self.config.vehicles or self.session is None:
+            return
+        prefix, zid = self.config.prefix, str(self.session.zid())
+        full = len(self.workers) >= self.config.intake.max_vehicles
+        if full == self._full_declared:
+            return
+        self._full_declared = full
+        if full:
+            if self._full_grace is not None:
+                self._full_grace.cancel()
+                self._full_grace = None
+            if self.fleet_view is not None:
+                for v in list(self.workers):
+                    self.liveliness.declare(keys.service_holds(zid, v, prefix))
+                if self.fleet_view.set_me_full(True):
+                    self._forget_foreign()
+            self.liveliness.declare(keys.service_full(zid, prefix))
+            log.warning(
+                "at max_vehicles (%d): new vehicles are refused%s",
+                self.config.intake.max_vehicles,
+                " unless another service of the fleet group has room" if self.fleet_view is not None else "",
+            )
+            return
+        self.liveliness.undeclare(keys.service_full(zid, prefix))
+        if self.fleet_view is not None:
+            for key in self.liveliness.keys(f"{keys.service_token(zid, prefix)}/holds/"):
+                self.liveliness.undeclare(key)
+            t = threading.Timer(1.5 * self.config.fleet.handover_period_s, self._not_full)
+            t.daemon = True
+            self._full_grace = t
+            t.start()
+        log.info("below max_vehicles again (%d vehicles): new vehicles are taken", len(self.workers))
+
+    def _not_full(self) -> None:
+        with self._lock:
+            if self._full_declared or self.session is None:
+                return
+            self._full_grace = None
+            if self.fleet_view.set_me_full(False):
+                self._forget_foreign()
 
     def service_health(self) -> ServiceHealth:
         return ServiceHealth(
@@ -889,7 +952,18 @@ class Service:
             inputs_served_elsewhere=getattr(getattr(self, "intake", None), "unwanted", 0),
             inputs_forwarded=sum(f.forwarded for f in self.feeds.values()),
             inputs_forward_lost=sum(f.lost for f in self.feeds.values()),
+            max_vehicles=self.config.intake.max_vehicles if "*" in self.config.vehicles else None,
+            full=self._full_declared,
+            refusing_vehicles=self._refusing(),
         )
+
+    def _refusing(self) -> list[str]:
+        """The vehicles refused for vehicle_limit in the last REFUSING_WINDOW_S (the rest forgotten)."""
+        since = time.monotonic() - REFUSING_WINDOW_S
+        for v, t in list(self._limit_refused.items()):
+            if t < since:
+                self._limit_refused.pop(v, None)
+        return sorted(self._limit_refused)[:100]
 
     def _health_loop(self) -> None:
         period = self.config.output.health_period_s
@@ -914,6 +988,10 @@ class Service:
         queryable) and logged once per vehicle name and reason (at most ``_MAX_LOGGED_NAMES``
         names)."""
         self.unrouted[reason] += 1
+        if reason == "vehicle_limit" and (
+            vehicle in self._limit_refused or len(self._limit_refused) < _MAX_LOGGED_NAMES
+        ):
+            self._limit_refused[vehicle] = time.monotonic()
         if reason == "unserved_vehicle" and (
             vehicle in self.unserved or len(self.unserved) < _MAX_LOGGED_NAMES
         ):
@@ -1055,6 +1133,19 @@ class Service:
             self._forget_foreign()
             self._rebalance_due.set()
 
+    def _on_full(self, key: str, payload: bytes | None) -> None:
+        """A service's ``full`` token appeared or vanished (Zenoh callback)."""
+        if self.fleet_view.set_full(key.split("/")[-2], payload is not None):
+            self._forget_foreign()
+            self._rebalance_due.set()
+
+    def _on_holds(self, key: str, payload: bytes | None) -> None:
+        """A ``holds`` token of a service appeared or vanished (Zenoh callback)."""
+        parts = key.split("/")
+        if len(parts) >= 4 and self.fleet_view.set_holds(parts[-3], parts[-1], payload is not None):
+            self._forget_foreign()
+            self._rebalance_due.set()
+
     def _on_state(self, key: str, payload: bytes | None) -> None:
         parts = key.split("/")
         if payload is not None and len(parts) == 6 and len(payload) <= MAX_PAYLOAD_BYTES:
@@ -1079,6 +1170,7 @@ class Service:
         with self._lock:
             if self.workers.get(w.vehicle) is w:
                 del self.workers[w.vehicle]
+            self._capacity()
         self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
         self.retired_vehicles += 1
         log.info("vehicle %s moved to service %s", w.vehicle, self.fleet_view.owner(w.vehicle))
@@ -1093,6 +1185,7 @@ class Service:
             self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
             self.sink.forget(w.vehicle)
             self.pubs.forget(w.vehicle, self.config.prefix)
+            self._capacity()
         log.info(
             "vehicle %s released: no input for %.0f s ([intake] vehicle_idle_s)",
             w.vehicle,
@@ -1131,6 +1224,9 @@ class Service:
         vehicles = sorted(self.workers) if "*" in self.config.vehicles else self._served_list()
         latest = list(self.sink.last_solution.items())
         out = []
+        if intersects(self._health_key, query_ke):
+            h = self.service_health()
+            out.append((self._health_key, h.model_dump_json().encode(), h.encoding()))
         for v in vehicles:
             resources = {
                 keys.service(v, "status", prefix): (lambda v=v: self._status(v), STATUS_ENCODING),

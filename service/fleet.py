@@ -33,6 +33,12 @@ def owner(vehicle: str, members: Iterable[str]) -> str | None:
     return best
 
 
+def ranked(vehicle: str, members: Iterable[str]) -> list[str]:
+    """The members in ``vehicle``'s rendezvous order: highest weight first (ties: the smaller
+    name first, as :func:`owner`)."""
+    return sorted(members, key=lambda m: (-weight(vehicle, m), m))
+
+
 def shard_name(index: int) -> str:
     return f"shard{index}"
 
@@ -46,9 +52,18 @@ class FleetView:
     """The live members of a fleet group (from their liveliness tokens) and who owns a vehicle.
 
     ``mine(vehicle)`` is cached per membership version; ``update(key, alive)`` is called from a
-    Zenoh callback (cheap, under a lock) and bumps the version when the member set changes."""
+    Zenoh callback (cheap, under a lock) and bumps the version when the member set changes.
 
-    def __init__(self, me: str):
+    Capacity: a member at its ``max_vehicles`` is *full* (its ``{prefix}/_services/{zid}/full``
+    token; it also holds a ``.../holds/{vehicle}`` token for each vehicle it serves meanwhile). A
+    full member keeps the vehicles it holds and owns no other: the owner of a vehicle is the first
+    member in its rendezvous order that is not full or holds it (the vehicles a full member would
+    have had go to their next member, not unserved); only when every member is full is the owner
+    the first one, which refuses the vehicle and counts it (``vehicle_limit``). When a member is no
+    longer full its vehicles come back to it (handed over like any move).
+    """
+
+    def __init__(self, me: str, holds_me=None):
         import threading
 
         self.me = me
@@ -60,6 +75,64 @@ class FleetView:
         #: False until this service has joined (its token declared): it owns nothing before, so a
         #: joining service first hears the members and their handover states, then takes its share
         self.active = False
+        #: the other members that are full, and the vehicles each of them holds
+        self._full: set[str] = set()
+        self._holds: dict[str, set[str]] = {}
+        #: this service is full (it owns only what ``holds_me(vehicle)`` says it holds)
+        self.me_full = False
+        self._holds_me = holds_me or (lambda vehicle: False)
+
+    def _changed(self) -> None:
+        self._owner = {}
+        self.version += 1
+
+    def set_full(self, member: str, full: bool) -> bool:
+        """Another member's ``full`` token appeared or vanished; True when that changed anything."""
+        with self._lock:
+            if (member in self._full) == full or member == self.me:
+                return False
+            if full:
+                self._full.add(member)
+            else:
+                self._full.discard(member)
+                self._holds.pop(member, None)
+            self._changed()
+            return True
+
+    def set_holds(self, member: str, vehicle: str, held: bool) -> bool:
+        """A ``holds`` token of another member appeared or vanished; True when ownership may change
+        (only a full member's holdings matter: until its ``full`` token, they change nothing)."""
+        with self._lock:
+            if member == self.me:
+                return False
+            d = self._holds.setdefault(member, set())
+            if (vehicle in d) == held:
+                return False
+            if held:
+                d.add(vehicle)
+            else:
+                d.discard(vehicle)
+            if member in self._full:
+                self._changed()
+                return True
+            return False
+
+    def set_me_full(self, full: bool) -> bool:
+        with self._lock:
+            if self.me_full == full:
+                return False
+            self.me_full = full
+            self._changed()
+            return True
+
+    def full_members(self) -> list[str]:
+        with self._lock:
+            return sorted(self._full & self._members | ({self.me} if self.me_full else set()))
+
+    def _eligible(self, member: str, vehicle: str) -> bool:
+        if member == self.me:
+            return not self.me_full or self._holds_me(vehicle)
+        return member not in self._full or vehicle in self._holds.get(member, ())
 
     def update(self, member: str, alive: bool) -> bool:
         """A member's token appeared (``alive``) or vanished; True when the set changed."""
@@ -71,8 +144,7 @@ class FleetView:
                 self._members.discard(member)
             if self._members == before:
                 return False
-            self._owner = {}
-            self.version += 1
+            self._changed()
             self.changes += 1
             return True
 
@@ -86,7 +158,11 @@ class FleetView:
             if o is None:
                 if len(self._owner) > 200_000:
                     self._owner.clear()
-                o = self._owner[vehicle] = owner(vehicle, self._members)
+                o = owner(vehicle, self._members)
+                if self._full or self.me_full:  # capacity: the first member that can take it
+                    order = ranked(vehicle, self._members)
+                    o = next((m for m in order if self._eligible(m, vehicle)), order[0])
+                self._owner[vehicle] = o
             return o
 
     def mine(self, vehicle: str) -> bool:
@@ -173,4 +249,4 @@ def handover_nav(st, t_start: float):
     return nav, InitStd(pos_sd, vel_sd, att_sd)
 
 
-__all__ = ["FleetView", "StateCache", "handover_nav", "owner", "shard_name", "shard_of", "weight"]
+__all__ = ["FleetView", "StateCache", "handover_nav", "owner", "ranked", "shard_name", "shard_of", "weight"]

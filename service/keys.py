@@ -21,7 +21,10 @@
 {prefix}/{vehicle}/nav/{pipeline}/solution    also a queryable: the latest Solution
 {prefix}/{vehicle}/service/alive              liveliness token of each served vehicle
 {prefix}/_services/{zenoh id}                 liveliness token of each running service
-{prefix}/_services/{zenoh id}/health          ServiceHealth (refused before routing, unserved names)
+{prefix}/_services/{zenoh id}/health          ServiceHealth (refused before routing, unserved names;
+                                              also a queryable: the service's latest)
+{prefix}/_services/{zenoh id}/full            liveliness token of a '*' service at max_vehicles
+{prefix}/_services/{zenoh id}/holds/{vehicle}  liveliness token of each vehicle a full fleet member holds
 {prefix}/_fleet/{group}/member/{zenoh id}      liveliness token of a service sharing a fleet
 {prefix}/_fleet/{group}/state/{vehicle}/{pipeline}  HandoverState (a vehicle's last state, ~1 Hz)
 """
@@ -100,6 +103,16 @@ def service_token(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
 def service_health(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Key of one running service's ServiceHealth."""
     return f"{service_token(instance, prefix)}/health"
+
+
+def service_full(instance: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Liveliness token of a ``*`` service at its ``max_vehicles`` (it takes no new vehicle)."""
+    return f"{service_token(instance, prefix)}/full"
+
+
+def service_holds(instance: str, vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Liveliness token of a vehicle a full fleet member holds (what it keeps while full)."""
+    return f"{service_token(instance, prefix)}/holds/{_chunk(vehicle, 'vehicle')}"
 
 
 def fleet_member(group: str, instance: str, prefix: str = DEFAULT_PREFIX) -> str:

@@ -827,6 +827,20 @@ class ServiceHealth(WireModel):
         description="Shard 0: inputs for another shard dropped (that shard dead, restarting or not "
         "keeping up: its queue full) since the start",
     )
+    max_vehicles: int | None = Field(
+        None, ge=1, description="[intake] max_vehicles of a '*' service (None: it serves a fixed list)"
+    )
+    full: bool = Field(
+        False,
+        description="A '*' service at max_vehicles: it takes no new vehicle (in a fleet group, the "
+        "vehicles it would have had go to the next member with room)",
+    )
+    refusing_vehicles: list[str] = Field(
+        default_factory=list,
+        max_length=100,
+        description="Vehicles whose inputs it refused for vehicle_limit in the last "
+        "REFUSING_WINDOW_S (10 s): unserved unless another service takes them (the first 100)",
+    )
 
 
 #: input messages that are not sensors: the initial state, truth (simulators), alignment truth;

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import math
+import signal
 import sys
 import time
 
@@ -156,6 +157,94 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
         assert taken, asg2
         for v in taken:  # the joining service started them from the survivor's states
             assert f"vehicle {v} handed over from service {_zid(survivor)}" in c.output(), v
+    finally:
+        stop_all(procs)
+        bus.close()
+
+
+def _status(port: int) -> tuple[int, dict]:
+    import json
+    import subprocess
+
+    p = subprocess.run(
+        [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+        + ["--connect", f"tcp/127.0.0.1:{port}"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    return p.returncode, json.loads(p.stdout)
+
+
+def test_a_full_member_passes_new_vehicles_on_and_status_names_what_nobody_takes(tmp_path):
+    """Two services of a fleet group, one with ``max_vehicles = 2`` and a rendezvous share of four
+    of six vehicles: it serves two, the other service the four others (each vehicle once), and
+    ``fednav-fleet status`` shows it full with no problem. With the roomy service gone, the full one
+    keeps its two and refuses the rest: status lists each refused vehicle as not served, exit 1."""
+    names = vehicle_names(N)
+    small, big = next(
+        (a, b)
+        for i in range(1, 10_000)
+        for a, b in [(f"fed{i:029x}", f"fee{i:029x}")]
+        if sum(fleet.owner(v, [a, b]) == a for v in names) >= 4
+    )
+    base = '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 0.5\n'
+    head = 'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+    cfg_small, cfg_big = tmp_path / "small.toml", tmp_path / "big.toml"
+    cfg_small.write_text(head + "[intake]\nmax_vehicles = 2\n" + base)
+    cfg_big.write_text(head + base)
+    port = free_port()
+    router = _router(port)
+    procs = [router]
+    bus = FleetWatch(port)
+    try:
+        a = _service(port, cfg_small, small, tmp_path)
+        b = _service(port, cfg_big, big, tmp_path)
+        procs += [a, b]
+        gen = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
+            + ["--fix-rate", "1", "--connect", f"tcp/127.0.0.1:{port}"],
+            "fleet",
+        )
+        procs.append(gen)
+        assert gen.wait_for("publishing", timeout=60), gen.output()
+
+        def settled() -> bool:
+            asg = bus.assignment(time.monotonic() - 1.5)
+            return len(asg.get(small, [])) == 2 and sorted(asg.get(small, []) + asg.get(big, [])) == names
+
+        assert _wait(settled, 30), bus.assignment(0.0)
+        t_settled = time.monotonic()
+        time.sleep(3.0)
+        assert settled(), bus.assignment(0.0)
+        for v in names:
+            assert bus.duplicates(v, t_settled) == 0, v
+        assert "at max_vehicles (2): new vehicles are refused unless another service" in a.output()
+        rc, snap = _status(port)
+        assert rc == 0, snap["problems"]
+        by_zid = {s["zid"]: s for s in snap["services"]}
+        assert by_zid[small]["full"] and by_zid[small]["max_vehicles"] == 2, by_zid[small]
+        assert not by_zid[big]["full"] and by_zid[big]["max_vehicles"] == 1000, by_zid[big]
+        assert sorted(v["vehicle"] for v in snap["vehicles"] if v["services"]) == names
+        kept = sorted(bus.assignment(time.monotonic() - 1.5)[small])
+        # the roomy service stops: the full one keeps its two, the others are refused, named
+        b.signal(signal.SIGTERM)
+        assert b.wait(timeout=60) == 0, b.output()
+        refused = sorted(set(names) - set(kept))
+
+        def named() -> bool:
+            rc, snap = _status(port)
+            out = [v["vehicle"] for v in snap["vehicles"] if v.get("refused_by") == [small]]
+            return rc == 1 and sorted(out) == refused
+
+        assert _wait(named, 20), _status(port)
+        rc, snap = _status(port)
+        for v in refused:
+            assert any(
+                p.startswith(f"vehicle {v} is not served: refused by a service at its limit")
+                for p in snap["problems"]
+            )
+        assert sorted(bus.assignment(time.monotonic() - 1.5)[small]) == kept
     finally:
         stop_all(procs)
         bus.close()

@@ -43,6 +43,64 @@ def test_rendezvous_moves_only_the_dead_or_new_members_share():
     assert fleet.owner("v1", []) is None
 
 
+def _fleet_of(names: list[str], caps: dict[str, int]) -> dict[str, set[str]]:
+    """Three services' views of one fleet driven as the service drives them: each takes the
+    vehicles its view says are its own, in arrival order, until it is full; a full one declares
+    what it holds, then ``full``, and the others hear both. Returns each service's vehicles."""
+    held: dict[str, set[str]] = {m: set() for m in caps}
+    views = {m: fleet.FleetView(m, holds_me=held[m].__contains__) for m in caps}
+    for view in views.values():
+        view.active = True
+        for other in caps:
+            view.update(other, True)
+    for v in names:  # every vehicle's first input reaches every service
+        owners = {m: view.owner(v) for m, view in views.items()}
+        assert len(set(owners.values())) == 1, (v, owners)  # every view names the same owner
+        m = owners["a"]
+        if len(held[m]) < caps[m]:
+            held[m].add(v)
+            if len(held[m]) == caps[m]:  # full: holds first, then the full token
+                views[m].set_me_full(True)
+                for other, view in views.items():
+                    if other != m:
+                        for h in held[m]:
+                            view.set_holds(m, h, True)
+                        assert view.set_full(m, True)
+    return held
+
+
+def test_a_full_member_keeps_its_vehicles_and_the_rest_go_to_the_next_with_room():
+    names = vehicle_names(60)
+    plain = {v: fleet.owner(v, ["a", "b", "c"]) for v in names}
+    held = _fleet_of(names, {"a": 5, "b": 1000, "c": 1000})
+    assert len(held["a"]) == 5 and sum(map(len, held.values())) == 60  # every vehicle served once
+    assert not (held["a"] & held["b"]) and not (held["b"] & held["c"]) and not (held["a"] & held["c"])
+    spilled = {v for v in names if plain[v] == "a"} - held["a"]
+    assert spilled  # a's share was above 5: the rest went to each vehicle's next member
+    for v in spilled:
+        nxt = fleet.ranked(v, ["a", "b", "c"])[1]
+        assert v in held[nxt], (v, nxt)
+    for v in set(names) - spilled:  # nothing else moved
+        assert v in held[plain[v]]
+    # every member full: the first one owns (and refuses: counted as vehicle_limit)
+    small = _fleet_of(names, {"a": 5, "b": 5, "c": 5})
+    assert sum(map(len, small.values())) == 15
+    view = fleet.FleetView("c", holds_me=small["c"].__contains__)
+    view.active = True
+    for m in ("a", "b"):
+        view.update(m, True)
+        for h in small[m]:
+            view.set_holds(m, h, True)
+        view.set_full(m, True)
+    view.set_me_full(True)
+    for v in names:
+        held_by = [m for m in small if v in small[m]]
+        assert view.owner(v) == (held_by[0] if held_by else plain[v]), v
+    # a full member that is no longer full gets its vehicles back; its holdings are forgotten
+    assert view.set_full("a", False) and view.full_members() == ["b", "c"]
+    assert all(view.owner(v) == "a" for v in names if plain[v] == "a")
+
+
 def test_shard_of_is_stable_and_covers_every_shard():
     names = vehicle_names(200)
     got = [fleet.shard_of(v, 4) for v in names]

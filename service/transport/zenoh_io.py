@@ -561,6 +561,11 @@ class Liveliness:
             except zenoh.ZError:
                 pass
 
+    def keys(self, prefix: str) -> list[str]:
+        """The declared tokens whose key starts with ``prefix``."""
+        with self._lock:
+            return [k for k in self._tokens if k.startswith(prefix)]
+
     def undeclare_all(self) -> None:
         with self._lock:
             for t in self._tokens.values():
