@@ -345,6 +345,8 @@ class VehicleWorker:
             rate = ins.last_wib_b_rps if ins is not None else np.zeros(3)
             if not (np.isfinite(acc).all() and np.isfinite(rate).all()):
                 acc, rate = np.zeros(3), np.zeros(3)
+            # its gate refusing aiding now (the window of its 'degraded' for screening)
+            screening = p.last_screened_t is not None and nav.t - p.last_screened_t <= p.coast_after_s()
             out.append(
                 HandoverState(
                     t=nav.t,
@@ -361,6 +363,8 @@ class VehicleWorker:
                     accel_bias_mps2=tuple(float(v) for v in nav.accel_bias_mps2),
                     acc_enu_mps2=tuple(float(v) for v in acc),
                     rate_body_rps=tuple(float(v) for v in rate),
+                    screening=bool(screening),
+                    stream_records=dict(list(p.stream_verdicts().items())[:32]),
                     bias_std=tuple(float(v) for v in np.sqrt(Pb)),
                     status=status,
                     excluded=monitor.book.healthy_for(nav.t) if monitor is not None else {},
@@ -394,7 +398,7 @@ class VehicleWorker:
         nav, std = fleet.handover_nav(st, t_start)
         hand_over = getattr(self.engine, "hand_over", None)
         if hand_over is not None:
-            hand_over(nav, std, st.service)
+            hand_over(nav, std, st.service, screening=any(s.screening for s in usable))
         else:  # the engine's lifecycle without a handover transition: a plain start
             self.engine._start(nav, std)
         self.engine.notes[f"handed_over_from:{st.service}"] += 1
@@ -403,6 +407,8 @@ class VehicleWorker:
         for p in self.engine.pipelines:
             monitor = getattr(p, "monitor", None)
             own = [s for s in usable if s.pipeline == p.name]
+            if own:  # the old owner's verdicts on the streams' innovations (Pipeline.source_groups)
+                p.consistency.adopt(own[0].stream_records)
             excluded = own[0].excluded if own and monitor is not None else {}
             if excluded:
                 monitor.book.restore(excluded, t_start)

@@ -853,7 +853,7 @@ class VehicleEngine:
         """Every pipeline starts from ``nav`` (a verified start: :meth:`VehicleLife.start_all`)."""
         self.life.start_all(nav, std)
 
-    def hand_over(self, nav: NavState, std: InitStd, source: str) -> bool:
+    def hand_over(self, nav: NavState, std: InitStd, source: str, screening: bool = False) -> bool:
         """Start or restart every pipeline from another service's last state (fleet scale-out).
 
         ``nav``: the navigation state at the time the vehicle resumes here (before its first IMU
@@ -871,8 +871,10 @@ class VehicleEngine:
         *unverified*: every pipeline reports ``degraded`` until the vehicle's own aiding agrees
         with it (``lifecycle.VERIFY_EPOCHS`` agreeing GNSS epochs), and a GNSS reference that
         disagrees with it restarts the pipeline from the vehicle's own fix. Counted in Health
-        ``notes`` as ``handed_over``. Returns whether the state was taken."""
-        return self.life.hand_over(nav, std, source)
+        ``notes`` as ``handed_over``. Returns whether the state was taken. ``screening``: the
+        old owner's screening was refusing aiding (``HandoverState.screening``): a fix that
+        disagrees with the state is then judged by the pipelines' own screening, not a reset."""
+        return self.life.hand_over(nav, std, source, screening)
 
     # --- state for health ---------------------------------------------------------------------------
     def pipeline_states(self) -> dict[str, dict]:

@@ -127,6 +127,11 @@ _KEEPS_SENSOR_STATES = frozenset({"reset", "recover", "init_reset", "hand_over"}
 _SAID = frozenset({"suspect", "reset", "recover", "init_reset", "hand_over", "verified"})
 #: consecutive agreeing reference epochs (or clean aiding updates) that verify a state
 VERIFY_EPOCHS = 3
+#: the unverified reason of a hand-over whose old owner's screening was refusing aiding
+HAND_OVER_SCREENING = "hand_over_screening"
+#: unverified states whose disagreement with a fix is judged by the pipeline's own screening, not
+#: a reset onto the fix: a recovery from a checkpoint, a hand-over during a fault
+_OWN_SCREENING_JUDGES = frozenset({"recover", HAND_OVER_SCREENING})
 #: IMU refusals that mean a second publisher under the INS's key: samples slipped between the
 #: genuine ones or replayed (some of them may have been taken: the INS is suspect)
 CONTESTED_IMU = frozenset({"overlap", "time_backwards", "duplicate"})
@@ -576,7 +581,7 @@ class VehicleLife:
             self._start_one(p, p_nav, p_std, event, verified=False, refs=refs)
         return True
 
-    def hand_over(self, nav: NavState, std: InitStd, source: str) -> bool:
+    def hand_over(self, nav: NavState, std: InitStd, source: str, screening: bool = False) -> bool:
         """Start or restart every pipeline from another service's last state (fleet hand-over).
 
         ``nav`` at the time the vehicle resumes (before its first IMU sample: that sample's start;
@@ -591,7 +596,16 @@ class VehicleLife:
         the latest fix (else the running estimate); refused (``implausible_handover`` counted,
         False) when they disagree, else every pipeline restarts from it with sigmas that cover the
         difference, unverified as above. Counted in Health notes (``handed_over``); returns
-        whether the state was taken."""
+        whether the state was taken.
+
+        ``screening``: the old owner's screening was refusing aiding when it sent the state (a
+        fault under way, ``HandoverState.screening``). A fix that disagrees with the state is then
+        as likely that fault as the state is wrong: as after a recovery from a checkpoint, the
+        pipelines' own screening judges it (their gates refuse it; a refusal that persists
+        wholesale resets them at the next reference) instead of a reset onto it. Why: the demo
+        aircraft handed over 4 s into its receiver's 60 m step (refused by the old owner's gate,
+        which coasted on its star tracker 1.4 m off through the 15 s) was reset onto the stepped
+        fixes and then 'aided' 60-85 m off until the step ended."""
         eng = self.engine
         if not (np.all(np.isfinite(nav.llh)) and np.all(np.isfinite(nav.vel_enu_mps))):
             eng.rejected["implausible_handover"] += 1
@@ -605,6 +619,12 @@ class VehicleLife:
                 return False
         else:
             self.start_all(nav, std, "hand_over", verified=False)
+        if screening:
+            for p in self.engine.pipelines:
+                life = self.lives[p.name]
+                if not life.verified:
+                    life.reason = HAND_OVER_SCREENING
+                    p.mark_unverified(HAND_OVER_SCREENING)
         self.check_first_fix = False
         eng.notes["handed_over"] += 1
         log.info(
@@ -824,7 +844,7 @@ class VehicleLife:
             p.sync()
             est = p.estimate()
             ok, _ = alignment.plausible(est.nav, ref[0], est.P9[:6, :6] + ref[1])
-            if not ok and not life.force_reset and life.reason == "recover":
+            if not ok and not life.force_reset and life.reason in _OWN_SCREENING_JUDGES:
                 # a state recovered from a checkpoint carried over a moment's loss of the IMU: its
                 # covariance is honest, and a fix that disagrees beyond it is as likely the faulty
                 # one (the demo's receiver step arrived 1.4 s after such a recovery, and a reset

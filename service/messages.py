@@ -748,6 +748,19 @@ class HandoverState(WireModel):
         description="Body angular rate (bias corrected) over the INS's last major interval, rad/s: "
         "the taking service turns the attitude over the gap with it",
     )
+    stream_records: dict[Annotated[str, Field(max_length=64)], bool] = Field(
+        default_factory=dict,
+        max_length=32,
+        description="Per aiding stream (kind/sensor id), whether the pipeline's innovation test found it as "
+        "good as it claims: the taking service starts from these verdicts (a fix whose position fails "
+        "its gate then makes the rest of that fix suspect from the first epoch, as it did here)",
+    )
+    screening: bool = Field(
+        False,
+        description="The pipeline's own screening refused aiding within its coast window (a fault under "
+        "way: a GNSS step its gate refuses): the taking service lets its own screening judge a fix that "
+        "disagrees with this state instead of restarting from that fix",
+    )
     bias_std: tuple[float, float, float, float, float, float] = Field(
         description="1-sigma of the gyro (rad/s) and accelerometer (m/s^2) bias estimates"
     )

@@ -39,14 +39,14 @@ def _worker(cfg):
     return VehicleWorker("v1", cfg, OutputSink(keys.DEFAULT_PREFIX, pubs, None), pubs, None, None), pubs
 
 
-def _hand_over_in_the_turn(with_motion: bool):
-    """Service a serves the demo aircraft until 32 s (12 s into its 3 deg/s turn, before the GNSS
-    fault at 40 s) and publishes its state; service b takes over GAP_S later. Returns b's
-    (seconds after the takeover, horizontal error m, velocity error m/s) per Solution, b's
-    engine notes and the state used."""
+def _hand_over_in_the_turn(with_motion: bool, at_s: float = 32.0, update: dict | None = None):
+    """Service a serves the demo aircraft until ``at_s`` (32 s: 12 s into its 3 deg/s turn, before
+    the GNSS step of 40-55 s) and publishes its state (changed by ``update``); service b takes
+    over GAP_S later. Returns b's (seconds after the takeover, horizontal error m, velocity
+    error m/s) per Solution, b's engine notes and the state used."""
     sc = shortened("demo_product.toml", 55.0)  # 20 s straight, then the 35 s turn
     cfg = service_config(sc, ["lc"])
-    t_state = sc.t0_gps_s + 32.0
+    t_state = sc.t0_gps_s + at_s
     t_cut = t_state + GAP_S
     a, _ = _worker(cfg)
     b, pubs = _worker(cfg)
@@ -65,6 +65,8 @@ def _hand_over_in_the_turn(with_motion: bool):
                 state = state.model_copy(
                     update={"acc_enu_mps2": (0.0, 0.0, 0.0), "rate_body_rps": (0.0, 0.0, 0.0)}
                 )
+            if update:
+                state = state.model_copy(update=update)
             payloads = {state.pipeline: state.to_json()}
             b.loop.starter = lambda t, payloads=payloads: b.take_over(payloads, t)
         if msg.t > t_cut and msg.t < t_cut + 8.0:
@@ -98,3 +100,29 @@ def test_a_hand_over_in_a_turn_carries_the_state_along_the_turn(with_motion):
         assert first_dv > 3.0, rows[:3]  # 4.4 m/s on this seed
         assert notes.get("reset:lc") == 1, notes  # its first fix disagreed: restarted from it
         assert worst_h > 5.0, worst_h  # 6.5 m on this seed
+
+
+@pytest.mark.parametrize("case", ["carried", "without_screening", "without_records"])
+def test_a_hand_over_during_a_gnss_step_keeps_refusing_the_stepped_fixes(case):
+    """Seed 4. Handed over 4 s into the demo receiver's 60 m step (40-55 s), which the old owner's gate
+    refuses (it coasts on its star tracker, 1.4 m off at worst through the 15 s): the state says
+    its screening is refusing (HandoverState.screening) and carries its verdicts on the streams'
+    innovations (stream_records), so the taking service's gate refuses the stepped fixes whole, as
+    the old owner's did. The controls show what each guards: without the flag, a reset onto the
+    stepped fixes, then 60-85 m off until the step ends; without the records, the step's velocity
+    rows are taken (the fix's position refused) and the solution drifts 15 m in 8 s."""
+    update = {"without_screening": {"screening": False}, "without_records": {"stream_records": {}}}.get(case)
+    rows, notes, state = _hand_over_in_the_turn(True, at_s=44.0, update=update)
+    assert notes.get("handed_over_from:service-a") == 1, notes
+    worst_h = max(h for _, h, _ in rows)
+    if case == "carried":
+        assert state.screening and state.status == "degraded", state
+        assert state.stream_records.get("gnss_fix/main") is True, state.stream_records
+        assert "reset:lc" not in notes, notes
+        assert worst_h < 3.0, worst_h  # 1.4 m on this seed
+    elif case == "without_screening":
+        assert notes.get("reset:lc") == 1, notes
+        assert worst_h > 40.0, worst_h
+    else:
+        assert "reset:lc" not in notes, notes
+        assert worst_h > 8.0, worst_h  # 15 m on this seed

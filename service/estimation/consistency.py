@@ -75,6 +75,23 @@ class InnovationConsistency:
         #: record, which a restart of the filter does not change
         self._record: dict[str, bool] = {}
 
+    def records(self) -> dict[str, bool]:
+        """Each stream's verdict now (its tested window's, else its record): what a service taking
+        the vehicle over adopts (HandoverState.stream_records)."""
+        out = dict(self._record)
+        for key, w in self._streams.items():
+            if w.dof >= self.min_dof:
+                out[key] = not w.failing
+        return out
+
+    def adopt(self, records: dict[str, bool]) -> None:
+        """Another service's verdicts (a hand-over) for the streams this one has no record of: a
+        fault episode that begins before this service has tested a stream then takes the rule of
+        a stream known to be as good as it claims (Pipeline.source_groups), as the old owner did."""
+        for key, ok in records.items():
+            if key not in self._record and key not in self._streams:
+                self._record[key] = bool(ok)
+
     def clear(self) -> None:
         """Forget every window (a filter restarted: its new innovations start a new history); each
         stream's record (its last tested verdict) stays."""

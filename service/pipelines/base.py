@@ -628,6 +628,15 @@ class Pipeline(ABC):
             rule = self._source_episode[key] = self.consistency.is_consistent(key)
         return meas.groups if rule else None
 
+    def stream_verdicts(self) -> dict[str, bool]:
+        """Per aiding stream, whether its failing rows make the rest of their source suspect now:
+        the rule of its fault episode under way (set when the episode began: within the episode the
+        suspects' own innovations make the window fail), else its innovation test's verdict. What a
+        service taking the vehicle over starts from (HandoverState.stream_records)."""
+        out = self.consistency.records()
+        out.update({k: bool(v) for k, v in self._source_episode.items() if v is not None})
+        return out
+
     def end_source_episode(self, key: str, flagged_any: bool) -> None:
         """After a screening: an update without failing rows ends the stream's episode."""
         if not flagged_any:
