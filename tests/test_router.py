@@ -78,6 +78,20 @@ def test_router_config_defaults_and_overlay(tmp_path):
         router_config(config_file=_write(tmp_path, '{ mode: "peer" }'))
 
 
+def test_a_readers_router_drops_to_slow_clients_after_the_files_own_rules(tmp_path):
+    plain = router_config()
+    assert not _get(plain, "qos/network")  # the fleet's router: Zenoh's lossless blocking
+    own = (
+        '{ qos: { network: [ { id: "mine", messages: ["put"], flows: ["egress"], '
+        'overwrite: { priority: "data_low" } } ] } }'
+    )
+    rules = _get(router_config(config_file=_write(tmp_path, own), readers=True), "qos/network")
+    assert [r["id"] for r in rules] == ["mine", "readers-never-hold-the-service"]
+    drop = rules[1]
+    assert drop["flows"] == ["egress"] and drop["overwrite"]["congestion_control"] == "drop"
+    assert set(drop["messages"]) == {"put", "delete"} and "tcp" in drop["link_protocols"]
+
+
 def test_the_service_sends_to_readers_without_blocking(tmp_path):
     """The service's session sends every put over a network link with DROP
     (tests/test_stuck_reader.py), not over its shards' unix socket; its outputs then travel
@@ -464,3 +478,102 @@ def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
     served = {s["zid"]: s["vehicles"] for s in snap["services"]}
     assert sorted(served) == zids and all(served.values()), served  # both services serve a share
     assert sorted(v for vs in served.values() for v in vs) == [f"veh{i:03d}" for i in range(6)]
+
+
+def _worst_gap_s(watch, since: float, until: float) -> tuple[float, int]:
+    """The longest wall time without a Solution of one vehicle at ``watch`` in [since, until]
+    (its last Solution before ``since`` and ``until`` itself count as ends), and the fewest
+    Solutions of one vehicle in that span."""
+    worst, fewest = 0.0, None
+    with watch.lock:
+        for sols in watch.sols.values():
+            walls = [w for w, _, _ in sols if since <= w <= until]
+            before = [w for w, _, _ in sols if w < since]
+            ends = before[-1:] + walls + [until]
+            worst = max([worst] + [b - a for a, b in zip(ends, ends[1:], strict=False)])
+            fewest = len(walls) if fewest is None else min(fewest, len(walls))
+    return worst, fewest or 0
+
+
+@pytest.mark.integration
+def test_a_slow_reader_on_the_readers_router_holds_nobody():
+    """The fleet's router (a service, the fleet simulator with ten vehicles) and a readers' router
+    (``--readers``) connected to it. First the control: a client subscribed to ``fednav/**`` whose
+    callback never returns, on the fleet's router, holds every vehicle's Solutions for 5 s within
+    20 s (its link's buffers full, the simulator's blocking puts wait on it, no input reaches the
+    service, until Zenoh closes that link; the client reconnects and holds it again: it is closed
+    before the second part). Then the same client on the readers' router: for 20 s a reader on
+    each router still gets every vehicle's Solutions (10 Hz, none missing) without a gap, and
+    ``fednav-fleet status`` answers through the readers' router."""
+    from fednav.simulators.fleet_watch import FleetWatch
+
+    p1, p2 = free_port(), free_port()
+    fleet_router, _ = _start_router(["--listen", f"tcp/127.0.0.1:{p1}"])
+    readers_router, _ = _start_router(
+        ["--readers", "--listen", f"tcp/127.0.0.1:{p2}", "--connect", f"tcp/127.0.0.1:{p1}"]
+    )
+    procs = [fleet_router, readers_router]
+    watches, slow = [], []
+
+    def slow_client(port: int) -> threading.Event:
+        """A client on ``port`` whose callback blocks until the returned event is set."""
+        release = threading.Event()
+        c = zenoh.Config.from_file(str(FLEET / "reader.json5"))
+        c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        s = zenoh.open(c)
+        s.declare_subscriber("fednav/**", lambda _: release.wait())
+        slow.append((s, release))
+        return release
+
+    try:
+        svc = Proc(
+            [sys.executable, "-m", "fednav.service", "--zenoh-config", str(FLEET / "service.json5")]
+            + ["--connect", f"tcp/127.0.0.1:{p1}", "--no-record", "--vehicle", "*"],
+            "fednav-service",
+        )
+        procs.append(svc)
+        assert svc.wait_for("fednav-service ready", timeout=60), svc.output()
+        watches = [FleetWatch(p1), FleetWatch(p2)]
+        gen = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "10", "--duration", "90"]
+            + ["--connect", f"tcp/127.0.0.1:{p1}"],
+            "fleet",
+        )
+        procs.append(gen)
+        assert gen.wait_for("publishing", timeout=60), gen.output()
+        time.sleep(5.0)
+        assert all(len(w.sols) == 10 for w in watches), [sorted(w.sols) for w in watches]
+        release = slow_client(p1)  # the control: the slow client on the fleet's router
+        t_control = time.monotonic()
+        time.sleep(20.0)
+        control = [_worst_gap_s(w, t_control, time.monotonic()) for w in watches]
+        release.set()  # (it reconnects after Zenoh closed its link, and would hold the fleet again)
+        slow.pop()[0].close()
+        time.sleep(2.0)
+        slow_client(p2)
+        t_slow = time.monotonic()
+        time.sleep(20.0)
+        gaps = [_worst_gap_s(w, t_slow, time.monotonic()) for w in watches]
+        status = subprocess.run(
+            [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+            + ["--connect", f"tcp/127.0.0.1:{p2}"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        for s, release in slow:
+            release.set()
+            s.close()
+        for w in watches:
+            w.close()
+        for p in reversed(procs):
+            p.signal(signal.SIGTERM)
+            p.wait(timeout=60)
+    print("(worst Solution gap s, fewest Solutions of a vehicle) in 20 s at each reader")
+    print(f"the slow client on the fleet's router: {control}; on the readers' router: {gaps}")
+    # 10 Hz Solutions at real time: ~0.1 s apart, ~200 in 20 s for every vehicle at both readers
+    assert all(gap < 1.0 and n >= 150 for gap, n in gaps), gaps
+    assert status.returncode == 0, status.stdout + status.stderr
+    assert len(json.loads(status.stdout)["vehicles"]) == 10
+    assert all(gap > 3.0 for gap, _ in control), control  # 5.1 s in the runs that found it
