@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 import tomllib
 from pathlib import Path
@@ -103,3 +105,14 @@ def split_zids(vehicles: list[str], count: int) -> list[str]:
         if i > 10_000:
             raise AssertionError(f"no {count} ids split {len(vehicles)} vehicles")
     raise AssertionError  # unreachable
+
+
+def fleet_status(port: int) -> subprocess.CompletedProcess:
+    """``fednav-fleet status --json`` through the Zenoh endpoint on loopback ``port``."""
+    return subprocess.run(
+        [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+        + ["--connect", f"tcp/127.0.0.1:{port}"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )

@@ -18,7 +18,7 @@ from fednav.simulators.fleet import vehicle_names
 from fednav.simulators.fleet_watch import FleetWatch
 from fednav.simulators.processes import Proc, free_port, stop_all
 
-from .scenario_utils import split_zids, wait_until
+from .scenario_utils import fleet_status, split_zids, wait_until
 
 #: the services are polled every 0.2 s
 _wait = functools.partial(wait_until, poll_s=0.2)
@@ -164,15 +164,8 @@ def test_fleet_shared_by_rendezvous_with_failover_handover_and_rejoin(tmp_path):
 
 def _status(port: int) -> tuple[int, dict]:
     import json
-    import subprocess
 
-    p = subprocess.run(
-        [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
-        + ["--connect", f"tcp/127.0.0.1:{port}"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    p = fleet_status(port)
     return p.returncode, json.loads(p.stdout)
 
 

@@ -32,7 +32,7 @@ import zenoh
 from fednav.service.router import router_config
 from fednav.simulators.processes import Proc, free_port, query_status
 
-from .scenario_utils import split_zids
+from .scenario_utils import fleet_status, split_zids
 
 ROOT = Path(__file__).resolve().parents[1]
 FLEET = ROOT / "service" / "configs" / "fleet"
@@ -554,13 +554,7 @@ def test_a_slow_reader_on_the_readers_router_holds_nobody():
         t_slow = time.monotonic()
         time.sleep(20.0)
         gaps = [_worst_gap_s(w, t_slow, time.monotonic()) for w in watches]
-        status = subprocess.run(
-            [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
-            + ["--connect", f"tcp/127.0.0.1:{p2}"],
-            capture_output=True,
-            text=True,
-            timeout=60,
-        )
+        status = fleet_status(p2)
     finally:
         for s, release in slow:
             release.set()
