@@ -163,6 +163,7 @@ def test_fleet_status_and_record_of_five_vehicles(tmp_path):
     # the recording, read back with Rerun's reader: every vehicle, its track, its lane, the load
     assert record.returncode == 0, rec_out + rec_err
     assert "5 vehicle(s), 1 service(s)" in rec_out, rec_out
+    assert "optimized from" in rec_out, rec_out  # compacted at the end (and read back below)
     rows, states, scalars, blueprints = _read(rrd)
     assert blueprints == 2  # the default at the start, then again with the ENU view framing every track
     for v in VEHICLES:
