@@ -113,7 +113,7 @@ def record(
 
 def main(argv: list[str] | None = None) -> int:
     one_blas_thread()
-    ap = argparse.ArgumentParser(prog="fednav-record", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="fednav-record", description=__doc__.split("\n\n")[0].replace("``", ""))
     ap.add_argument("scenario", help="a scenario file or the name of a shipped one (e.g. seed000_faults)")
     ap.add_argument("-o", "--out", type=Path, required=True, help="the .rrd to write")
     ap.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")

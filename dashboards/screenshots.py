@@ -349,7 +349,9 @@ def screenshot_family(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fednav-screenshots", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="fednav-screenshots", description=__doc__.split("\n\n")[0].replace("``", "")
+    )
     ap.add_argument("--out", type=Path, default=Path("docs/images"))
     ap.add_argument("--only", action="append", choices=list(FAMILIES), help="families (default: all)")
     ap.add_argument("--tabs", action="append", help="tab names to capture (default: all)")

@@ -398,7 +398,14 @@ class VehicleWorker:
         nav, std = fleet.handover_nav(st, t_start)
         hand_over = getattr(self.engine, "hand_over", None)
         if hand_over is not None:
-            hand_over(nav, std, st.service, screening=any(s.screening for s in usable))
+            if not hand_over(nav, std, st.service, screening=any(s.screening for s in usable)):
+                log.warning(
+                    "vehicle %s: the handover state of service %s refused (counted in Health rejected); "
+                    "the vehicle starts from its own sensors",
+                    self.vehicle,
+                    st.service,
+                )
+                return
         else:  # the engine's lifecycle without a handover transition: a plain start
             self.engine._start(nav, std)
         self.engine.notes[f"handed_over_from:{st.service}"] += 1
@@ -414,7 +421,8 @@ class VehicleWorker:
                 monitor.book.restore(excluded, t_start)
                 self.engine.notes["handover_exclusions"] += len(excluded)
         log.info(
-            "vehicle %s handed over from service %s (state %.2f s old, status %s)",
+            "vehicle %s handed over from service %s (state %.2f s old, status %s; degraded until its own "
+            "aiding agrees)",
             self.vehicle,
             st.service,
             t_start - st.t,

@@ -627,11 +627,8 @@ class VehicleLife:
                     p.mark_unverified(HAND_OVER_SCREENING)
         self.check_first_fix = False
         eng.notes["handed_over"] += 1
-        log.info(
-            "vehicle %s: navigation handed over from %s (unverified until its own aiding agrees)",
-            eng.vehicle,
-            source,
-        )
+        # (the service logs the hand-over once, with the state's age and status: app.take_over)
+        log.debug("vehicle %s: navigation handed over from %s (unverified)", eng.vehicle, source)
         return True
 
     # --- the vehicle's own references -----------------------------------------------------------------

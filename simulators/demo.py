@@ -21,7 +21,7 @@ DEFAULT = Path(__file__).resolve().parent / "scenarios" / "demo_product.toml"
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="fednav-demo", description=__doc__)
+    ap = argparse.ArgumentParser(prog="fednav-demo", description=__doc__.replace("``", ""))
     ap.add_argument("--scenario", default=str(DEFAULT))
     # 10x: the service keeps up (measured 2026-11-29 on the project's 2-core machine: latency p50
     # 0.5 ms, p99 11 ms); at the previous 20x it fell behind (it processes the demo at 12-15x,

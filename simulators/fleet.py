@@ -207,7 +207,9 @@ def main(argv: list[str] | None = None) -> int:
     from fednav.service.imu_batch import batch_size_arg
     from fednav.simulators.publisher import timeout_arg
 
-    ap = argparse.ArgumentParser(prog="fednav-sim fleet", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="fednav-sim fleet", description=__doc__.split("\n\n")[0].replace("``", "")
+    )
     ap.add_argument("--vehicles", type=int, default=10, help="number of vehicles (default 10)")
     ap.add_argument("--stem", default="veh", help="vehicle names: <stem>000, <stem>001, ...")
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, help="scenario (default demo_aircraft)")
