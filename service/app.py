@@ -651,6 +651,11 @@ class PoolWorker:
         with self._lock:
             for v in self.vehicles:
                 v.final_outputs()
+                if self.fleet is not None:  # the freshest state for the member that takes it over
+                    try:
+                        v.publish_states(*self.fleet)
+                    except Exception:
+                        log.exception("vehicle %s: last handover state failed", v.vehicle)
 
 
 class Service:

@@ -241,3 +241,52 @@ def test_a_full_member_passes_new_vehicles_on_and_status_names_what_nobody_takes
     finally:
         stop_all(procs)
         bus.close()
+
+
+def test_a_service_stopped_with_sigterm_hands_its_vehicles_over_from_their_last_state(tmp_path):
+    """A member that stops (SIGTERM) publishes each vehicle's state as it goes: the survivor starts
+    them from states a moment old, not from the last periodic one (``handover_period_s = 4`` here:
+    up to 4 s old, carried over the gap with growing sigmas)."""
+    import re
+
+    names = vehicle_names(N)
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 4.0\n'
+    )
+    port = free_port()
+    procs = [_router(port)]
+    bus = FleetWatch(port)
+    try:
+        ids = split_zids(names, 2)
+        a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
+        procs += [a, b]
+        gen = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
+            + ["--fix-rate", "1", "--connect", f"tcp/127.0.0.1:{port}"],
+            "fleet",
+        )
+        procs.append(gen)
+        assert gen.wait_for("publishing", timeout=60), gen.output()
+        assert _wait(lambda: len(bus.assignment(time.monotonic() - 1.5)) == 2, 30), bus.assignment(0.0)
+        time.sleep(8.0)  # past the joining period: every vehicle served, states published
+        asg = bus.assignment(time.monotonic() - 1.5)
+        moved = asg[ids[0]]
+        assert moved and sorted(moved + asg[ids[1]]) == names, asg
+        a.signal(signal.SIGTERM)
+        assert a.wait(timeout=60) == 0, a.output()
+        assert _wait(lambda: all(f"vehicle {v} handed over from service" in b.output() for v in moved), 15), (
+            b.output()[-3000:]
+        )
+        ages = {
+            m.group(1): float(m.group(2))
+            for m in re.finditer(
+                r"vehicle (\S+) handed over from service \S+ \(state (\S+) s old", b.output()
+            )
+        }
+        assert set(moved) <= set(ages), ages
+        assert all(ages[v] < 0.5 for v in moved), ages  # their states as the service stopped
+    finally:
+        stop_all(procs)
+        bus.close()
