@@ -280,6 +280,12 @@ class VehicleWorker:
         self.on_released = None
         self.reroute = None
         self.next_state = time.monotonic() + config.fleet.handover_period_s
+        #: a fleet member's view of the other members' handover states of this vehicle (() -> {pipeline:
+        #: payload}) and its own id: a vehicle lost here (an IMU gap: this service stopped, SIGSTOP,
+        #: while another took the vehicle) resumes from the other's fresher state (resume_from_fleet)
+        self.fleet_states_of = None
+        self.fleet_me = ""
+        self._resume_seen: tuple = ()
         self.notes = None  # () -> counted non-refusal events (the ROS 2 bridge's), for Health
         # each vehicle's Health at its own phase of the period (a stable hash of its name): a fleet
         # started at once does not publish every vehicle's Health in the same scan (a burst that
@@ -431,6 +437,37 @@ class VehicleWorker:
         if self.rr is not None:
             self.rr.log_event(self.vehicle, t_start, f"handed over from {st.service} ({st.status} state)")
 
+    def resume_from_fleet(self) -> bool:
+        """A vehicle this service had lost (``life.lost``: an IMU gap, e.g. the service was stopped
+        longer than its lease while another member served the vehicle) is started from another
+        member's handover state newer than the loss, when one within ``handover_max_age_s`` of the
+        vehicle's time is there, instead of aligning anew. Called by the pool worker's scan (off the
+        per-message path); parses the states only when they changed. True when it took one."""
+        eng = self.engine
+        if not eng.life.lost or eng.last_imu_t is None or self.fleet_states_of is None:
+            return False
+        payloads = self.fleet_states_of()
+        key = tuple(sorted((n, len(b), hash(b)) for n, b in payloads.items()))
+        if not payloads or key == self._resume_seen:
+            return False
+        self._resume_seen = key
+        t, max_age = eng.last_imu_t, self.config.fleet.handover_max_age_s
+        others = {}
+        for name, payload in payloads.items():
+            try:
+                st = HandoverState.model_validate_json(payload)
+            except ValidationError:
+                continue
+            if st.service != self.fleet_me and -1.0 <= t - st.t <= max_age:
+                others[name] = payload
+        if not others:
+            return False
+        self.take_over(others, t)
+        if eng.life.lost:
+            return False
+        eng.notes["resumed_from_fleet_state"] += 1
+        return True
+
     def final_outputs(self) -> None:
         try:
             if self.engine.initialised:
@@ -575,6 +612,8 @@ class PoolWorker:
             if self.fleet is not None and now >= v.next_state:
                 v.next_state = now + self.config.fleet.handover_period_s
                 v.publish_states(*self.fleet)
+            if v.fleet_states_of is not None:
+                v.resume_from_fleet()
 
     def _run(self) -> None:
         while True:
@@ -888,6 +927,8 @@ class Service:
                         w.notes = lambda: dict(self.ros_in.counters)
                     if self.fleet_view is not None:
                         w.on_retired = self._retired
+                        w.fleet_states_of = functools.partial(self.fleet_states.get, vehicle)
+                        w.fleet_me = self.fleet_view.me
                         states = self.fleet_states.get(vehicle)
                         if states:  # another service served it: start from its last state
                             w.loop.starter = lambda t, w=w, states=states: w.take_over(states, t)
