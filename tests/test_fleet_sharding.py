@@ -243,6 +243,38 @@ def test_a_full_member_passes_new_vehicles_on_and_status_names_what_nobody_takes
         bus.close()
 
 
+def _two_members(tmp_path, handover_period_s: float, *sim_args: str):
+    """A router, a bus watcher, two fleet members (Zenoh ids from ``split_zids``, each serving some of
+    the N vehicles) and ``fednav-sim fleet`` of N vehicles at 1 Hz fixes, publishing: (procs, bus,
+    ids, a, b). The caller stops ``procs`` and closes ``bus``."""
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\n'
+        f"handover_period_s = {handover_period_s}\n"
+    )
+    port = free_port()
+    procs = [_router(port)]
+    bus = FleetWatch(port)
+    try:
+        ids = split_zids(vehicle_names(N), 2)
+        a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
+        procs += [a, b]
+        gen = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
+            + ["--fix-rate", "1", *sim_args, "--connect", f"tcp/127.0.0.1:{port}"],
+            "fleet",
+        )
+        procs.append(gen)
+        assert gen.wait_for("publishing", timeout=60), gen.output()
+        assert _wait(lambda: len(bus.assignment(time.monotonic() - 1.5)) == 2, 30), bus.assignment(0.0)
+    except BaseException:
+        stop_all(procs)
+        bus.close()
+        raise
+    return procs, bus, ids, a, b
+
+
 def test_a_service_stopped_with_sigterm_hands_its_vehicles_over_from_their_last_state(tmp_path):
     """A member that stops (SIGTERM) publishes each vehicle's state as it goes: the survivor starts
     them from states a moment old, not from the last periodic one (``handover_period_s = 4`` here:
@@ -250,26 +282,8 @@ def test_a_service_stopped_with_sigterm_hands_its_vehicles_over_from_their_last_
     import re
 
     names = vehicle_names(N)
-    cfg = tmp_path / "svc.toml"
-    cfg.write_text(
-        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
-        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 4.0\n'
-    )
-    port = free_port()
-    procs = [_router(port)]
-    bus = FleetWatch(port)
+    procs, bus, ids, a, b = _two_members(tmp_path, 4.0)
     try:
-        ids = split_zids(names, 2)
-        a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
-        procs += [a, b]
-        gen = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
-            + ["--fix-rate", "1", "--connect", f"tcp/127.0.0.1:{port}"],
-            "fleet",
-        )
-        procs.append(gen)
-        assert gen.wait_for("publishing", timeout=60), gen.output()
-        assert _wait(lambda: len(bus.assignment(time.monotonic() - 1.5)) == 2, 30), bus.assignment(0.0)
         time.sleep(8.0)  # past the joining period: every vehicle served, states published
         asg = bus.assignment(time.monotonic() - 1.5)
         moved = asg[ids[0]]
@@ -302,26 +316,8 @@ def test_a_service_stopped_past_its_lease_resumes_its_vehicles_from_the_others_s
     under three times the settled run's 95th percentile (one run: 1.5-3.9 m against a bound of
     12.7 m; aligning anew, the same run without the resume gave 6.8-16.4 m)."""
     names = vehicle_names(N)
-    cfg = tmp_path / "svc.toml"
-    cfg.write_text(
-        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
-        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 0.5\n'
-    )
-    port = free_port()
-    procs = [_router(port)]
-    bus = FleetWatch(port)
+    procs, bus, ids, a, b = _two_members(tmp_path, 0.5, "--truth")
     try:
-        ids = split_zids(names, 2)
-        a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
-        procs += [a, b]
-        gen = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
-            + ["--fix-rate", "1", "--truth", "--connect", f"tcp/127.0.0.1:{port}"],
-            "fleet",
-        )
-        procs.append(gen)
-        assert gen.wait_for("publishing", timeout=60), gen.output()
-        assert _wait(lambda: len(bus.assignment(time.monotonic() - 1.5)) == 2, 30), bus.assignment(0.0)
         time.sleep(4.0)
         settled = {v: bus.last_t(v) for v in names}
         time.sleep(6.0)
@@ -347,6 +343,5 @@ def test_a_service_stopped_past_its_lease_resumes_its_vehicles_from_the_others_s
             assert e.size >= 3, (v, e)
             assert e.max() < bound, (v, e.max(), bound)
     finally:
-        a.signal(signal.SIGCONT) if "a" in locals() else None
-        stop_all(procs)
+        stop_all(procs)  # (continues a stopped process first)
         bus.close()
