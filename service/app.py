@@ -458,7 +458,8 @@ class VehicleWorker:
                 st = HandoverState.model_validate_json(payload)
             except ValidationError:
                 continue
-            if st.service != self.fleet_me and -1.0 <= t - st.t <= max_age:
+            newer = eng.lost_after_t is None or st.t > eng.lost_after_t  # served there after the loss
+            if st.service != self.fleet_me and newer and -1.0 <= t - st.t <= max_age:
                 others[name] = payload
         if not others:
             return False

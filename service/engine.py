@@ -145,6 +145,9 @@ class VehicleEngine:
     #: vehicle-second on every attribute read: benchmarks/instructions.py)
     _lost_logged_at = -math.inf
     _lost_unlogged = 0
+    #: the last IMU time before the latest loss (a class default likewise): a fleet member's state
+    #: newer than this is what a vehicle lost here may resume from (app.VehicleWorker.resume_from_fleet)
+    lost_after_t: float | None = None
 
     def __init__(
         self, vehicle: str, config: ServiceConfig, sink: EngineSink, counters: Counter | None = None
@@ -659,6 +662,7 @@ class VehicleEngine:
         self.rejected[reason] += 1
         self.pending.clear()
         gap = t - self.last_imu_t if self.last_imu_t is not None else None
+        self.lost_after_t = self.last_imu_t
         was_running = self.life.initialised
         self.last_imu_t = self.last_t = t
         if reason == "time_jump":  # a new time base: nothing of the old one applies
