@@ -610,11 +610,12 @@ class PoolWorker:
             if now >= v.next_health:
                 v.next_health = next_due(v.next_health, now, self.config.output.health_period_s)
                 v.publish_health()
-            if self.fleet is not None and now >= v.next_state:
-                v.next_state = now + self.config.fleet.handover_period_s
-                v.publish_states(*self.fleet)
-            if v.fleet_states_of is not None:
-                v.resume_from_fleet()
+            if self.fleet is not None:
+                if now >= v.next_state:
+                    v.next_state = now + self.config.fleet.handover_period_s
+                    v.publish_states(*self.fleet)
+                if v.fleet_states_of is not None:  # (a fleet member's, not a local shard's)
+                    v.resume_from_fleet()
 
     def _run(self) -> None:
         while True:
