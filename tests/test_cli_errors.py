@@ -95,3 +95,15 @@ def test_publishers_refuse_a_wait_that_is_no_positive_finite_time(capsys, value)
         replay_main(["mapping.toml", "--match-timeout", value])
     assert exc.value.code == 2
     assert "argument --match-timeout" in _err(capsys)
+
+
+def test_command_help_has_no_restructuredtext_quotes():
+    import subprocess
+    import sys
+
+    for mod in ("fednav.simulators.fleet", "fednav.simulators.demo", "fednav.dashboards.record"):
+        out = subprocess.run(
+            [sys.executable, "-m", mod, "--help"], capture_output=True, text=True, timeout=60
+        )
+        assert out.returncode == 0 and "usage:" in out.stdout, (mod, out.stderr)
+        assert "``" not in out.stdout, (mod, out.stdout)

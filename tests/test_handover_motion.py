@@ -126,3 +126,41 @@ def test_a_hand_over_during_a_gnss_step_keeps_refusing_the_stepped_fixes(case):
     else:
         assert "reset:lc" not in notes, notes
         assert worst_h > 8.0, worst_h  # 15 m on this seed
+
+
+def test_a_vehicle_lost_here_resumes_only_from_a_state_served_after_the_loss():
+    """VehicleWorker.resume_from_fleet: a vehicle whose IMU stream stopped for 8 s (this service
+    stopped; longer than its own checkpoints carry, 5 s) is lost; another member's state from before
+    the gap, young enough for ``handover_max_age_s`` (set to 20 s here), is not taken (it would be
+    carried over the whole gap), one served after the loss is, and the vehicle runs on from it."""
+
+    sc = shortened("demo_product.toml", 55.0)
+    cfg = service_config(sc, ["lc"])
+    cfg = cfg.model_copy(update={"fleet": cfg.fleet.model_copy(update={"handover_max_age_s": 20.0})})
+    w, _ = _worker(cfg)
+    t_stop, t_back = sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
+    before_gap = after_gap = None
+    other, _ = _worker(cfg)  # the member that served the vehicle meanwhile
+    w.fleet_me = "service-a"
+    states: dict[str, bytes] = {}
+    w.fleet_states_of = lambda: dict(states)
+    for key, msg in Simulation(sc, seed=SEED):
+        pk = keys.parse_input(key)
+        if pk.kind == "truth":
+            continue
+        other.loop.process(pk.kind, pk.sensor_id, msg)
+        if before_gap is None and msg.t > t_stop - 0.5:
+            (before_gap,) = other.handover_states("service-b")
+        if msg.t <= t_stop or msg.t > t_back:
+            w.loop.process(pk.kind, pk.sensor_id, msg)
+        if msg.t > t_back and after_gap is None and w.engine.life.lost:
+            states["lc"] = before_gap.to_json()  # older than the loss: refused
+            assert not w.resume_from_fleet() and w.engine.life.lost
+            (after_gap,) = other.handover_states("service-b")
+            states["lc"] = after_gap.to_json()
+            assert w.resume_from_fleet()  # served after the loss: taken
+            assert not w.engine.life.lost and w.engine.notes["resumed_from_fleet_state"] == 1
+        if msg.t > t_back + 3.0:
+            break
+    assert before_gap is not None and after_gap is not None
+    assert w.engine.lost_after_t is not None and before_gap.t < w.engine.lost_after_t < after_gap.t
