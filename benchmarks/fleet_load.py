@@ -15,6 +15,7 @@ subscriber of every Solution in this process. Printed per case:
   vehicle (RSS at the end minus RSS of the idle service).
 
 Usage: .venv/bin/python benchmarks/fleet_load.py [--vehicles 50 100 200] [--duration 30] [--option LINE]
+           [--intake-option LINE]
            [--modes batch json] [--record off on] [--workers 2] [--shards 1] [--json]
 """
 
@@ -66,14 +67,17 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def service_config(tmp: Path, workers: int | None, record: bool, extra: str = "") -> Path:
+def service_config(tmp: Path, workers: int | None, record: bool, extra: str = "", intake: str = "") -> Path:
     p = tmp / "fleet_service.toml"
     p.write_text(
         'vehicles = ["*"]\n'
         'pipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
         + ("rrd_vehicle_interval_s = 1.0\n" if record else "")
         + f"{extra}"
-        "[intake]\n" + (f"workers = {workers}\n" if workers is not None else "") + "max_vehicles = 1000\n"
+        "[intake]\n"
+        + (f"workers = {workers}\n" if workers is not None else "")
+        + "max_vehicles = 1000\n"
+        + intake
     )
     return p
 
@@ -87,6 +91,7 @@ def run_case(
     shards: int,
     tmp: Path,
     options: str = "",
+    intake_options: str = "",
 ) -> dict:
     import zenoh
 
@@ -96,7 +101,7 @@ def run_case(
     from fednav.simulators.processes import Proc, free_port, start_service
 
     port = free_port()
-    cfg = service_config(tmp, workers, record, options)
+    cfg = service_config(tmp, workers, record, options, intake_options)
     rrd = tmp / f"fleet_{n}_{mode}.rrd" if record else None
     extra = ["--shards", str(shards)] if shards > 1 else []
     svc = start_service(port, config=cfg, rrd=rrd, extra=extra)
@@ -245,6 +250,12 @@ def main() -> int:
         help="a top-level line of the service's TOML configuration, repeatable "
         "(e.g. --option 'rrd_flush_interval_s = 5.0')",
     )
+    ap.add_argument(
+        "--intake-option",
+        action="append",
+        default=[],
+        help="a line of the service's [intake] table, repeatable (e.g. 'subscribe = \"all\"')",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     results = []
@@ -261,6 +272,7 @@ def main() -> int:
                         args.shards,
                         Path(d),
                         "".join(o + "\n" for o in args.option),
+                        "".join(o + "\n" for o in args.intake_option),
                     )
                     results.append(r)
                     if not args.json:

@@ -700,6 +700,10 @@ class PoolWorker:
 
 
 class Service:
+    #: set in __init__ (a class default for a service assembled without it, as unit tests do)
+    _resubscribe_due: threading.Event | None = None
+    _owned_intake = False
+
     def __init__(
         self,
         config: ServiceConfig,
@@ -739,6 +743,10 @@ class Service:
         self._foreign_lock = threading.Lock()
         self.fleet_view = None
         self._rebalance_due = threading.Event()
+        #: [intake] subscribe = 'owned': ownership may have changed, the vehicles subscribed are
+        #: brought up to date by the health loop (_resubscribe)
+        self._resubscribe_due = threading.Event()
+        self._owned_intake = False
         self.retired_vehicles = 0
         self.released_vehicles = 0
         self.rrd_path = rrd or config.rrd or Path("recordings") / f"fednav-{datetime.now():%Y%m%d-%H%M%S}.rrd"
@@ -839,10 +847,28 @@ class Service:
         many = self._deliver_many if inline else None  # inline: drains handed over whole
         local = self.shard is not None and not self.feeds and self.feed_fd is None
         wanted = self._wanted if local or self.fleet_view is not None else None
+        one_process = self.shard is None and not self.feeds and self.feed_fd is None
+        mode = cfg.intake.subscribe
+        if mode == "owned" and not one_process:
+            log.warning(
+                "[intake] subscribe = 'owned' needs a fleet member that is one process (not --shards): "
+                "subscribing to every vehicle's inputs"
+            )
+        self._owned_intake = (
+            self.fleet_view is not None and one_process and mode in ("owned", "auto") and sel is not None
+        )
         if self.feed_fd is not None:  # a local shard: shard 0 hands it its vehicles' inputs
             from fednav.service.transport.shard_feed import FeedIntake
 
             self.intake = FeedIntake(self.feed_fd, self._deliver, deliver_many=many, on_end=self._on_feed_end)
+        elif self._owned_intake:
+            self.intake = zenoh_io.OwnedIntake(
+                self.session,
+                cfg.prefix,
+                keys.discovery_selectors(cfg.prefix),
+                many or self._deliver_each,
+                wanted=wanted,
+            )
         else:
             forward = self._forward if self.feeds else None
             self.intake = zenoh_io.Intake(
@@ -944,7 +970,34 @@ class Service:
                     self.workers[vehicle] = w
                     self.liveliness.declare(keys.service(vehicle, "alive", self.config.prefix))
                     self._capacity()
+                    if self._owned_intake and (intake := getattr(self, "intake", None)) is not None:
+                        intake.watch(vehicle)  # (found by its discovery keys: all of it from now on)
         return w
+
+    def _deliver_each(self, batch: list[tuple[float, str, bytes]]) -> None:
+        """A drain of the owned-vehicles intake handed to a pool of worker threads one by one."""
+        for item in batch:
+            try:
+                self._deliver(*item)
+            except Exception:  # routing must survive any one message
+                log.exception("intake: delivery of %s failed", item[1][:200])
+
+    def _resubscribe(self) -> None:
+        """[intake] subscribe = 'owned': subscribe to the vehicles this member serves and to those
+        it owns now by the fleet's membership and of which a handover state arrived lately (a
+        member that left or died: its vehicles, to be taken over from their states), at most
+        max_vehicles; drop the rest. New vehicles are found by their discovery keys (_worker)."""
+        want = set(self.workers)
+        room = self.config.intake.max_vehicles - len(want)
+        if room > 0 and self.fleet_view.active:
+            horizon = 3.0 * self.config.fleet.handover_period_s + 30.0
+            for v in self.fleet_states.recent(horizon):
+                if v not in want and self.fleet_view.mine(v):
+                    want.add(v)
+                    room -= 1
+                    if room <= 0:
+                        break
+        self.intake.set_vehicles(want)
 
     def _capacity(self) -> None:
         """A '*' service reaching its max_vehicles declares itself full (a fleet member first one
@@ -1012,6 +1065,10 @@ class Service:
             vehicles_moved_away=self.retired_vehicles,
             vehicles_released_idle=self.released_vehicles,
             inputs_served_elsewhere=getattr(getattr(self, "intake", None), "unwanted", 0),
+            subscribed_vehicles=(
+                len(self.intake.vehicles()) if self._owned_intake and hasattr(self, "intake") else None
+            ),
+            inputs_discovery_copies=getattr(getattr(self, "intake", None), "discovery_copies", 0),
             inputs_forwarded=sum(f.forwarded for f in self.feeds.values()),
             inputs_forward_lost=sum(f.lost for f in self.feeds.values()),
             max_vehicles=self.config.intake.max_vehicles if "*" in self.config.vehicles else None,
@@ -1037,6 +1094,12 @@ class Service:
                     self._rebalance()
                 except Exception:
                     log.exception("fleet rebalance failed")
+            if self._owned_intake and self._resubscribe_due.is_set():
+                self._resubscribe_due.clear()
+                try:
+                    self._resubscribe()
+                except Exception:
+                    log.exception("fleet resubscription failed")
             if time.monotonic() < next_health:
                 continue
             next_health = time.monotonic() + period
@@ -1187,6 +1250,8 @@ class Service:
         with self._foreign_lock:
             self._foreign_gen += 1
             self._foreign.clear()
+        if self._resubscribe_due is not None:
+            self._resubscribe_due.set()
 
     # --- fleet sharing ([fleet] sharding = "rendezvous") -----------------------------------------
     def _on_member(self, key: str, payload: bytes | None) -> None:
@@ -1235,6 +1300,8 @@ class Service:
             self._capacity()
         self.liveliness.undeclare(keys.service(w.vehicle, "alive", self.config.prefix))
         self.retired_vehicles += 1
+        if self._owned_intake:  # its subscription goes to its new owner (_resubscribe)
+            self._resubscribe_due.set()
         log.info("vehicle %s moved to service %s", w.vehicle, self.fleet_view.owner(w.vehicle))
 
     def _released(self, w: VehicleWorker) -> None:

@@ -594,11 +594,15 @@ class IntakeConfig(Model):
         "that agree with each other and confirm a time jump (sensor restart, clock step): the INS is "
         "re-initialised on the new time base",
     )
-    subscribe: Literal["all", "served"] = Field(
-        "all",
+    subscribe: Literal["auto", "all", "served", "owned"] = Field(
+        "auto",
         description="'all': subscribe to every vehicle's inputs, so data under a name this service does "
         "not serve is counted and named (a typo shows); 'served': only the listed vehicles' keys (several "
-        "services sharing a fleet on one bus: none receives or counts the others' vehicles)",
+        "services sharing a fleet on one bus: none receives or counts the others' vehicles); 'owned' (a "
+        "fleet member, [fleet] sharding = 'rendezvous'): one subscription per vehicle it serves, and "
+        "every vehicle's low-rate inputs (InitialNav, fixes, other aiding; not the IMU) to find its own "
+        "new vehicles, so each vehicle's IMU stream reaches its owner only; 'auto' (default): 'owned' "
+        "for a fleet member that is one process, 'all' otherwise",
     )
     vehicle_idle_s: float = Field(
         600.0,
@@ -777,6 +781,11 @@ class ServiceConfig(Model):
         if self.fleet.sharding == "rendezvous" and "*" not in self.vehicles:
             raise ValueError(
                 "fleet.sharding = 'rendezvous' shares vehicles = ['*'] (a list is static sharding)"
+            )
+        if self.intake.subscribe == "owned" and self.fleet.sharding != "rendezvous":
+            raise ValueError(
+                "intake.subscribe = 'owned' is for a fleet member (fleet.sharding = 'rendezvous'): "
+                "a service that is not one knows no owner of a vehicle; use 'all' or 'served'"
             )
         return self
 

@@ -177,10 +177,13 @@ class StateCache:
         import threading
 
         self._latest: dict[str, dict[str, bytes]] = {}
+        self._at: dict[str, float] = {}  # vehicle -> monotonic time of its latest state
         self._lock = threading.Lock()
         self.max_vehicles = max_vehicles
 
     def put(self, vehicle: str, pipeline: str, payload: bytes) -> None:
+        import time
+
         with self._lock:
             d = self._latest.get(vehicle)
             if d is None:
@@ -188,6 +191,18 @@ class StateCache:
                     return
                 d = self._latest[vehicle] = {}
             d[pipeline] = payload
+            self._at[vehicle] = time.monotonic()
+
+    def recent(self, max_age_s: float) -> list[str]:
+        """The vehicles whose latest state arrived within ``max_age_s``: the ones some member
+        served lately (a member that died stopped publishing its vehicles' states at its death),
+        newest first."""
+        import time
+
+        now = time.monotonic()
+        with self._lock:
+            at = [(t, v) for v, t in self._at.items() if now - t <= max_age_s]
+        return [v for _, v in sorted(at, reverse=True)]
 
     def get(self, vehicle: str) -> dict[str, bytes]:
         with self._lock:

@@ -136,6 +136,21 @@ def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[s
     return [f"{prefix}/{vehicles}/**"]
 
 
+def vehicle_inputs_selector(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key expression of everything under one vehicle (``[intake] subscribe = 'owned'``: one
+    subscription per vehicle a fleet member serves, one channel, so its arrival order is kept)."""
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/**"
+
+
+def discovery_selectors(prefix: str = DEFAULT_PREFIX) -> list[str]:
+    """Key expressions of every vehicle's low-rate inputs (its InitialNav and the sensor kinds
+    of the registry marked ``discovery``: not the IMU): what a fleet member that subscribes per
+    owned vehicle hears of the vehicles it does not serve, to find the ones that are its own."""
+    from fednav.service import sensors
+
+    return [f"{prefix}/*/sensor/init"] + [f"{prefix}/*/sensor/{k}" for k in sensors.discovery_keys()]
+
+
 def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:
     """True for keys a fednav service publishes (nav/..., service/...), not inputs."""
     parts = key.split("/")

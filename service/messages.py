@@ -826,7 +826,21 @@ class ServiceHealth(WireModel):
         0,
         ge=0,
         description="Inputs of vehicles another shard or fleet member serves, dropped unread by the "
-        "intake since the start (every service of a fleet receives every vehicle's inputs)",
+        "intake since the start (every service of a fleet receives every vehicle's inputs, or with "
+        "[intake] subscribe = 'owned' their low-rate discovery inputs)",
+    )
+    subscribed_vehicles: int | None = Field(
+        None,
+        ge=0,
+        description="A fleet member subscribing per vehicle it serves ([intake] subscribe = 'owned'): the "
+        "vehicles it subscribes to now (of the others it hears only their low-rate discovery inputs); "
+        "None when it subscribes to every vehicle's inputs",
+    )
+    inputs_discovery_copies: int = Field(
+        0,
+        ge=0,
+        description="[intake] subscribe = 'owned': low-rate inputs of a vehicle with its own subscription "
+        "that reached the service through the discovery keys as well, dropped there since the start",
     )
     inputs_forwarded: int = Field(
         0,

@@ -24,7 +24,7 @@ import numpy as np
 
 from fednav.service import imu_batch as imu_batch_codec
 from fednav.service import keys
-from fednav.service.messages import ImuSample, Truth
+from fednav.service.messages import ImuSample, InitialNav, Truth
 
 #: the fleet's default scenario: the demo aircraft at fleet rates
 DEFAULT_SCENARIO = "demo_aircraft"
@@ -141,16 +141,20 @@ def publish_fleet(
         items, _ = variants[i % len(variants)]
         for it in items[:200]:
             pub(f"{prefix}/{v}/{it.suffix}", it.encoding)
-    from fednav.simulators.publisher import MatchTimeout, MatchWatch
+    from fednav.simulators.publisher import MatchTimeout, MatchWatch, vehicle_probe_key
 
+    # a service subscribes to every vehicle's InitialNav key (a fleet member that subscribes per
+    # vehicle it owns too: its IMU keys only once the vehicle is its own); a receiver of one's
+    # own may subscribe to the first key only
     first = next(iter(pubs.values()))
+    probe = pub(vehicle_probe_key(f"{prefix}/{vehicles[0]}/"), InitialNav.encoding())
     deadline = time.monotonic() + match_timeout_s
-    while not first.matching_status.matching:
+    while not (probe.matching_status.matching or first.matching_status.matching):
         if time.monotonic() > deadline:
             raise MatchTimeout(f"no subscriber matched the fleet's keys within {match_timeout_s:g} s")
         time.sleep(0.01)
 
-    watch = MatchWatch(first)
+    watch = MatchWatch(probe if probe.matching_status.matching else first)
     heap = []
     for i in range(n):
         items, t0 = variants[i % len(variants)]

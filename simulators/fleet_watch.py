@@ -28,6 +28,7 @@ class FleetWatch:
         self.sols: dict[str, list[tuple[float, float, dict]]] = {}  # vehicle -> (wall, t, solution)
         self.truth: dict[tuple[str, int], dict] = {}
         self.services: dict[str, tuple[float, list[str]]] = {}  # zid -> (wall, active vehicles)
+        self.health: dict[str, dict] = {}  # zid -> its latest ServiceHealth
         self.s.declare_subscriber(f"{prefix}/*/nav/{pipeline}/solution", self._sol)
         self.s.declare_subscriber(f"{prefix}/*/truth", self._truth)
         self.s.declare_subscriber(f"{prefix}/_services/*/health", self._health)
@@ -52,6 +53,7 @@ class FleetWatch:
         m = json.loads(sample.payload.to_bytes())
         with self.lock:
             self.services[zid] = (time.monotonic(), m["active_vehicles"])
+            self.health[zid] = m
 
     def assignment(self, since: float) -> dict[str, list[str]]:
         with self.lock:

@@ -20,7 +20,7 @@ import zenoh
 from fednav.service import imu_batch as imu_batch_codec
 from fednav.service import keys as fkeys
 from fednav.service.config import ZenohConfig
-from fednav.service.messages import ImuSample, WireModel
+from fednav.service.messages import ImuSample, InitialNav, WireModel
 from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S, make_config
 
 #: IMU samples per published ImuBatch by default (``--imu-batch``; 1 = one JSON ImuSample each)
@@ -82,6 +82,13 @@ class MatchWatch:
 
     def close(self) -> None:
         self._listener.undeclare()
+
+
+def vehicle_probe_key(key: str) -> str:
+    """The InitialNav key of the vehicle of ``key`` (``{prefix}/{vehicle}/...``): what a publisher
+    waits on and watches for a service (:func:`publish_stream`, ``fednav-sim fleet``)."""
+    prefix, vehicle = key.split("/", 2)[:2]
+    return fkeys.init(vehicle, prefix)
 
 
 def status_keys(published: Iterable[str]) -> list[str]:
@@ -276,14 +283,19 @@ def publish_stream(
             batched = imu_batch > 1 and isinstance(msg, ImuSample)
             p = pub_for(key, imu_batch_codec.ENCODING if batched else type(msg).encoding())
             if t_first is None:
+                # a service is there when it subscribes to the vehicle's InitialNav key: every
+                # service does (a fleet member that subscribes per vehicle it owns hears every
+                # vehicle's InitialNav and fixes, but its IMU only once the vehicle is its own)
+                # (or, for a receiver of one's own, when it subscribes to the first key)
+                probe = pub_for(vehicle_probe_key(key), InitialNav.encoding())
                 deadline = time.monotonic() + match_timeout_s
-                while not p.matching_status.matching:
+                while not (probe.matching_status.matching or p.matching_status.matching):
                     if time.monotonic() > deadline:
                         raise MatchTimeout(f"no subscriber matched {key} within {match_timeout_s} s")
                     time.sleep(0.01)
                 t_first = msg.t
                 wall0 = time.monotonic()
-                watch = MatchWatch(p)
+                watch = MatchWatch(probe if probe.matching_status.matching else p)
             if batched:
                 pending = batches.setdefault(key, [])
                 pending.append(msg)

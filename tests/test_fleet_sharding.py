@@ -243,15 +243,16 @@ def test_a_full_member_passes_new_vehicles_on_and_status_names_what_nobody_takes
         bus.close()
 
 
-def _two_members(tmp_path, handover_period_s: float, *sim_args: str):
+def _two_members(tmp_path, handover_period_s: float, *sim_args: str, intake: str = ""):
     """A router, a bus watcher, two fleet members (Zenoh ids from ``split_zids``, each serving some of
     the N vehicles) and ``fednav-sim fleet`` of N vehicles at 1 Hz fixes, publishing: (procs, bus,
-    ids, a, b). The caller stops ``procs`` and closes ``bus``."""
+    ids, a, b). ``intake``: the members' ``[intake]`` table's lines. The caller stops ``procs`` and
+    closes ``bus``."""
     cfg = tmp_path / "svc.toml"
     cfg.write_text(
         'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
         '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\n'
-        f"handover_period_s = {handover_period_s}\n"
+        f"handover_period_s = {handover_period_s}\n[intake]\n{intake}\n"
     )
     port = free_port()
     procs = [_router(port)]
@@ -344,4 +345,62 @@ def test_a_service_stopped_past_its_lease_resumes_its_vehicles_from_the_others_s
             assert e.max() < bound, (v, e.max(), bound)
     finally:
         stop_all(procs)  # (continues a stopped process first)
+        bus.close()
+
+
+@pytest.mark.parametrize("subscribe", ["auto", "all"])
+def test_a_member_hears_its_own_vehicles_and_only_the_low_rate_inputs_of_the_others(tmp_path, subscribe):
+    """A fleet member subscribes per vehicle it serves (``[intake] subscribe = 'owned'``, what
+    ``'auto'`` gives a member that is one process) and to every vehicle's low-rate inputs (fixes,
+    InitialNav) to find its new ones: the IMU stream of a vehicle another member serves never
+    reaches it (JSON IMU samples here: 200 a second per vehicle against one fix). With
+    ``subscribe = 'all'`` every member receives every vehicle's inputs and drops the others'."""
+    t0 = time.monotonic()
+    procs, bus, ids, a, b = _two_members(
+        tmp_path, 2.0, "--imu-batch", "1", intake=f'subscribe = "{subscribe}"'
+    )
+    try:
+        time.sleep(6.0)  # past the joining period: every vehicle served by one member
+        since = time.monotonic() - 1.5
+        assert _wait(lambda: sorted(sum(bus.assignment(since).values(), [])) == vehicle_names(N), 20), (
+            bus.assignment(0.0)
+        )
+        time.sleep(2.0)  # one more ServiceHealth of each member (1 s period)
+        elapsed = time.monotonic() - t0
+        asg = bus.assignment(time.monotonic() - 1.5)
+        with bus.lock:
+            health = {z: dict(bus.health[z]) for z in ids}
+        for zid in ids:
+            h, foreign = health[zid], N - len(asg[zid])
+            assert foreign > 0, asg  # (split_zids gives each member some of the vehicles)
+            elsewhere = h["inputs_served_elsewhere"]
+            if subscribe == "auto":
+                assert h["subscribed_vehicles"] == len(asg[zid]), (h, asg)
+                # a foreign vehicle's fixes (1 Hz) and InitialNav, and what a subscription handed
+                # over held in the moment of a membership change: no IMU stream
+                assert elsewhere <= foreign * (elapsed + 60), (zid, elsewhere, foreign, elapsed)
+            else:
+                assert h["subscribed_vehicles"] is None, h
+                assert elsewhere > foreign * 100 * 4, (zid, elapsed, elsewhere)  # their IMU samples
+        for v in vehicle_names(N):  # every vehicle still solved, at its fixes' rate or faster
+            with bus.lock:
+                recent = [s for s in bus.sols.get(v, []) if s[0] >= time.monotonic() - 3.0]
+            assert len(recent) >= 3, (v, len(recent))
+        if subscribe == "auto":  # a member goes: the other subscribes to its vehicles and serves them
+            a.signal(signal.SIGTERM)
+            assert a.wait(timeout=60) == 0, a.output()
+
+            def b_has_all() -> bool:
+                with bus.lock:
+                    h = dict(bus.health[ids[1]])
+                return h["subscribed_vehicles"] == N and sorted(h["active_vehicles"]) == vehicle_names(N)
+
+            assert _wait(b_has_all, 20), bus.health[ids[1]]
+            time.sleep(2.0)
+            for v in vehicle_names(N):
+                with bus.lock:
+                    recent = [s for s in bus.sols.get(v, []) if s[0] >= time.monotonic() - 2.0]
+                assert len(recent) >= 2, (v, len(recent))
+    finally:
+        stop_all(procs)
         bus.close()

@@ -216,3 +216,69 @@ def test_another_shards_inputs_are_handed_to_its_feed_one_frame_per_drain(sessio
     assert feed.items == [("t/other/imu", f"o{i}".encode()) for i in range(50)]
     assert not feed.pending and 1 <= feed.flushes <= 50
     assert intake.unwanted == 0
+
+
+def test_owned_intake_hears_its_vehicles_whole_and_the_others_low_rate_keys_once(sessions):
+    """``[intake] subscribe = 'owned'`` (``OwnedIntake``): a vehicle is found by its low-rate keys
+    (a fix), everything of a watched vehicle arrives through its own subscription in order (its
+    fixes once, not also as discovery copies), an unwatched vehicle's IMU never arrives, and after
+    ``unwatch`` the vehicle is back to its low-rate keys only; stopping delivers what had arrived."""
+    from fednav.service import keys
+    from fednav.service.transport.zenoh_io import OwnedIntake
+
+    a, b = sessions
+    got: list[tuple[str, bytes]] = []
+    lock = threading.Lock()
+
+    def deliver_many(batch):
+        with lock:
+            got.extend((k, p) for _, k, p in batch)
+
+    intake = OwnedIntake(a, "t", keys.discovery_selectors("t"), deliver_many)
+    time.sleep(0.5)
+    pubs = {}
+
+    def put(key: str, payload: bytes) -> None:
+        if key not in pubs:
+            pubs[key] = b.declare_publisher(key, reliability=zenoh.Reliability.RELIABLE)
+            time.sleep(0.05)
+        pubs[key].put(payload)
+
+    def payloads(key: str) -> list[bytes]:
+        with lock:
+            return [p for k, p in got if k == key]
+
+    imu1, fix1, init1 = "t/v1/sensor/imu/main", "t/v1/sensor/gnss/rx/fix", "t/v1/sensor/init"
+    imu2, fix2 = "t/v2/sensor/imu/main", "t/v2/sensor/gnss/rx/fix"
+    try:
+        put(imu1, b"i0")  # nobody subscribes to v1's IMU yet
+        put(init1, b"n0")
+        put(fix1, b"f0")
+        assert wait_until(lambda: payloads(fix1) == [b"f0"], 10), got
+        assert payloads(init1) == [b"n0"] and payloads(imu1) == []
+        intake.watch("v1")  # found: the service serves it
+        time.sleep(0.5)
+        for i in range(1, 31):
+            put(imu1, f"i{i}".encode())
+            if i % 10 == 0:
+                put(fix1, f"f{i // 10}".encode())
+            put(imu2, f"j{i}".encode())  # v2: not watched
+        put(fix2, b"g0")
+        assert wait_until(lambda: len(payloads(fix1)) == 4 and payloads(fix2) == [b"g0"], 10), got
+        assert payloads(imu1) == [f"i{i}".encode() for i in range(1, 31)]
+        assert payloads(fix1) == [b"f0", b"f1", b"f2", b"f3"]  # each once, in order
+        with lock:
+            order = [p for k, p in got if k in (imu1, fix1)]
+        assert order.index(b"f1") == order.index(b"i10") + 1  # one channel: the vehicle's order kept
+        assert payloads(imu2) == [] and intake.discovery_copies >= 3
+        assert intake.vehicles() == {"v1"}
+        intake.unwatch("v1")  # another member serves it now
+        time.sleep(0.5)
+        put(imu1, b"i99")
+        put(fix1, b"f99")
+        assert wait_until(lambda: payloads(fix1)[-1:] == [b"f99"], 10), got
+        time.sleep(0.3)
+        assert b"i99" not in payloads(imu1)
+    finally:
+        intake.stop()
+    assert not intake._thread.is_alive()

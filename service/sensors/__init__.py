@@ -54,6 +54,11 @@ class SensorKind:
         fednav-replay CSV streams of this kind: the columns (time first; those in ``csv_optional``
         may be absent) and ``(row: dict[str, float | None], sensor_id) -> WireModel`` (time
         already in GPS seconds).
+    discovery
+        Whether its messages announce a vehicle to the members of a fleet that subscribe per
+        vehicle they own (``[intake] subscribe = 'owned'``): every member subscribes to these keys
+        of every vehicle, so keep it for low-rate kinds (a few tens of messages a second at
+        most); the IMU, which drives time at hundreds of hertz, is heard only by its owner.
     """
 
     kind: str
@@ -69,6 +74,7 @@ class SensorKind:
     csv_optional: tuple[str, ...] = ()
     from_csv: Callable[..., WireModel] | None = None
     doc: str = ""
+    discovery: bool = True
 
     def key_suffix(self, sensor_id: str) -> str:
         """Key chunks after ``{vehicle}/sensor/`` for ``sensor_id``."""
@@ -86,7 +92,12 @@ def _builtin() -> dict[str, SensorKind]:
 
     return {
         "imu": SensorKind(
-            "imu", ImuSample, ("imu", ID), batch=imu_batch.decode, doc="angle/velocity increments"
+            "imu",
+            ImuSample,
+            ("imu", ID),
+            batch=imu_batch.decode,
+            doc="angle/velocity increments",
+            discovery=False,
         ),
         "gnss_fix": SensorKind("gnss_fix", GnssFix, ("gnss", ID, "fix"), GnssFixModel, doc="GNSS fixes"),
         "gnss_raw": SensorKind("gnss_raw", GnssRaw, ("gnss", ID, "raw"), GnssRawModel, doc="pseudoranges"),
@@ -131,6 +142,12 @@ def kinds() -> list[str]:
 def model_kinds() -> list[str]:
     """Kinds with a measurement model (what pipelines can be configured with)."""
     return [k for k, s in registry().items() if s.model is not None]
+
+
+def discovery_keys() -> list[str]:
+    """Key chunks after ``{vehicle}/sensor/`` of every kind that announces a vehicle
+    (``discovery``), sensor ids as ``*``."""
+    return ["/".join("*" if c == ID else c for c in s.key) for s in registry().values() if s.discovery]
 
 
 def parse_key(chunks: list[str]) -> tuple[str, str] | None:

@@ -472,6 +472,237 @@ class Intake:
                     log.warning("intake: %d messages not run at shutdown (after %.1f s)", self._left, drain_s)
 
 
+#: the polling intake's period (s): a drain at most every first figure while messages come (what
+#: arrived meanwhile is taken together; a drain that ran longer is followed at once), the period
+#: doubled per empty poll up to the second figure while nothing comes
+OWNED_POLL_PERIOD_S = (0.001, 0.004)
+#: messages a vehicle's new subscription compares against the copies its discovery delivered
+OWNED_EARLY_MAX = 256
+
+
+class _VehicleSub:
+    """One owned vehicle's subscription (``{prefix}/{vehicle}/**``) and what its discovery keys
+    delivered of it before its own channel delivered anything (the same messages reach both
+    channels meanwhile: each is run once)."""
+
+    __slots__ = ("vehicle", "sub", "handler", "started", "early")
+
+    def __init__(self, vehicle: str, sub) -> None:
+        self.vehicle = vehicle
+        self.sub = sub
+        self.handler = sub.handler
+        self.started = False
+        self.early: set[tuple[str, bytes]] = set()
+
+
+class OwnedIntake:
+    """The intake of a fleet member that subscribes per vehicle it serves (``[intake] subscribe
+    = 'owned'``): one subscription per owned vehicle (everything under ``{prefix}/{vehicle}/``,
+    one channel, in arrival order) and, for every vehicle, its low-rate inputs (the discovery
+    keys: InitialNav, fixes and the other aiding kinds of the sensor registry, not the IMU), from
+    which the service finds new vehicles that are its own.
+
+    With every member subscribed to every vehicle's inputs, each of S members received the whole
+    fleet's messages to keep 1/S of them; now it receives its own vehicles' and the rest's
+    discovery keys (with JSON IMU samples at 200 Hz and fixes at 10 Hz, a twentieth of a foreign
+    vehicle's messages; no other member's outputs at all). Zenoh's routers then carry each
+    vehicle's IMU stream to one member only.
+
+    A discovery key's message of a vehicle with its own subscription is dropped (counted in
+    ``discovery_copies``) once that subscription has delivered; until then it is run, and the same
+    message arriving on the new subscription is dropped instead (``OWNED_EARLY_MAX`` remembered).
+    Several channels cannot be waited on together, so the thread polls them (``try_recv``,
+    ~0.3 us each when empty) once per period (``OWNED_POLL_PERIOD_S``: each wake-up takes what
+    arrived since, which costs less per message than waking for each). Drains
+    are handed on as :class:`Intake`'s are (``deliver_many``, at most ``DRAIN_MAX`` messages).
+    :meth:`watch` and :meth:`unwatch` are called from any thread except Zenoh's callbacks (a
+    declaration waits for the session).
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        prefix: str,
+        discovery_exprs: list[str],
+        deliver_many: Callable[[list[tuple[float, str, bytes]]], None],
+        wanted: Callable[[str], bool] | None = None,
+        capacity: int = 4096,
+        vehicle_capacity: int = 1024,
+    ):
+        self._session = session
+        self._prefix = prefix
+        self._capacity = vehicle_capacity
+        self._disc = [
+            session.declare_subscriber(
+                k, zenoh.handlers.FifoChannel(capacity), allowed_origin=zenoh.Locality.REMOTE
+            )
+            for k in discovery_exprs
+        ]
+        self._disc_handlers = tuple(s.handler for s in self._disc)
+        self._deliver_many = deliver_many
+        self._wanted = wanted
+        self.unwanted = 0
+        self.discovery_copies = 0
+        self._lock = threading.Lock()
+        self._vsubs: dict[str, _VehicleSub] = {}
+        self._polled: tuple[_VehicleSub, ...] = ()
+        self._closing: list = []  # undeclared subscriptions whose channels are read to the end
+        self._stop = threading.Event()
+        self._abandon = threading.Event()
+        self._left = 0
+        self._thread = threading.Thread(target=self._run, name="fednav-intake", daemon=True)
+        self._thread.start()
+
+    # --- the vehicles subscribed -------------------------------------------------------------
+    def vehicles(self) -> set[str]:
+        return set(self._vsubs)
+
+    def watch(self, vehicle: str) -> bool:
+        """Subscribe to ``vehicle``'s keys (nothing if already); False when the service is stopping."""
+        if vehicle in self._vsubs:
+            return True
+        with self._lock:
+            if vehicle in self._vsubs:
+                return True
+            if self._stop.is_set():
+                return False
+            from fednav.service import keys
+
+            sub = self._session.declare_subscriber(
+                keys.vehicle_inputs_selector(vehicle, self._prefix),
+                zenoh.handlers.FifoChannel(self._capacity),
+                allowed_origin=zenoh.Locality.REMOTE,
+            )
+            vs = _VehicleSub(vehicle, sub)
+            self._vsubs[vehicle] = vs
+            self._polled = (*self._polled, vs)
+        return True
+
+    def unwatch(self, vehicle: str) -> None:
+        """Drop ``vehicle``'s subscription (what its channel holds is still delivered)."""
+        with self._lock:
+            vs = self._vsubs.pop(vehicle, None)
+            if vs is None:
+                return
+            self._polled = tuple(v for v in self._polled if v is not vs)
+            self._closing.append(vs)
+        try:
+            vs.sub.undeclare()
+        except zenoh.ZError:
+            pass
+
+    def set_vehicles(self, vehicles: set[str]) -> None:
+        """Subscribe to exactly ``vehicles``."""
+        for v in set(self._vsubs) - vehicles:
+            self.unwatch(v)
+        for v in vehicles:
+            self.watch(v)
+
+    # --- the thread ----------------------------------------------------------------------------
+    def _drain(self) -> list[tuple[float, str, bytes]]:
+        batch: list[tuple[float, str, bytes]] = []
+        arrival = Intake.arrival
+        wanted = self._wanted
+        vsubs = self._vsubs
+        # the discovery keys first: a message published before a vehicle's subscription was
+        # declared reaches only them, and is run before that subscription's first delivery
+        for h in self._disc_handlers:
+            while len(batch) < DRAIN_MAX:
+                try:
+                    sample = h.try_recv()
+                except zenoh.ZError:
+                    break
+                if sample is None:
+                    break
+                key = str(sample.key_expr)
+                parts = key.split("/", 2)
+                vs = vsubs.get(parts[1]) if len(parts) > 1 else None
+                if vs is not None and vs.started:
+                    self.discovery_copies += 1
+                    continue
+                if wanted is not None and not wanted(key):
+                    self.unwanted += 1
+                    continue
+                payload = sample.payload.to_bytes()
+                if vs is not None and len(vs.early) < OWNED_EARLY_MAX:
+                    vs.early.add((key, payload))
+                batch.append((arrival(sample), key, payload))
+        if self._closing:
+            with self._lock:
+                closing, self._closing = self._closing, []
+            for vs in closing:  # an undeclared subscription: what it had received, then gone
+                self._read(vs, batch, DRAIN_MAX * 4)
+        for vs in self._polled:
+            if len(batch) >= DRAIN_MAX:
+                break
+            self._read(vs, batch, DRAIN_MAX)
+        return batch
+
+    def _read(self, vs: _VehicleSub, batch: list, limit: int) -> None:
+        h = vs.handler
+        arrival = Intake.arrival
+        while len(batch) < limit:
+            try:
+                sample = h.try_recv()
+            except zenoh.ZError:  # closed and empty: undeclared
+                return
+            if sample is None:
+                return
+            key = str(sample.key_expr)
+            payload = sample.payload.to_bytes()
+            if not vs.started:
+                if (key, payload) in vs.early:  # its discovery copy was run already
+                    self.discovery_copies += 1
+                    continue
+                vs.started = True
+                vs.early = set()
+            batch.append((arrival(sample), key, payload))
+
+    def _run(self) -> None:
+        short, long = OWNED_POLL_PERIOD_S
+        period = short
+        while True:
+            if self._abandon.is_set():
+                return
+            t0 = time.monotonic()
+            batch = self._drain()
+            if batch:
+                period = short
+                try:
+                    self._deliver_many(batch)
+                except Exception:  # routing must survive any one drain
+                    log.exception("intake: delivery of %d messages failed", len(batch))
+                if len(batch) >= DRAIN_MAX:
+                    continue  # more is waiting
+            elif self._stop.is_set():
+                return  # stopped and everything that had arrived delivered
+            else:
+                period = min(long, period * 2.0)
+            rest = period - (time.monotonic() - t0)
+            if rest > 0.0:
+                time.sleep(rest)
+
+    def stop(self, drain_s: float = 5.0) -> None:
+        """Stop receiving (subscriptions undeclared); what had arrived is still delivered for at
+        most ``drain_s``, then the drain in progress is let finish."""
+        with self._lock:
+            self._stop.set()
+            subs = [vs.sub for vs in self._vsubs.values()] + self._disc
+        for s in subs:
+            try:
+                s.undeclare()
+            except zenoh.ZError:
+                pass
+        self._thread.join(timeout=drain_s)
+        if self._thread.is_alive():
+            self._abandon.set()
+            self._thread.join(timeout=max(drain_s, ABANDON_GRACE_S))
+            if self._thread.is_alive():
+                log.warning("intake: still running a drain %.1f s after shutdown began", drain_s)
+            else:
+                log.warning("intake: messages not run at shutdown (after %.1f s)", drain_s)
+
+
 #: one reply: (concrete key, payload, encoding)
 Reply = tuple[str, bytes, str]
 
