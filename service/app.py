@@ -986,18 +986,21 @@ class Service:
         """[intake] subscribe = 'owned': subscribe to the vehicles this member serves and to those
         it owns now by the fleet's membership and of which a handover state arrived lately (a
         member that left or died: its vehicles, to be taken over from their states), at most
-        max_vehicles; drop the rest. New vehicles are found by their discovery keys (_worker)."""
-        want = set(self.workers)
-        room = self.config.intake.max_vehicles - len(want)
-        if room > 0 and self.fleet_view.active:
-            horizon = 3.0 * self.config.fleet.handover_period_s + 30.0
-            for v in self.fleet_states.recent(horizon):
+        max_vehicles; drop the rest. New vehicles are found by their discovery keys (_worker).
+        Under the service's lock: a vehicle made meanwhile by the intake (_worker, which subscribes
+        to it) is not unsubscribed by a list made before it."""
+        horizon = 3.0 * self.config.fleet.handover_period_s + 30.0
+        recent = self.fleet_states.recent(horizon) if self.fleet_view.active else []
+        with self._lock:
+            want = set(self.workers)
+            room = self.config.intake.max_vehicles - len(want)
+            for v in recent:
+                if room <= 0:
+                    break
                 if v not in want and self.fleet_view.mine(v):
                     want.add(v)
                     room -= 1
-                    if room <= 0:
-                        break
-        self.intake.set_vehicles(want)
+            self.intake.set_vehicles(want)
 
     def _capacity(self) -> None:
         """A '*' service reaching its max_vehicles declares itself full (a fleet member first one
@@ -1103,6 +1106,12 @@ class Service:
             if time.monotonic() < next_health:
                 continue
             next_health = time.monotonic() + period
+            if self._owned_intake:  # a vehicle made before the intake was there: subscribed now
+                try:
+                    for v in set(self.workers) - self.intake.vehicles():
+                        self.intake.watch(v)
+                except Exception:
+                    log.exception("vehicle subscription failed")
             try:
                 self.pubs.publish(self._health_key, self.service_health())
             except Exception:  # a publication failure must not end the loop
