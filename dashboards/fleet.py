@@ -219,6 +219,10 @@ class Fleet:
                     "max_vehicles": d.get("max_vehicles"),
                     "full": bool(d.get("full")),
                     "refusing": list(d.get("refusing_vehicles") or []),
+                    # a fleet member subscribing per vehicle it serves ([intake] subscribe =
+                    # 'owned'): how many it subscribes to (None: every vehicle's inputs)
+                    "subscribed": d.get("subscribed_vehicles"),
+                    "active": len(d.get("active_vehicles") or []),
                 }
         services: dict[str, dict] = {
             z: {"zid": z, "alive": True, "vehicles": [], "pipelines": [], "received": 0}
@@ -267,6 +271,11 @@ class Fleet:
             svc = services.get(zid)
             if svc is not None:
                 svc.update(c)
+                if c["subscribed"] is not None and c["subscribed"] < c["active"]:  # (one reply's figures)
+                    problems.append(
+                        f"service {zid} serves {c['active']} vehicles but subscribes to "
+                        f"{c['subscribed']}: the others receive no IMU there"
+                    )
             for v in c["refusing"]:
                 refused.setdefault(v, []).append(zid)
         for v, zids in sorted(refused.items()):
@@ -342,6 +351,8 @@ def format_status(snap: dict) -> str:
     for s in snap["services"]:
         cfg = "differs: " + s["config_differs"] if s["config_differs"] else ("same" if s["config"] else "-")
         count = str(len(s["vehicles"])) + (f" (full: max {s['max_vehicles']})" if s.get("full") else "")
+        if s.get("subscribed") is not None:  # a fleet member subscribing per vehicle it serves
+            count += f", subscribed {s['subscribed']}"
         rows.append((s["zid"], count, ",".join(s["pipelines"]) or "-", str(s["received"]), cfg))
     lines += _table(rows)
     if snap.get("other_repliers"):

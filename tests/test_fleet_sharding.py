@@ -5,6 +5,7 @@ back (real processes: fednav-router, fednav-service x3, fednav-sim fleet, a plai
 from __future__ import annotations
 
 import functools
+import json
 import math
 import signal
 import sys
@@ -257,6 +258,7 @@ def _two_members(tmp_path, handover_period_s: float, *sim_args: str, intake: str
     port = free_port()
     procs = [_router(port)]
     bus = FleetWatch(port)
+    bus.port = port  # (for fednav-fleet status)
     try:
         ids = split_zids(vehicle_names(N), 2)
         a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
@@ -386,6 +388,12 @@ def test_a_member_hears_its_own_vehicles_and_only_the_low_rate_inputs_of_the_oth
             with bus.lock:
                 recent = [s for s in bus.sols.get(v, []) if s[0] >= time.monotonic() - 3.0]
             assert len(recent) >= 3, (v, len(recent))
+        st = fleet_status(bus.port)  # fednav-fleet status names each member's subscriptions
+        assert st.returncode == 0, st.stdout + st.stderr
+        snap = json.loads(st.stdout)
+        subscribed = {s["zid"]: s.get("subscribed") for s in snap["services"]}
+        want = {z: (len(asg[z]) if subscribe == "auto" else None) for z in ids}
+        assert subscribed == want, (subscribed, asg)
         if subscribe == "auto":  # a member goes: the other subscribes to its vehicles and serves them
             a.signal(signal.SIGTERM)
             assert a.wait(timeout=60) == 0, a.output()
