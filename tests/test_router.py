@@ -32,7 +32,7 @@ import zenoh
 from fednav.service.router import router_config
 from fednav.simulators.processes import Proc, free_port, query_status
 
-from .scenario_utils import fleet_status, split_zids
+from .scenario_utils import fleet_status, split_zids, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 FLEET = ROOT / "service" / "configs" / "fleet"
@@ -292,6 +292,7 @@ def certs(tmp_path_factory) -> Path:
 
     make(str(folder / "certs"))  # ca, service, simulator, reader
     make(str(folder / "certs"), "router=fednav-router", "ops=fednav-ops", "intruder=fednav-intruder")
+    make(str(folder / "certs"), "readers-router=fednav-readers-router")
     return folder
 
 
@@ -571,3 +572,77 @@ def test_a_slow_reader_on_the_readers_router_holds_nobody():
     assert status.returncode == 0, status.stdout + status.stderr
     assert len(json.loads(status.stdout)["vehicles"]) == 10
     assert all(gap > 3.0 for gap, _ in control), control  # 5.1 s in the runs that found it
+
+
+@pytest.mark.integration
+def test_the_secure_readers_router_relays_what_readers_and_operators_may_ask_and_nothing_else(
+    certs, monkeypatch
+):
+    """The readers' router on mutual TLS with access control (``readers-router.json5``, ``--readers``)
+    as a client of the secure fleet router, which gives CN=fednav-readers-router the readers' and
+    operators' rights only. Through it: a reader (CN=fednav-reader) receives every solution of the
+    demo, ``fednav-fleet status`` with the operator's certificate finds the service and its
+    vehicle; the same reader gets nothing of the sensor keys it subscribes to, and the solution it
+    tries to spoof reaches no reader on the fleet's router."""
+    monkeypatch.chdir(certs)
+    p1, p2 = free_port(), free_port()
+    ep1, ep2 = f"tls/127.0.0.1:{p1}", f"tls/127.0.0.1:{p2}"
+    router, _ = _start_router(["--zenoh-config", str(SECURE / "router.json5"), "--listen", ep1], certs)
+    procs = [router]
+    sessions: list[zenoh.Session] = []
+
+    def reader(ep: str) -> zenoh.Session:
+        c = zenoh.Config.from_file(str(SECURE / "reader.json5"))
+        c.insert_json5("connect/endpoints", json.dumps([ep]))
+        s = zenoh.open(c)
+        sessions.append(s)
+        return s
+
+    try:
+        readers_router, _ = _start_router(
+            ["--readers", "--zenoh-config", str(SECURE / "readers-router.json5")]
+            + ["--listen", ep2, "--connect", ep1],
+            certs,
+        )
+        procs.append(readers_router)
+        assert "(access control on)" in readers_router.output()
+        svc = _start_service(SECURE / "service.json5", ep1, cwd=certs)
+        procs.insert(0, svc)
+        far, near = reader(ep2), reader(ep1)
+        got: dict[str, list] = {"far": [], "near": [], "sensors": []}
+        far.declare_subscriber(
+            "fednav/*/nav/*/solution", lambda s: got["far"].append(json.loads(s.payload.to_bytes()))
+        )
+        far.declare_subscriber("fednav/*/sensor/**", lambda s: got["sensors"].append(str(s.key_expr)))
+        near.declare_subscriber(
+            "fednav/*/nav/*/solution", lambda s: got["near"].append(json.loads(s.payload.to_bytes()))
+        )
+        time.sleep(1.0)  # the subscriptions reach the routers
+        sim = _sim(SECURE / "simulator.json5", ep1, cwd=certs)
+        procs.insert(0, sim)
+        assert sim.wait(timeout=120) == 0, sim.output()
+        assert wait_until(lambda: len(got["far"]) >= 3000, 30), len(got["far"])
+        genuine = got["far"][-1]
+        far.put("fednav/v1/nav/lc/solution", json.dumps(dict(genuine, lat_deg=SPOOF_LAT_DEG)))
+        r = subprocess.run(
+            [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+            + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep2],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=certs,
+        )
+        time.sleep(1.0)
+    finally:
+        for s in sessions:
+            s.close()
+        for p in procs:
+            p.signal(signal.SIGTERM)
+        rcs = [p.wait(timeout=60) for p in procs]
+    assert rcs == [0] * len(procs), [p.output()[-2000:] for p in procs]
+    assert len(got["far"]) >= 3000 and len(got["near"]) >= 3000, (len(got["far"]), len(got["near"]))
+    assert got["sensors"] == []  # the readers' router does not relay sensor keys to a reader
+    assert not any(s["lat_deg"] == SPOOF_LAT_DEG for s in got["near"] + got["far"][:-1])
+    snap = json.loads(r.stdout)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert [v["vehicle"] for v in snap["vehicles"]] == ["v1"] and len(snap["services"]) == 1, snap
