@@ -282,3 +282,103 @@ def test_owned_intake_hears_its_vehicles_whole_and_the_others_low_rate_keys_once
     finally:
         intake.stop()
     assert not intake._thread.is_alive()
+
+
+def test_owned_intake_does_not_starve_its_vehicles_behind_a_flood_of_discovery_keys(sessions):
+    """A backlog of other vehicles' fixes (the discovery keys) takes at most half of each drain: a
+    watched vehicle's messages queued behind 2,000 of them are delivered within the first drains,
+    not after all of them (without the limit: after eight full drains of fixes)."""
+    from fednav.service import keys
+    from fednav.service.transport.zenoh_io import OwnedIntake
+
+    a, b = sessions
+    order: list[str] = []
+    hold = threading.Event()
+
+    def deliver_many(batch):
+        hold.wait(10.0)  # the first drain waits: everything below queues up meanwhile
+        order.extend(k for _, k, _ in batch)
+
+    intake = OwnedIntake(a, "t", keys.discovery_selectors("t"), deliver_many)
+    try:
+        intake.watch("mine")
+        time.sleep(0.5)
+        first = b.declare_publisher("t/other0/sensor/gnss/rx/fix", reliability=zenoh.Reliability.RELIABLE)
+        first.put(b"x")  # the first drain: held in deliver_many
+        time.sleep(0.3)
+        fixes = [
+            b.declare_publisher(f"t/other{i}/sensor/gnss/rx/fix", reliability=zenoh.Reliability.RELIABLE)
+            for i in range(1, 21)
+        ]
+        time.sleep(0.3)
+        for k in range(100):
+            for p in fixes:
+                p.put(f"{k}".encode())
+        imu = b.declare_publisher("t/mine/sensor/imu/main", reliability=zenoh.Reliability.RELIABLE)
+        time.sleep(0.3)
+        for k in range(20):
+            imu.put(f"{k}".encode())
+        time.sleep(0.5)
+        hold.set()
+        assert wait_until(lambda: len(order) >= 2021, 10), len(order)
+    finally:
+        hold.set()
+        intake.stop()
+    first_imu = order.index("t/mine/sensor/imu/main")
+    assert first_imu < 1 + 256, first_imu  # in the first full drain after the held one
+    assert order.count("t/mine/sensor/imu/main") == 20
+
+
+def test_owned_intake_keeps_a_vehicles_order_across_its_subscription_in_a_burst():
+    """A vehicle subscribed while its messages queue up (a burst: a publisher catching up, a
+    replay at full speed): its fix from before the subscription runs first, then its IMU and the
+    fixes after it in publication order, each once (the discovery copies of later fixes dropped,
+    not run ahead of the IMU they follow). The intake's session stamps samples at ingress, as the
+    service's does (``make_config(outputs_prefix=...)``): the timestamps tell which held fix came
+    before the subscription."""
+    from fednav.service import keys
+    from fednav.service.transport.zenoh_io import OwnedIntake
+
+    port = free_port()
+    listen = [f"tcp/127.0.0.1:{port}"]
+    a = zenoh.open(make_config(ZenohConfig(mode="peer"), listen=listen, connect=[], outputs_prefix="t"))
+    b = zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    order: list[tuple[str, bytes]] = []
+    hold = threading.Event()
+
+    def deliver_many(batch):
+        hold.wait(10.0)
+        order.extend((k, p) for _, k, p in batch)
+
+    intake = OwnedIntake(a, "t", keys.discovery_selectors("t"), deliver_many)
+    imu, fix = "t/v1/sensor/imu/main", "t/v1/sensor/gnss/rx/fix"
+    try:
+        time.sleep(0.5)
+        other = b.declare_publisher("t/other/sensor/gnss/rx/fix", reliability=zenoh.Reliability.RELIABLE)
+        pf = b.declare_publisher(fix, reliability=zenoh.Reliability.RELIABLE)
+        pi = b.declare_publisher(imu, reliability=zenoh.Reliability.RELIABLE)
+        time.sleep(0.3)
+        other.put(b"x")  # the first drain, held in deliver_many
+        time.sleep(0.3)
+        pf.put(b"f0")  # before v1's subscription: its discovery keys only
+        time.sleep(0.3)
+        intake.watch("v1")  # found (in the held drain, say): subscribed while the rest queues up
+        time.sleep(0.5)
+        expected = [(fix, b"f0")]
+        for k in range(1, 31):
+            pi.put(f"i{k}".encode())
+            expected.append((imu, f"i{k}".encode()))
+            if k % 10 == 0:
+                pf.put(f"f{k // 10}".encode())
+                expected.append((fix, f"f{k // 10}".encode()))
+        time.sleep(0.5)
+        hold.set()
+        assert wait_until(lambda: len([o for o in order if o[0] in (imu, fix)]) >= len(expected), 10), order
+        time.sleep(0.3)
+    finally:
+        hold.set()
+        intake.stop()
+        b.close()
+        a.close()
+    assert [o for o in order if o[0] in (imu, fix)] == expected
+    assert intake.discovery_copies == 3

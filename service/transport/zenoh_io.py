@@ -476,23 +476,30 @@ class Intake:
 #: arrived meanwhile is taken together; a drain that ran longer is followed at once), the period
 #: doubled per empty poll up to the second figure while nothing comes
 OWNED_POLL_PERIOD_S = (0.001, 0.004)
-#: messages a vehicle's new subscription compares against the copies its discovery delivered
+#: discovery messages of a vehicle held until its new subscription's first sample (more are run
+#: at once), and the longest they wait for it (s)
 OWNED_EARLY_MAX = 256
+OWNED_HOLD_MAX_S = 0.5
 
 
 class _VehicleSub:
-    """One owned vehicle's subscription (``{prefix}/{vehicle}/**``) and what its discovery keys
-    delivered of it before its own channel delivered anything (the same messages reach both
-    channels meanwhile: each is run once)."""
+    """One owned vehicle's subscription (``{prefix}/{vehicle}/**``) and, until its own channel
+    delivers, the messages its discovery keys received of the vehicle (``held``): a message that
+    arrived before the subscription reaches only the discovery keys, one after it reaches both
+    channels. At the channel's first sample the held messages older than it (Zenoh timestamps:
+    the same sample carries the same one on both channels) are run before it, in order, and the
+    others are its own messages' copies, dropped."""
 
-    __slots__ = ("vehicle", "sub", "handler", "started", "early")
+    __slots__ = ("vehicle", "sub", "handler", "started", "held", "held_since", "ts0")
 
     def __init__(self, vehicle: str, sub) -> None:
         self.vehicle = vehicle
         self.sub = sub
         self.handler = sub.handler
         self.started = False
-        self.early: set[tuple[str, bytes]] = set()
+        self.held: list[tuple[object, tuple[float, str, bytes]]] = []
+        self.held_since = 0.0
+        self.ts0 = None  # timestamp of the channel's first sample
 
 
 class OwnedIntake:
@@ -509,8 +516,9 @@ class OwnedIntake:
     vehicle's IMU stream to one member only.
 
     A discovery key's message of a vehicle with its own subscription is dropped (counted in
-    ``discovery_copies``) once that subscription has delivered; until then it is run, and the same
-    message arriving on the new subscription is dropped instead (``OWNED_EARLY_MAX`` remembered).
+    ``discovery_copies``); until that subscription's first sample it is held, and the ones older
+    than that sample (Zenoh timestamps) are run before it, in order (:class:`_VehicleSub`), so a
+    vehicle's order is kept across the moment it is subscribed, even in a burst.
     Several channels cannot be waited on together, so the thread polls them (``try_recv``,
     ~0.3 us each when empty) once per period (``OWNED_POLL_PERIOD_S``: each wake-up takes what
     arrived since, which costs less per message than waking for each). Drains
@@ -546,6 +554,8 @@ class OwnedIntake:
         self._lock = threading.Lock()
         self._vsubs: dict[str, _VehicleSub] = {}
         self._polled: tuple[_VehicleSub, ...] = ()
+        self._turn = 0
+        self._more = False
         self._closing: list = []  # undeclared subscriptions whose channels are read to the end
         self._stop = threading.Event()
         self._abandon = threading.Event()
@@ -605,9 +615,11 @@ class OwnedIntake:
         wanted = self._wanted
         vsubs = self._vsubs
         # the discovery keys first: a message published before a vehicle's subscription was
-        # declared reaches only them, and is run before that subscription's first delivery
+        # declared reaches only them, and is run before that subscription's first delivery; at
+        # most half a drain of them, so that a flood of other vehicles' fixes cannot starve the
+        # vehicles' own channels
         for h in self._disc_handlers:
-            while len(batch) < DRAIN_MAX:
+            while len(batch) < DRAIN_MAX // 2:
                 try:
                     sample = h.try_recv()
                 except zenoh.ZError:
@@ -617,25 +629,41 @@ class OwnedIntake:
                 key = str(sample.key_expr)
                 parts = key.split("/", 2)
                 vs = vsubs.get(parts[1]) if len(parts) > 1 else None
-                if vs is not None and vs.started:
-                    self.discovery_copies += 1
-                    continue
+                if vs is not None:
+                    ts = sample.timestamp
+                    if vs.started:  # a copy of what its channel delivers, unless from before it
+                        if ts is None or vs.ts0 is None or not ts < vs.ts0:
+                            self.discovery_copies += 1
+                            continue
+                    elif ts is not None and len(vs.held) < OWNED_EARLY_MAX:
+                        if not vs.held:
+                            vs.held_since = time.monotonic()
+                        vs.held.append((ts, (arrival(sample), key, sample.payload.to_bytes())))
+                        continue
                 if wanted is not None and not wanted(key):
                     self.unwanted += 1
                     continue
-                payload = sample.payload.to_bytes()
-                if vs is not None and len(vs.early) < OWNED_EARLY_MAX:
-                    vs.early.add((key, payload))
-                batch.append((arrival(sample), key, payload))
+                batch.append((arrival(sample), key, sample.payload.to_bytes()))
+        self._more = len(batch) >= DRAIN_MAX // 2  # discovery keys left: drain again at once
         if self._closing:
             with self._lock:
                 closing, self._closing = self._closing, []
             for vs in closing:  # an undeclared subscription: what it had received, then gone
                 self._read(vs, batch, DRAIN_MAX * 4)
-        for vs in self._polled:
-            if len(batch) >= DRAIN_MAX:
-                break
-            self._read(vs, batch, DRAIN_MAX)
+        polled = self._polled
+        now = None
+        for vs in polled:
+            if vs.held:  # its channel delivered nothing since: what was held goes on alone
+                now = now or time.monotonic()
+                if now - vs.held_since > OWNED_HOLD_MAX_S:
+                    batch.extend(item for _, item in vs.held)
+                    vs.held = []
+        if polled:  # from a rotating start: a full drain does not always serve the same vehicles
+            self._turn = k = (self._turn + 1) % len(polled)
+            for vs in polled[k:] + polled[:k]:
+                if len(batch) >= DRAIN_MAX:
+                    break
+                self._read(vs, batch, DRAIN_MAX)
         return batch
 
     def _read(self, vs: _VehicleSub, batch: list, limit: int) -> None:
@@ -648,15 +676,16 @@ class OwnedIntake:
                 return
             if sample is None:
                 return
-            key = str(sample.key_expr)
-            payload = sample.payload.to_bytes()
             if not vs.started:
-                if (key, payload) in vs.early:  # its discovery copy was run already
-                    self.discovery_copies += 1
-                    continue
                 vs.started = True
-                vs.early = set()
-            batch.append((arrival(sample), key, payload))
+                vs.ts0 = ts0 = sample.timestamp
+                for ts, item in vs.held:  # from before the subscription: run first, in order
+                    if ts0 is None or ts < ts0:
+                        batch.append(item)
+                    else:
+                        self.discovery_copies += 1  # (this channel delivers it)
+                vs.held = []
+            batch.append((arrival(sample), str(sample.key_expr), sample.payload.to_bytes()))
 
     def _run(self) -> None:
         short, long = OWNED_POLL_PERIOD_S
@@ -672,7 +701,7 @@ class OwnedIntake:
                     self._deliver_many(batch)
                 except Exception:  # routing must survive any one drain
                     log.exception("intake: delivery of %d messages failed", len(batch))
-                if len(batch) >= DRAIN_MAX:
+                if len(batch) >= DRAIN_MAX or self._more:
                     continue  # more is waiting
             elif self._stop.is_set():
                 return  # stopped and everything that had arrived delivered
