@@ -1286,6 +1286,11 @@ class Service:
         parts = key.split("/")
         if payload is not None and len(parts) == 6 and len(payload) <= MAX_PAYLOAD_BYTES:
             self.fleet_states.put(parts[4], parts[5], payload)
+            # a vehicle handed to this member (the state its old owner published as it let it go)
+            # and not subscribed yet: subscribed now, not at its next discovery message
+            intake = getattr(self, "intake", None) if self._owned_intake else None
+            if intake is not None and parts[4] not in intake.watched and self.fleet_view.mine(parts[4]):
+                self._resubscribe_due.set()
 
     def _join_fleet(self) -> None:
         if self.session is None:

@@ -124,10 +124,6 @@ def publish_fleet(
 
     pubs: dict[str, object] = {}
 
-    from fednav.simulators.publisher import KeyMatches
-
-    matches = KeyMatches()
-
     def pub(key: str, encoding: str):
         p = pubs.get(key)
         if p is None:
@@ -137,7 +133,6 @@ def publish_fleet(
                 congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
             )
-            matches.track(key, p)
         return p
 
     n = len(vehicles)
@@ -160,7 +155,6 @@ def publish_fleet(
         time.sleep(0.01)
 
     watch = MatchWatch(probe if probe.matching_status.matching else first)
-    probes = [vehicle_probe_key(f"{prefix}/{v}/") for v in vehicles]
     heap = []
     for i in range(n):
         items, t0 = variants[i % len(variants)]
@@ -178,10 +172,7 @@ def publish_fleet(
         delay = wall0 + due / speed - time.monotonic()
         if delay > 0:
             time.sleep(delay)
-        key = f"{prefix}/{vehicles[i]}/{it.suffix}"
-        p = pub(key, it.encoding)
-        matches.hold(key, probes[i])  # (a fleet handing the vehicle over: its new owner)
-        p.put(it.payload)
+        pub(f"{prefix}/{vehicles[i]}/{it.suffix}", it.encoding).put(it.payload)
         if log is not None and it.imu:
             log.append((i, it.t, time.monotonic()))
         sent += 1
@@ -191,7 +182,7 @@ def publish_fleet(
         else:
             heapq.heappop(heap)
     wall = time.monotonic() - wall0
-    return {"messages": sent, "wall_s": wall, "vehicles": n, "pubs": pubs, "watch": watch, "matches": matches}
+    return {"messages": sent, "wall_s": wall, "vehicles": n, "pubs": pubs, "watch": watch}
 
 
 def end_fleet(session, stats: dict, drain_keys: list[str]) -> dict:
@@ -208,7 +199,6 @@ def end_fleet(session, stats: dict, drain_keys: list[str]) -> dict:
     watch = stats.pop("watch")
     lost = watch.lost()
     watch.close()
-    stats.pop("matches").close()
     for p in stats.pop("pubs").values():
         p.undeclare()
     return {**stats, "drained": False if lost else drained, "subscriber_lost": lost, "services_seen": seen}

@@ -84,62 +84,6 @@ class MatchWatch:
         self._listener.undeclare()
 
 
-#: a key whose subscribers went away while a service is still there (a fleet member subscribing
-#: per vehicle it serves hands the vehicle over: the old owner's subscription is gone and the new
-#: one's not yet known here) holds its next put this long for the new one (s); a put to no
-#: subscriber would be dropped at the source
-REMATCH_WAIT_S = 2.0
-
-
-class KeyMatches:
-    """Whether each publisher's key has a subscriber, kept by Zenoh's matching listeners (no call
-    per put), and the wait of :data:`REMATCH_WAIT_S` for a key that lost its subscribers while the
-    vehicle's probe key (:func:`vehicle_probe_key`: a service is there) keeps one. A key never
-    matched yet is not waited for (a fleet member hears a vehicle's IMU only once it has found the
-    vehicle by its InitialNav or fixes), and one lost key is waited for once per loss."""
-
-    def __init__(self) -> None:
-        self._state: dict[str, list] = {}  # key -> [matched, waited since its last loss]
-        self._listeners: list = []
-
-    def track(self, key: str, publisher: zenoh.Publisher) -> None:
-        matched = publisher.matching_status.matching
-        st = self._state[key] = [matched, not matched]  # (never matched yet: nothing to wait for)
-
-        def on(status, st=st) -> None:
-            st[0] = status.matching
-            if status.matching:
-                st[1] = False
-
-        self._listeners.append(publisher.declare_matching_listener(on))
-
-    def matched(self, key: str) -> bool:
-        st = self._state.get(key)
-        return st is None or st[0]
-
-    def hold(self, key: str, probe_key: str) -> None:
-        """Before a put on ``key``: wait for its new subscriber if it lost its own while the
-        vehicle's probe key still has one (a handover in progress)."""
-        st = self._state.get(key)
-        if st is None or st[0] or st[1]:
-            return
-        probe = self._state.get(probe_key)
-        if probe is None or not probe[0]:  # no service at all: nothing to wait for
-            return
-        st[1] = True  # once per loss: a key nobody takes again costs one wait
-        deadline = time.monotonic() + REMATCH_WAIT_S
-        while not st[0] and time.monotonic() < deadline:
-            time.sleep(0.001)
-
-    def close(self) -> None:
-        for listener in self._listeners:
-            try:
-                listener.undeclare()
-            except zenoh.ZError:
-                pass
-        self._listeners.clear()
-
-
 def vehicle_probe_key(key: str) -> str:
     """The InitialNav key of the vehicle of ``key`` (``{prefix}/{vehicle}/...``): what a publisher
     waits on and watches for a service (:func:`publish_stream`, ``fednav-sim fleet``)."""
@@ -317,7 +261,6 @@ def publish_stream(
     )
     pubs: dict[str, zenoh.Publisher] = {}
     batches: dict[str, list[ImuSample]] = {}
-    matches = KeyMatches()
 
     def pub_for(key: str, encoding: str) -> zenoh.Publisher:
         p = pubs.get(key)
@@ -329,7 +272,6 @@ def publish_stream(
                 reliability=zenoh.Reliability.RELIABLE,
             )
             pubs[key] = p
-            matches.track(key, p)
         return p
 
     n = 0
@@ -345,8 +287,7 @@ def publish_stream(
                 # service does (a fleet member that subscribes per vehicle it owns hears every
                 # vehicle's InitialNav and fixes, but its IMU only once the vehicle is its own)
                 # (or, for a receiver of one's own, when it subscribes to the first key)
-                probe_key = vehicle_probe_key(key)
-                probe = pub_for(probe_key, InitialNav.encoding())
+                probe = pub_for(vehicle_probe_key(key), InitialNav.encoding())
                 deadline = time.monotonic() + match_timeout_s
                 while not (probe.matching_status.matching or p.matching_status.matching):
                     if time.monotonic() > deadline:
@@ -365,7 +306,6 @@ def publish_stream(
                 delay = wall0 + (msg.t - t_first) / speed - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            matches.hold(key, probe_key)  # (a fleet handing the vehicle over: its new owner)
             if batched:
                 p.put(imu_batch_codec.encode_samples(batches.pop(key)))
             else:
@@ -386,7 +326,6 @@ def publish_stream(
     finally:
         if watch is not None:
             watch.close()
-        matches.close()
         for p in pubs.values():
             p.undeclare()
         session.close()

@@ -567,6 +567,11 @@ class OwnedIntake:
     def vehicles(self) -> set[str]:
         return set(self._vsubs)
 
+    @property
+    def watched(self):
+        """The vehicles subscribed (a live view: for membership tests only)."""
+        return self._vsubs.keys()
+
     def watch(self, vehicle: str) -> bool:
         """Subscribe to ``vehicle``'s keys (nothing if already); False when the service is stopping."""
         if vehicle in self._vsubs:
