@@ -12,6 +12,7 @@ emits the last solutions and health, closes the recording (complete, readable) a
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import logging
 import math
@@ -63,6 +64,8 @@ NEVER_ACCEPTED_IDLE_S = 10.0
 RECORDING_STAGE = "recording"
 #: ServiceHealth.refusing_vehicles: the vehicles refused for vehicle_limit this recently
 REFUSING_WINDOW_S = 10.0
+#: vehicles announced by their publishers (keys.sensors_alive) a fleet member remembers at most
+ANNOUNCED_MAX = 100_000
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
 STATUS_ENCODING = "application/json;fednav.Status/1"
 CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
@@ -747,6 +750,9 @@ class Service:
         #: brought up to date by the health loop (_resubscribe)
         self._resubscribe_due = threading.Event()
         self._owned_intake = False
+        #: ... and the vehicles whose publishers announce them (keys.sensors_alive tokens): the
+        #: ones it owns are subscribed before their first message (set by a Zenoh callback)
+        self._announced: set[str] = set()
         self.retired_vehicles = 0
         self.released_vehicles = 0
         self.rrd_path = rrd or config.rrd or Path("recordings") / f"fednav-{datetime.now():%Y%m%d-%H%M%S}.rrd"
@@ -874,6 +880,12 @@ class Service:
             self.intake = zenoh_io.Intake(
                 self.session, selectors, self._deliver, deliver_many=many, wanted=wanted, forward=forward
             )
+        if self._owned_intake:  # publishers that announce their vehicles: subscribed before they speak
+            self._watches.append(
+                zenoh_io.Watch(
+                    self.session, keys.sensors_alive_selector(cfg.prefix), self._on_announced, liveliness=True
+                )
+            )
         self.ros_intake = None
         if self.ros_in is not None and self.ros_in.key_exprs():
             from fednav.service.transport.ros2 import header_stamp_s
@@ -994,7 +1006,10 @@ class Service:
         with self._lock:
             want = set(self.workers)
             room = self.config.intake.max_vehicles - len(want)
-            for v in recent:
+            # then the vehicles announced by their publishers (keys.sensors_alive), most of
+            # them not served yet: their IMU heard from the start
+            announced = list(self._announced) if self.fleet_view.active else []
+            for v in itertools.chain(recent, announced):
                 if room <= 0:
                     break
                 if v not in want and self.fleet_view.mine(v):
@@ -1291,6 +1306,24 @@ class Service:
             intake = getattr(self, "intake", None) if self._owned_intake else None
             if intake is not None and parts[4] not in intake.watched and self.fleet_view.mine(parts[4]):
                 self._resubscribe_due.set()
+
+    def _on_announced(self, key: str, payload: bytes | None) -> None:
+        """A publisher's announcement of a vehicle (keys.sensors_alive) appeared or vanished
+        (Zenoh callback: record, never block): an owned one not subscribed yet is subscribed by
+        the health loop (_resubscribe), before the vehicle's first message."""
+        parts = key[len(self.config.prefix) + 1 :].split("/")
+        if len(parts) != 3 or not keys.valid_name(parts[0]):
+            return
+        vehicle = parts[0]
+        if payload is None:
+            self._announced.discard(vehicle)
+            return
+        if vehicle in self._announced or len(self._announced) >= ANNOUNCED_MAX:
+            return
+        self._announced.add(vehicle)
+        intake = getattr(self, "intake", None)
+        if intake is not None and vehicle not in intake.watched and self.fleet_view.mine(vehicle):
+            self._resubscribe_due.set()
 
     def _join_fleet(self) -> None:
         if self.session is None:

@@ -9,6 +9,9 @@
 {prefix}/{vehicle}/sensor/baro/{id}           BaroAltitude
     (sensor keys come from the sensor registry, ``service.sensors``: one entry per kind)
 {prefix}/{vehicle}/sensor/init                InitialNav
+{prefix}/{vehicle}/sensor/alive               liveliness token of a publisher of the vehicle's sensors
+                                              (fednav's own; announces the vehicle to a fleet member
+                                              that subscribes per vehicle, before any message)
 {prefix}/{vehicle}/truth                      Truth
 {prefix}/{vehicle}/truth/alignment/{node}     AlignmentTruth (seed 002 simulators)
 {prefix}/{vehicle}/nav/{pipeline}/solution    Solution
@@ -67,6 +70,16 @@ def sensor(vehicle: str, kind: str, sensor_id: str, prefix: str = DEFAULT_PREFIX
 
 def init(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/sensor/init"
+
+
+def sensors_alive(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Liveliness token a publisher of ``vehicle``'s sensors declares while it publishes: a fleet
+    member that subscribes per vehicle it owns (``[intake] subscribe = 'owned'``) subscribes to the
+    vehicle when it appears, so the vehicle's IMU reaches its owner from the start (without it,
+    from its first InitialNav or aiding message). Never put on: a publisher declared on this key
+    matches once a subscription covering the vehicle's inputs exists (the owner's, or a service
+    subscribing to every vehicle), which is what publishers wait for before their stream."""
+    return f"{prefix}/{_chunk(vehicle, 'vehicle')}/sensor/alive"
 
 
 def truth(vehicle: str, prefix: str = DEFAULT_PREFIX) -> str:
@@ -149,6 +162,11 @@ def discovery_selectors(prefix: str = DEFAULT_PREFIX) -> list[str]:
     from fednav.service import sensors
 
     return [f"{prefix}/*/sensor/init"] + [f"{prefix}/*/sensor/{k}" for k in sensors.discovery_keys()]
+
+
+def sensors_alive_selector(prefix: str = DEFAULT_PREFIX) -> str:
+    """Every vehicle's :func:`sensors_alive` token (a fleet member's liveliness subscriber)."""
+    return f"{prefix}/*/sensor/alive"
 
 
 def is_output(key: str, prefix: str = DEFAULT_PREFIX) -> bool:

@@ -141,7 +141,17 @@ def publish_fleet(
         items, _ = variants[i % len(variants)]
         for it in items[:200]:
             pub(f"{prefix}/{v}/{it.suffix}", it.encoding)
-    from fednav.simulators.publisher import MatchTimeout, MatchWatch, vehicle_probe_key
+    from fednav.simulators.publisher import (
+        Announcement,
+        MatchTimeout,
+        MatchWatch,
+        vehicle_probe_key,
+        wait_heard,
+    )
+
+    # each vehicle announced (a fleet member that subscribes per vehicle it owns subscribes to its
+    # own now, and hears their IMU from the first sample)
+    announced = [Announcement(session, f"{prefix}/{v}/") for v in vehicles]
 
     # a service subscribes to every vehicle's InitialNav key (a fleet member that subscribes per
     # vehicle it owns too: its IMU keys only once the vehicle is its own); a receiver of one's
@@ -155,6 +165,8 @@ def publish_fleet(
         time.sleep(0.01)
 
     watch = MatchWatch(probe if probe.matching_status.matching else first)
+    if probe.matching_status.matching:  # a fednav service: each vehicle's owner subscribes to it
+        wait_heard(announced)
     heap = []
     for i in range(n):
         items, t0 = variants[i % len(variants)]
@@ -182,7 +194,14 @@ def publish_fleet(
         else:
             heapq.heappop(heap)
     wall = time.monotonic() - wall0
-    return {"messages": sent, "wall_s": wall, "vehicles": n, "pubs": pubs, "watch": watch}
+    return {
+        "messages": sent,
+        "wall_s": wall,
+        "vehicles": n,
+        "pubs": pubs,
+        "watch": watch,
+        "announced": announced,
+    }
 
 
 def end_fleet(session, stats: dict, drain_keys: list[str]) -> dict:
@@ -201,6 +220,8 @@ def end_fleet(session, stats: dict, drain_keys: list[str]) -> dict:
     watch.close()
     for p in stats.pop("pubs").values():
         p.undeclare()
+    for a in stats.pop("announced"):
+        a.close()
     return {**stats, "drained": False if lost else drained, "subscriber_lost": lost, "services_seen": seen}
 
 

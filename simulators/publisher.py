@@ -71,6 +71,8 @@ class MatchWatch:
 
     def __init__(self, publisher: zenoh.Publisher):
         self._publisher = publisher
+        #: the publisher is a vehicle's InitialNav probe that a fednav service matched (set by the user)
+        self.served = False
         self._unmatched: list[bool] = []
         self._listener = publisher.declare_matching_listener(
             lambda status: None if status.matching else self._unmatched.append(True)
@@ -89,6 +91,64 @@ def vehicle_probe_key(key: str) -> str:
     waits on and watches for a service (:func:`publish_stream`, ``fednav-sim fleet``)."""
     prefix, vehicle = key.split("/", 2)[:2]
     return fkeys.init(vehicle, prefix)
+
+
+#: how long a publisher waits, once a fednav service is there, for a subscription to its vehicle's
+#: inputs (a fleet member that subscribes per vehicle it owns declares it when the vehicle's
+#: announcement reaches it; any other service has one already); past it the stream starts anyway
+ANNOUNCE_WAIT_S = 3.0
+
+
+class Announcement:
+    """A vehicle announced while its sensors are published: the ``keys.sensors_alive`` liveliness
+    token, and a publisher on the same key (never put on) whose matching says that a subscription
+    covering the vehicle's inputs exists. A fleet member that subscribes per vehicle it owns
+    (``[intake] subscribe = 'owned'``) subscribes to an announced vehicle of its own before its
+    first message, so the IMU published before the first InitialNav or aiding message reaches it
+    (a ground start's static alignment starts with the IMU, not with the first fix)."""
+
+    def __init__(self, session: zenoh.Session, vehicle_key: str):
+        prefix, vehicle = vehicle_key.split("/", 2)[:2]
+        key = fkeys.sensors_alive(vehicle, prefix)
+        self.vehicle = vehicle
+        self._token = session.liveliness().declare_token(key)
+        self._pub = session.declare_publisher(key)
+
+    @property
+    def heard(self) -> bool:
+        """A subscription covers the vehicle's inputs (its owner's, or a service's of every vehicle)."""
+        return self._pub.matching_status.matching
+
+    def close(self) -> None:
+        for d in (self._pub, self._token):
+            try:
+                d.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+def wait_heard(announcements: Iterable[Announcement], timeout_s: float = ANNOUNCE_WAIT_S) -> list[str]:
+    """Wait (at most ``timeout_s``) until a subscription covers every announced vehicle's inputs;
+    the vehicles still unheard then (no fleet member with room owns them, or the router's access
+    control drops the announcement: their streams start anyway, and a member finds each at its
+    first InitialNav or aiding message), logged on stderr."""
+    waiting = list(announcements)
+    deadline = time.monotonic() + timeout_s
+    while waiting:
+        waiting = [a for a in waiting if not a.heard]
+        if not waiting or time.monotonic() > deadline:
+            break
+        time.sleep(0.01)
+    if waiting:
+        names = ", ".join(a.vehicle for a in waiting[:5]) + (" ..." if len(waiting) > 5 else "")
+        print(
+            f"fednav publisher: {len(waiting)} vehicle(s) not subscribed by a service {timeout_s:g} s after "
+            f"their announcement ({names}): published anyway; a fleet member finds each at its first "
+            "InitialNav or aiding message",
+            file=sys.stderr,
+            flush=True,
+        )
+    return [a.vehicle for a in waiting]
 
 
 def status_keys(published: Iterable[str]) -> list[str]:
@@ -278,10 +338,16 @@ def publish_stream(
     t_first = None
     wall0 = None
     watch: MatchWatch | None = None  # the first publisher's matching, from its first match on
+    announced: dict[str, Announcement] = {}  # vehicle -> its announcement, while it is published
     try:
         for key, msg in stream:
             batched = imu_batch > 1 and isinstance(msg, ImuSample)
             p = pub_for(key, imu_batch_codec.ENCODING if batched else type(msg).encoding())
+            vehicle = key.split("/", 2)[1]
+            if vehicle not in announced:
+                announced[vehicle] = a = Announcement(session, key)
+                if t_first is not None and watch is not None and watch.served:
+                    wait_heard([a])  # a vehicle that starts later in the stream
             if t_first is None:
                 # a service is there when it subscribes to the vehicle's InitialNav key: every
                 # service does (a fleet member that subscribes per vehicle it owns hears every
@@ -293,9 +359,12 @@ def publish_stream(
                     if time.monotonic() > deadline:
                         raise MatchTimeout(f"no subscriber matched {key} within {match_timeout_s} s")
                     time.sleep(0.01)
+                watch = MatchWatch(probe if probe.matching_status.matching else p)
+                watch.served = probe.matching_status.matching
+                if watch.served:  # a fednav service: the vehicle's owner subscribes to it
+                    wait_heard(announced.values())
                 t_first = msg.t
                 wall0 = time.monotonic()
-                watch = MatchWatch(probe if probe.matching_status.matching else p)
             if batched:
                 pending = batches.setdefault(key, [])
                 pending.append(msg)
@@ -328,5 +397,7 @@ def publish_stream(
             watch.close()
         for p in pubs.values():
             p.undeclare()
+        for a in announced.values():
+            a.close()
         session.close()
     return {"messages": n, "wall_s": wall, "drained": drained, "subscriber_lost": lost, "services_seen": seen}

@@ -412,3 +412,68 @@ def test_a_member_hears_its_own_vehicles_and_only_the_low_rate_inputs_of_the_oth
     finally:
         stop_all(procs)
         bus.close()
+
+
+_IMU_ONLY_PUBLISHER = """
+import sys
+from fednav.service.messages import ImuSample
+from fednav.simulators.publisher import publish_stream
+
+vehicle, port, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+stream = (
+    (
+        f"fednav/{vehicle}/sensor/imu/imu0",
+        ImuSample(t=1000.0 + 0.005 * k, dt_s=0.005, dtheta_rad=(0.0, 0.0, 0.0), dvel_mps=(0.0, 0.0, 0.049)),
+    )
+    for k in range(n)
+)
+out = publish_stream(stream, connect=[f"tcp/127.0.0.1:{port}"], imu_batch=1)
+print("published", out["messages"], "drained", out["drained"], flush=True)
+"""
+
+
+def test_a_member_hears_an_announced_vehicle_from_its_first_imu_sample(tmp_path):
+    """A vehicle that publishes only its IMU (no InitialNav, no fix: a ground start before its
+    receiver's first fix) reaches its owner in a fleet whose members subscribe per vehicle they own
+    (``subscribe = 'auto'``): fednav's publishers announce the vehicle (``keys.sensors_alive``), the
+    owner subscribes to it, and the publisher waits for that subscription before its first sample.
+    Every sample reaches the owner (none before its subscription is lost), none the other member.
+    Without the announcement the vehicle is never heard: its IMU is no discovery key."""
+    from fednav.service import keys
+
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 1.0\n'
+    )
+    port, n = free_port(), 400
+    procs = [_router(port)]
+    bus = FleetWatch(port)
+    health: list[dict] = []
+    sub = None
+    try:
+        ids = split_zids(vehicle_names(N), 2)
+        owner = fleet.owner("solo", ids)
+        procs += [_service(port, cfg, z, tmp_path) for z in ids]
+        assert _wait(lambda: all(z in bus.health for z in ids), 20), dict(bus.health)
+        time.sleep(2.0)  # past the joining period (1.5 handover periods): both members own vehicles
+        sub = bus.s.declare_subscriber(
+            keys.service("solo", "health"), lambda s: health.append(json.loads(s.payload.to_bytes()))
+        )
+        pub = Proc([sys.executable, "-c", _IMU_ONLY_PUBLISHER, "solo", str(port), str(n)], "imu-only")
+        procs.append(pub)
+        assert pub.wait(timeout=60) == 0, pub.output()
+        assert f"published {n} drained True" in pub.output(), pub.output()
+        assert _wait(lambda: bool(health) and health[-1]["received"] == n, 10), health[-1:]
+        h = health[-1]
+        assert h["accepted"] == n and not h["rejected"], h  # every sample, from the first on
+        with bus.lock:
+            served = {z: list(bus.health[z]["active_vehicles"]) for z in ids}
+        assert "solo" in served[owner], served
+        other = next(z for z in ids if z != owner)
+        assert "solo" not in served[other], served
+    finally:
+        if sub is not None:
+            sub.undeclare()
+        stop_all(procs)
+        bus.close()

@@ -474,6 +474,9 @@ def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
     assert rcs == [0] * len(procs), [p.output()[-2000:] for p in procs]
     print(r.stdout[:400])
     assert r.returncode == 0, r.stdout + r.stderr
+    # the router passes the simulator's vehicle announcements to the services (its
+    # 'sensor-announce' and 'service-announced' rules): each owner subscribed before the stream
+    assert "not subscribed by a service" not in sim.output(), sim.output()
     assert [v["vehicle"] for v in snap["vehicles"]] == [f"veh{i:03d}" for i in range(6)]
     assert not any(v["served_twice"] for v in snap["vehicles"]), snap["problems"]
     served = {s["zid"]: s["vehicles"] for s in snap["services"]}
