@@ -7,8 +7,10 @@ recording of the whole fleet at a low rate (tracks on a map and in ENU, a status
 the load of each service). No daemon: both are plain Zenoh clients (a router's or a service's
 endpoint) that ask what every fednav service already offers (docs/fleet.md):
 
-* liveliness tokens ``{prefix}/_services/{zid}`` (one per running service) and
-  ``{prefix}/{vehicle}/service/alive`` (one per served vehicle);
+* liveliness tokens ``{prefix}/_services/{zid}`` (one per running service),
+  ``{prefix}/{vehicle}/service/alive`` (one per served vehicle) and
+  ``{prefix}/{vehicle}/sensor/alive`` (a vehicle its publisher announces while publishing: one no
+  service serves is flagged);
 * queryables ``{prefix}/{vehicle}/service/status`` (health per pipeline), ``.../service/config``
   and ``{prefix}/{vehicle}/nav/{pipeline}/solution`` (the latest Solution). Every reply names the
   Zenoh session that sent it (``Reply.replier_id``): that is the service of the vehicle when that
@@ -25,7 +27,8 @@ being mixed in silently. Age of a solution: this machine's clock (as GPS time) m
 solution's ``t`` when the vehicle runs on live time; simulated or replayed data carry another time,
 so the age is then left out and the lag behind the vehicle's latest input (``health.t - t``) says
 how current the solution is. Exit codes: 0 nothing to flag, 1 something flagged (a vehicle served
-twice or by no answering service, a differing configuration, another prefix, no service at all),
+twice or by no answering service, a published vehicle no service serves, a differing
+configuration, another prefix, no service at all),
 2 bad arguments or no Zenoh session.
 """
 
@@ -181,6 +184,8 @@ class Fleet:
         # inside the key expressions it lists
         service_tokens = self._service_zids()
         alive = {k.split("/")[1] for k in _tokens(self.session, f"{p}/*/service/alive", self.timeout_s)}
+        # the vehicles whose publishers announce them (keys.sensors_alive): published right now
+        announced = {k.split("/")[1] for k in _tokens(self.session, f"{p}/*/sensor/alive", self.timeout_s)}
         others = []
         for k in _tokens(self.session, "**/_services/*", self.timeout_s):
             other = k.rsplit("/_services/", 1)[0]
@@ -293,6 +298,21 @@ class Fleet:
             }
             limits = ", ".join(f"{z} (max_vehicles {capacity[z]['max_vehicles']})" for z in zids)
             problems.append(f"vehicle {v} is not served: refused by a service at its limit: {limits}")
+        # a vehicle its publisher announces that no service serves (nor refused: named above):
+        # its data reach no fednav service (no service of that name, another prefix, a policy)
+        for v in sorted(announced - set(vehicles)):
+            vehicles[v] = {
+                "vehicle": v,
+                "alive": v in alive,
+                "service": None,
+                "services": [],
+                "served_twice": False,
+                "pipelines": {},
+                "by_service": {},
+            }
+            problems.append(f"vehicle {v} is published (its publisher announces it) but no service serves it")
+        for v, d in vehicles.items():
+            d["announced"] = v in announced
         vehicles = dict(sorted(vehicles.items()))
 
         # configurations: the one most services share is the reference; the others are named
@@ -363,7 +383,13 @@ def format_status(snap: dict) -> str:
     rows = [("VEHICLE", "SERVICE", "PIPELINE", "STATUS", "LAST T (GPS s)", "AGE", "LAG")]
     for v in snap["vehicles"]:
         if not v["services"]:
-            why = "refused (service full)" if v.get("refused_by") else NO_ANSWER
+            why = (
+                "refused (service full)"
+                if v.get("refused_by")
+                else "published, not served"
+                if v.get("announced") and not v["alive"]
+                else NO_ANSWER
+            )
             rows.append((v["vehicle"], "-", "-", why, "-", "-", "-"))
         for zid, info in v["by_service"].items():
             name = zid[:8] + (" (twice!)" if v["served_twice"] else "")

@@ -179,6 +179,8 @@ def test_fleet_status_and_record_of_five_vehicles(tmp_path):
 
 
 def test_status_flags_a_vehicle_served_twice_a_differing_config_and_another_prefix(tmp_path):
+    """... and a vehicle its publisher announces (``fednav/ghost/sensor/alive``, a plain client's
+    token here) that no service serves."""
     lc = '[[pipelines]]\nkind = "loosely_coupled"\nname = "lc"\n'
     (tmp_path / "a.toml").write_text('vehicles = ["v1", "v2"]\n' + lc)
     (tmp_path / "b.toml").write_text('vehicles = ["v1"]\n' + lc + "innovation_gate_sigma = 4.0\n")
@@ -189,10 +191,13 @@ def test_status_flags_a_vehicle_served_twice_a_differing_config_and_another_pref
     try:
         for name in ("a", "b", "c"):
             procs.insert(0, _service(port, "--config", str(tmp_path / f"{name}.toml")))
+        publisher = _client(port)
+        token = publisher.liveliness().declare_token("fednav/ghost/sensor/alive")  # noqa: F841 (kept)
         status = _fleet("status", "--json", port=port)
         out, err = status.communicate(timeout=60)
         table = _fleet("status", port=port)
         text, _ = table.communicate(timeout=60)
+        publisher.close()
     finally:
         rcs = _stop(*procs)
     assert rcs == [0] * len(procs)
@@ -200,7 +205,9 @@ def test_status_flags_a_vehicle_served_twice_a_differing_config_and_another_pref
     assert status.returncode == 1 and table.returncode == 1, out + err
     snap = json.loads(out)
     by_name = {v["vehicle"]: v for v in snap["vehicles"]}
-    assert sorted(by_name) == ["v1", "v2"]  # v9 is under the other prefix
+    assert sorted(by_name) == ["ghost", "v1", "v2"]  # v9 is under the other prefix
+    assert by_name["ghost"]["announced"] and not by_name["ghost"]["services"]
+    assert not by_name["v1"]["announced"]  # (nothing publishes v1 and v2 here)
     assert by_name["v1"]["served_twice"] and len(by_name["v1"]["services"]) == 2
     assert by_name["v1"]["service"] is None
     assert not by_name["v2"]["served_twice"] and by_name["v2"]["service"] is not None
@@ -217,6 +224,8 @@ def test_status_flags_a_vehicle_served_twice_a_differing_config_and_another_pref
     assert f"vehicle v1 is served by 2 services: {', '.join(sorted((a, b)))}" in problems
     assert "configuration differs" in problems
     assert "another prefix 'other'" in problems
+    assert "vehicle ghost is published (its publisher announces it) but no service serves it" in problems
+    assert "published, not served" in text
     assert "(twice!)" in text and "problems:" in text
 
 
