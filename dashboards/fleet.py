@@ -56,6 +56,9 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 RECORD_WAIT_S = 30.0
 #: ``fednav-fleet record``: a service whose last ServiceHealth (1 Hz) is older than this has left
 HEALTH_STALE_S = 3.0
+#: an announced vehicle that no service serves is looked at again this much later before it is
+#: flagged (a fleet member serves an announced vehicle at its first message, milliseconds on)
+ANNOUNCED_RECHECK_S = 0.5
 #: a solution whose time is further than this from this machine's clock is not on live time
 LIVE_WINDOW_S = 86_400.0
 #: worst first: the status a vehicle's lane shows when its pipelines disagree
@@ -299,8 +302,16 @@ class Fleet:
             limits = ", ".join(f"{z} (max_vehicles {capacity[z]['max_vehicles']})" for z in zids)
             problems.append(f"vehicle {v} is not served: refused by a service at its limit: {limits}")
         # a vehicle its publisher announces that no service serves (nor refused: named above):
-        # its data reach no fednav service (no service of that name, another prefix, a policy)
-        for v in sorted(announced - set(vehicles)):
+        # its data reach no fednav service (no service of that name, another prefix, a policy).
+        # Looked at again after a moment: a vehicle announced an instant before its owner's first
+        # message (a fleet member subscribes, then serves at the first message) is not flagged
+        unserved = announced - set(vehicles)
+        if unserved:
+            time.sleep(ANNOUNCED_RECHECK_S)
+            unserved -= {
+                k.split("/")[1] for k in _tokens(self.session, f"{p}/*/service/alive", self.timeout_s)
+            }
+        for v in sorted(unserved):
             vehicles[v] = {
                 "vehicle": v,
                 "alive": v in alive,

@@ -288,6 +288,8 @@ class VehicleWorker:
         #: while another took the vehicle) resumes from the other's fresher state (resume_from_fleet)
         self.fleet_states_of = None
         self.fleet_me = ""
+        #: a rendezvous fleet member's: (vehicle) -> the members its handover states go to
+        self.state_to = None
         self._resume_seen: tuple = ()
         self.notes = None  # () -> counted non-refusal events (the ROS 2 bridge's), for Health
         # each vehicle's Health at its own phase of the period (a stable hash of its name): a fleet
@@ -382,8 +384,20 @@ class VehicleWorker:
         return out
 
     def publish_states(self, group: str, service: str) -> None:
+        """The vehicle's handover states: in a rendezvous fleet to the members ``state_to`` names
+        (its heir, a joining service that will own it, or its new owner when it moves; nothing
+        without another member), from a local shard to shard 0 (which keeps every shard's)."""
+        prefix = self.config.prefix
+        if self.state_to is None:  # a local shard: shard 0 subscribes to its group's states
+            for st in self.handover_states(service):
+                self.pubs.publish(keys.fleet_state(group, self.vehicle, st.pipeline, prefix), st)
+            return
+        to = self.state_to(self.vehicle)
+        if not to:
+            return  # no other member: nobody to take the vehicle over
         for st in self.handover_states(service):
-            self.pubs.publish(keys.fleet_state(group, self.vehicle, st.pipeline, self.config.prefix), st)
+            for member in to:
+                self.pubs.publish(keys.fleet_state_to(group, member, self.vehicle, st.pipeline, prefix), st)
 
     def take_over(self, payloads: dict[str, bytes], t_start: float) -> None:
         """Start the vehicle from the last handover state another service published (called once,
@@ -826,8 +840,13 @@ class Service:
             base = f"{cfg.prefix}/_fleet/{self.fleet_group}"
             services = f"{cfg.prefix}/_services/*"
             self._watches = [
-                zenoh_io.Watch(self.session, f"{base}/state/**", self._on_state),
+                # the states addressed to this member: of the vehicles it takes over if their owner
+                # goes, and of those handed to it (not every vehicle's: a state reaches one member)
+                zenoh_io.Watch(
+                    self.session, keys.fleet_states_for(self.fleet_group, zid, cfg.prefix), self._on_state
+                ),
                 zenoh_io.Watch(self.session, f"{base}/member/*", self._on_member, liveliness=True),
+                zenoh_io.Watch(self.session, f"{base}/joining/*", self._on_joining, liveliness=True),
                 # capacity: the members at their max_vehicles and what each of them holds
                 zenoh_io.Watch(self.session, f"{services}/holds/*", self._on_holds, liveliness=True),
                 zenoh_io.Watch(self.session, f"{services}/full", self._on_full, liveliness=True),
@@ -902,7 +921,9 @@ class Service:
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
         if self.fleet_view is not None:
             # hear the members and their handover states for a while, then join: the members see
-            # this token and hand this service its share (each publishing its last states)
+            # this token and hand this service its share (each publishing its last states);
+            # meanwhile its ``joining`` token has the members address it the states of its share
+            self.liveliness.declare(keys.fleet_joining(self.fleet_group, zid, cfg.prefix))
             threading.Timer(1.5 * cfg.fleet.handover_period_s, self._join_fleet).start()
         for v in [] if sel else self._served_list():
             self.liveliness.declare(keys.service(v, "alive", cfg.prefix))
@@ -969,6 +990,7 @@ class Service:
                         w.on_retired = self._retired
                         w.fleet_states_of = functools.partial(self.fleet_states.get, vehicle)
                         w.fleet_me = self.fleet_view.me
+                        w.state_to = self._state_to
                         states = self.fleet_states.get(vehicle)
                         if states:  # another service served it: start from its last state
                             w.loop.starter = lambda t, w=w, states=states: w.take_over(states, t)
@@ -1297,8 +1319,28 @@ class Service:
             self._forget_foreign()
             self._rebalance_due.set()
 
+    def _state_to(self, vehicle: str) -> list[str]:
+        """Where a served vehicle's handover states go (VehicleWorker.publish_states): while it is
+        this member's, its heir (the member that owns it if this one goes: stopped, killed or past
+        its lease) and a joining service that will own it (which then starts it from its state);
+        once it is not, its new owner (it moves: the last state as it goes)."""
+        view = self.fleet_view
+        if view.mine(vehicle):
+            to = [m for m in (view.heir(vehicle), view.joiner_owner(vehicle)) if m is not None]
+            return to if len(to) < 2 or to[0] != to[1] else to[:1]
+        owner = view.owner(vehicle)
+        return [] if owner == view.me else [owner]
+
+    def _on_joining(self, key: str, payload: bytes | None) -> None:
+        """A service's ``joining`` token appeared or vanished (Zenoh callback: record only)."""
+        self.fleet_view.set_joining(key.rsplit("/", 1)[-1], payload is not None)
+
     def _on_state(self, key: str, payload: bytes | None) -> None:
+        """A handover state: ``{prefix}/_fleet/{group}/to/{me}/state/{vehicle}/{pipeline}`` (a
+        fleet member's) or ``.../state/{vehicle}/{pipeline}`` (a local shard's, for shard 0)."""
         parts = key.split("/")
+        if len(parts) == 8 and parts[3] == "to":
+            parts = parts[:3] + parts[5:]
         if payload is not None and len(parts) == 6 and len(payload) <= MAX_PAYLOAD_BYTES:
             self.fleet_states.put(parts[4], parts[5], payload)
             # a vehicle handed to this member (the state its old owner published as it let it go)
@@ -1331,6 +1373,9 @@ class Service:
         self.liveliness.declare(self._fleet_token)
         self.fleet_view.active = True
         self._forget_foreign()
+        self.liveliness.undeclare(
+            keys.fleet_joining(self.fleet_group, str(self.session.zid()), self.config.prefix)
+        )
         log.info("joined fleet group %s: members %s", self.fleet_group, self.fleet_view.members())
 
     def _rebalance(self) -> None:

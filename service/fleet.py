@@ -78,6 +78,8 @@ class FleetView:
         #: the other members that are full, and the vehicles each of them holds
         self._full: set[str] = set()
         self._holds: dict[str, set[str]] = {}
+        #: services about to join (their ``joining`` tokens): not members yet
+        self._joining: set[str] = set()
         #: this service is full (it owns only what ``holds_me(vehicle)`` says it holds)
         self.me_full = False
         self._holds_me = holds_me or (lambda vehicle: False)
@@ -167,6 +169,37 @@ class FleetView:
 
     def mine(self, vehicle: str) -> bool:
         return self.active and self.owner(vehicle) == self.me
+
+    def set_joining(self, member: str, joining: bool) -> bool:
+        """A service's ``joining`` token appeared or vanished; True when that changed the set."""
+        with self._lock:
+            if member == self.me or (member in self._joining) == joining:
+                return False
+            if joining:
+                self._joining.add(member)
+            else:
+                self._joining.discard(member)
+            return True
+
+    def joiner_owner(self, vehicle: str) -> str | None:
+        """The joining service that will own ``vehicle`` once it joins (rendezvous over the members
+        and the joining services), or None (a member keeps it)."""
+        with self._lock:
+            if not self._joining - self._members:
+                return None
+            o = owner(vehicle, self._members | self._joining)
+            return o if o in self._joining and o not in self._members else None
+
+    def heir(self, vehicle: str) -> str | None:
+        """The member that owns ``vehicle`` when this one goes (the first other member in its
+        rendezvous order that can take it; when every other is full, the first other, which
+        refuses it), None without another member: where this member's handover states of the
+        vehicle go (``keys.fleet_state_to``)."""
+        with self._lock:
+            order = [m for m in ranked(vehicle, self._members) if m != self.me]
+            if not order:
+                return None
+            return next((m for m in order if self._eligible(m, vehicle)), order[0])
 
 
 class StateCache:

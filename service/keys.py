@@ -29,7 +29,11 @@
 {prefix}/_services/{zenoh id}/full            liveliness token of a '*' service at max_vehicles
 {prefix}/_services/{zenoh id}/holds/{vehicle}  liveliness token of each vehicle a full fleet member holds
 {prefix}/_fleet/{group}/member/{zenoh id}      liveliness token of a service sharing a fleet
-{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}  HandoverState (a vehicle's last state, ~1 Hz)
+{prefix}/_fleet/{group}/joining/{zenoh id}     liveliness token of a service about to join it
+{prefix}/_fleet/{group}/to/{zenoh id}/state/{vehicle}/{pipeline}  HandoverState (a vehicle's last
+                                              state, ~1 Hz) for the member that takes it over
+                                              (its heir; the new owner of a vehicle that moves)
+{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}  HandoverState of a local shard (--shards), for shard 0
 """
 
 from __future__ import annotations
@@ -133,10 +137,32 @@ def fleet_member(group: str, instance: str, prefix: str = DEFAULT_PREFIX) -> str
     return f"{prefix}/_fleet/{_chunk(group, 'fleet group')}/member/{_chunk(instance, 'service instance')}"
 
 
+def fleet_joining(group: str, instance: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Liveliness token of a service about to join a fleet (from its start until it joins): the
+    members address it the handover states of the vehicles it will own, so that it starts them
+    from their states when it takes them."""
+    return f"{prefix}/_fleet/{_chunk(group, 'fleet group')}/joining/{_chunk(instance, 'service instance')}"
+
+
 def fleet_state(group: str, vehicle: str, pipeline: str, prefix: str = DEFAULT_PREFIX) -> str:
     """Key of a served vehicle's HandoverState (a pipeline's last state, for another service)."""
     g, v, p = _chunk(group, "fleet group"), _chunk(vehicle, "vehicle"), _chunk(pipeline, "pipeline")
     return f"{prefix}/_fleet/{g}/state/{v}/{p}"
+
+
+def fleet_state_to(group: str, member: str, vehicle: str, pipeline: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """Key of a served vehicle's HandoverState for one member of a rendezvous fleet: the member
+    that takes the vehicle over if its owner goes (its heir), or its new owner when it moves.
+    Each member subscribes to its own (:func:`fleet_states_for`), so a state reaches one member,
+    not all of them."""
+    g, m = _chunk(group, "fleet group"), _chunk(member, "service instance")
+    v, p = _chunk(vehicle, "vehicle"), _chunk(pipeline, "pipeline")
+    return f"{prefix}/_fleet/{g}/to/{m}/state/{v}/{p}"
+
+
+def fleet_states_for(group: str, member: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """The handover states addressed to ``member`` (:func:`fleet_state_to`)."""
+    return f"{prefix}/_fleet/{_chunk(group, 'fleet group')}/to/{_chunk(member, 'service instance')}/state/**"
 
 
 def inputs_selector(vehicles: str = "*", prefix: str = DEFAULT_PREFIX) -> list[str]:

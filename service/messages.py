@@ -718,8 +718,10 @@ SatId = Annotated[str, Field(min_length=1, max_length=16)]
 
 class HandoverState(WireModel):
     """A served vehicle's pipeline state for another service of its fleet (``[fleet] sharding =
-    'rendezvous'``, key ``{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}``, about 1 Hz): what
-    the service that takes the vehicle over starts from instead of a cold start. Carries the
+    'rendezvous'``, key ``{prefix}/_fleet/{group}/to/{member}/state/{vehicle}/{pipeline}``, about
+    1 Hz, to the member that takes the vehicle over; a local shard's
+    ``{prefix}/_fleet/{group}/state/{vehicle}/{pipeline}``): what the service that takes the
+    vehicle over starts from instead of a cold start. Carries the
     navigation state, its 9x9 covariance and the IMU bias estimates with their sigmas."""
 
     t: Time

@@ -54,6 +54,19 @@ def _service(port: int, cfg, zid: str, tmp_path) -> Proc:
     return p
 
 
+def _fleet_sim(port: int, *args: str) -> Proc:
+    """``fednav-sim fleet`` of N vehicles at 1 Hz fixes for 120 s (``args`` added), once publishing."""
+    gen = Proc(
+        [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
+        + ["--fix-rate", "1", *args, "--connect", f"tcp/127.0.0.1:{port}"],
+        "fleet",
+    )
+    if not gen.wait_for("publishing", timeout=60):
+        gen.kill()
+        raise AssertionError(gen.output())
+    return gen
+
+
 def _zid(proc: Proc) -> str:
     """The Zenoh id a service logs when it starts."""
     return proc.output().split("fednav-service up: zid=", 1)[1].split()[0]
@@ -195,13 +208,7 @@ def test_a_full_member_passes_new_vehicles_on_and_status_names_what_nobody_takes
         a = _service(port, cfg_small, small, tmp_path)
         b = _service(port, cfg_big, big, tmp_path)
         procs += [a, b]
-        gen = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
-            + ["--fix-rate", "1", "--connect", f"tcp/127.0.0.1:{port}"],
-            "fleet",
-        )
-        procs.append(gen)
-        assert gen.wait_for("publishing", timeout=60), gen.output()
+        procs.append(_fleet_sim(port))
 
         def settled() -> bool:
             asg = bus.assignment(time.monotonic() - 1.5)
@@ -263,13 +270,7 @@ def _two_members(tmp_path, handover_period_s: float, *sim_args: str, intake: str
         ids = split_zids(vehicle_names(N), 2)
         a, b = _service(port, cfg, ids[0], tmp_path), _service(port, cfg, ids[1], tmp_path)
         procs += [a, b]
-        gen = Proc(
-            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", str(N), "--duration", "120"]
-            + ["--fix-rate", "1", *sim_args, "--connect", f"tcp/127.0.0.1:{port}"],
-            "fleet",
-        )
-        procs.append(gen)
-        assert gen.wait_for("publishing", timeout=60), gen.output()
+        procs.append(_fleet_sim(port, *sim_args))
         assert _wait(lambda: len(bus.assignment(time.monotonic() - 1.5)) == 2, 30), bus.assignment(0.0)
     except BaseException:
         stop_all(procs)
@@ -475,5 +476,78 @@ def test_a_member_hears_an_announced_vehicle_from_its_first_imu_sample(tmp_path)
     finally:
         if sub is not None:
             sub.undeclare()
+        stop_all(procs)
+        bus.close()
+
+
+def test_handover_states_go_to_the_member_that_takes_the_vehicle_over(tmp_path):
+    """Three members: each vehicle's handover states go to its heir only (the next member in its
+    rendezvous order, ``keys.fleet_state_to``), not to every member; when a member stops
+    (SIGTERM), each of its vehicles is handed over by its heir from its last state."""
+    import re
+
+    from fednav.service.config import ZenohConfig
+    from fednav.service.transport.zenoh_io import make_config
+
+    names = vehicle_names(N)
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 1.0\n'
+    )
+    port = free_port()
+    procs = [_router(port)]
+    bus = FleetWatch(port)
+    seen: list[tuple[str, str, str]] = []  # (addressee, vehicle, publishing service)
+    broadcast: list[str] = []
+    import zenoh
+
+    spy = zenoh.open(make_config(ZenohConfig(mode="client"), listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+
+    def on_to(sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        seen.append((parts[4], parts[6], json.loads(sample.payload.to_bytes())["service"]))
+
+    subs = [
+        spy.declare_subscriber("fednav/_fleet/*/to/*/state/**", on_to),
+        spy.declare_subscriber("fednav/_fleet/*/state/**", lambda s: broadcast.append(str(s.key_expr))),
+    ]
+    try:
+        ids = split_zids(names, 3)
+        members = [_service(port, cfg, z, tmp_path) for z in ids]
+        procs += members
+        procs.append(_fleet_sim(port))
+        assert _wait(lambda: sorted(sum(bus.assignment(time.monotonic() - 1.5).values(), [])) == names, 30)
+        time.sleep(4.0)  # settled: several periodic states of every vehicle
+        since = len(seen)
+        time.sleep(3.0)
+        recent = seen[since:]
+        assert {v for _, v, _ in recent} == set(names), recent
+        for to, v, by in recent:
+            order = fleet.ranked(v, ids)
+            assert (by, to) == (order[0], order[1]), (v, by, to, order)  # owner -> heir, nobody else
+        for z in ids:  # a member hears the states of the vehicles it is heir of, not all of them
+            assert {v for to, v, _ in recent if to == z} < set(names), (z, recent)
+        assert not broadcast, broadcast[:5]  # (the shared key of local shards: unused by a fleet)
+        # a member stops: its heirs take its vehicles over from the states it published as it went
+        gone = members[0]
+        theirs = [v for v in names if fleet.ranked(v, ids)[0] == ids[0]]
+        assert theirs, ids
+        gone.signal(signal.SIGTERM)
+        assert gone.wait(timeout=60) == 0, gone.output()
+        heirs = {v: members[ids.index(fleet.ranked(v, ids)[1])] for v in theirs}
+        assert _wait(
+            lambda: all(
+                f"vehicle {v} handed over from service {ids[0]}" in heirs[v].output() for v in theirs
+            ),
+            20,
+        ), [m.output()[-2000:] for m in members[1:]]
+        for v in theirs:
+            m = re.search(rf"vehicle {v} handed over from service \S+ \(state (\S+) s old", heirs[v].output())
+            assert m and float(m.group(1)) < 0.5, (v, m and m.group(0))
+    finally:
+        for s in subs:
+            s.undeclare()
+        spy.close()
         stop_all(procs)
         bus.close()
