@@ -645,7 +645,11 @@ def test_the_secure_readers_router_relays_what_readers_and_operators_may_ask_and
     assert rcs == [0] * len(procs), [p.output()[-2000:] for p in procs]
     assert len(got["far"]) >= 3000 and len(got["near"]) >= 3000, (len(got["far"]), len(got["near"]))
     assert got["sensors"] == []  # the readers' router does not relay sensor keys to a reader
-    assert not any(s["lat_deg"] == SPOOF_LAT_DEG for s in got["near"] + got["far"][:-1])
+    # the spoof reaches no reader on the fleet's router; on its own session only its local echo
+    # (Zenoh delivers a session's puts to its own subscribers; genuine solutions may still come
+    # after it, so it need not be the last one there: a full-suite run saw one)
+    assert not any(s["lat_deg"] == SPOOF_LAT_DEG for s in got["near"])
+    assert sum(s["lat_deg"] == SPOOF_LAT_DEG for s in got["far"]) <= 1
     snap = json.loads(r.stdout)
     assert r.returncode == 0, r.stdout + r.stderr
     assert [v["vehicle"] for v in snap["vehicles"]] == ["v1"] and len(snap["services"]) == 1, snap
