@@ -818,7 +818,9 @@ class Pipeline(ABC):
     def solution(self, est: Estimate | None = None) -> Solution:
         est = est or self.estimate()
         nav, P = est.nav, est.P9
-        sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None)).tolist()  # Python floats, as float(v) gives
+        # Python floats, as float(v) gives; np.maximum is what np.clip(d, 0.0, None) calls, without
+        # its Python wrappers (every output epoch of every vehicle)
+        sd = np.sqrt(np.maximum(np.asanyarray(P).diagonal(), 0.0)).tolist()
         # roll, pitch, heading: earth.mat_nb_to_rpy of the entries of earth.quat_to_mat it reads
         # (the same arithmetic on floats, without the matrix)
         w, x, y, z = nav.q_nb.tolist()
@@ -838,8 +840,9 @@ class Pipeline(ABC):
             pos_std_enu_m=tuple(sd[0:3]),
             vel_std_enu_mps=tuple(sd[3:6]),
             rpy_std_deg=(level, level, math.degrees(sd[8])),
-            gyro_bias_dph=tuple((nav.gyro_bias_rps / earth.DPH).tolist()),
-            accel_bias_ug=tuple((nav.accel_bias_mps2 / earth.UG).tolist()),
+            # (the divisions on floats: the same elementwise operation as numpy's)
+            gyro_bias_dph=tuple([v / earth.DPH for v in np.asarray(nav.gyro_bias_rps, float).tolist()]),
+            accel_bias_ug=tuple([v / earth.UG for v in np.asarray(nav.accel_bias_mps2, float).tolist()]),
             status=self.current_status(nav.t),
         )
 
