@@ -262,3 +262,9 @@ def mat_to_quat(m: np.ndarray) -> np.ndarray:
 
 def wrap_pi(a):
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def wrap_pi_f(a: float) -> float:
+    """:func:`wrap_pi` of one float: Python's float modulo is numpy's (fmod, then the divisor's
+    sign), so the same value without three numpy scalar operations (every fix epoch)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
