@@ -215,7 +215,9 @@ class InsFilterBank:
 
     def predict_members(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
         """Time update of the members (banks with more to propagate override this)."""
-        if (self.q_scale == 1.0).all():  # the method: no np.all dispatch (every propagation)
+        # every scale 1 (a NaN counts as a scale): count_nonzero, not ndarray.all, whose Python
+        # wrapper costs twice the test (every propagation)
+        if not np.count_nonzero(self.q_scale != 1.0):
             Qb = Qd
         else:
             # Q_i = S_i^1/2 Q S_i^1/2 with S_i = diag(q_scale_i) (scalar sharing: Q / beta_i)

@@ -70,6 +70,14 @@ class NavState:
         )
 
 
+def _floats3(v) -> list[float]:
+    """A 3-vector's components as Python floats (a float64 array's by tolist, the same values as
+    float() of each element, without iterating over numpy scalars)."""
+    if isinstance(v, np.ndarray) and v.dtype == np.float64:
+        return v.tolist()
+    return [float(a) for a in v]
+
+
 def _cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
@@ -336,12 +344,12 @@ class Ins:
         s = self.state
         r_m, r_n = earth.radii(s.lat_rad)
         # on Python floats (a fix epoch's feedback: the same operations, the same results)
-        p0, p1, p2 = (float(v) for v in dp_enu_m)
+        p0, p1, p2 = _floats3(dp_enu_m)
         s.lat_rad = float(s.lat_rad - p1 / (r_m + s.h_m))
         s.lon_rad = float(s.lon_rad - p0 / ((r_n + s.h_m) * math.cos(s.lat_rad)))
         s.h_m = float(s.h_m - p2)
         s.vel_enu_mps = s.vel_enu_mps - dv_enu_mps
-        a0, a1, a2 = (float(v) for v in phi_rad)
+        a0, a1, a2 = _floats3(phi_rad)
         q = np.array(earth.quat_mul_f(earth.rotvec_to_quat_f(a0, a1, a2), s.q_nb.tolist()))
         s.q_nb = q / math.sqrt(float(q @ q))
         # bias states are "remaining bias" (true - estimated): add them to the estimate
