@@ -160,7 +160,8 @@ def observes_horizontal(H: np.ndarray, used: np.ndarray | None = None) -> bool:
     """Whether an update's rows (``used`` of them) observe horizontal position or velocity: what
     keeps a horizontal solution from being free-inertial (a star tracker's rows do not)."""
     Hh = np.asarray(H)
-    Hh = Hh.reshape(-1, Hh.shape[-1])
+    if Hh.ndim != 2:
+        Hh = Hh.reshape(-1, Hh.shape[-1])
     if used is not None:
         u = np.asarray(used, dtype=bool).reshape(-1)
         if not u.all():
