@@ -226,13 +226,18 @@ def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
 
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
+    # the components as Python floats (the same IEEE operations as on numpy's float64 scalars, at
+    # a third of their cost: every major update and fix epoch reads the matrix)
+    f64 = isinstance(q, np.ndarray) and q.dtype == np.float64
+    return np.array(quat_to_mat_f(*(q.tolist() if f64 else q)))
+
+
+def quat_to_mat_f(w: float, x: float, y: float, z: float) -> tuple[tuple[float, float, float], ...]:
+    """:func:`quat_to_mat` of a quaternion's components, as rows of floats."""
+    return (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
     )
 
 
@@ -257,3 +262,9 @@ def mat_to_quat(m: np.ndarray) -> np.ndarray:
 
 def wrap_pi(a):
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def wrap_pi_f(a: float) -> float:
+    """:func:`wrap_pi` of one float: Python's float modulo is numpy's (fmod, then the divisor's
+    sign), so the same value without three numpy scalar operations (every fix epoch)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi

@@ -796,15 +796,19 @@ class VehicleEngine:
     def _usable(est: Estimate) -> bool:
         """An estimate a Solution can carry: finite, inside the wire model's limits."""
         nav = est.nav
-        scalars = (nav.lat_rad, nav.lon_rad, nav.h_m)
+        # the 3- and 4-vectors as Python floats (every output epoch: numpy's calls cost more than
+        # the tests; math.isfinite and math.hypot take the same values either way)
+        vel = np.asarray(nav.vel_enu_mps, dtype=float).tolist()
+        scalars = (nav.lat_rad, nav.lon_rad, nav.h_m, *vel, *np.asarray(nav.q_nb, dtype=float).tolist())
+        # P9 finite: its sum is (a NaN or an infinity makes the sum one; a sum of finite entries
+        # that overflows asks the elementwise test), one C call instead of isfinite and all()
+        P9 = est.P9
         return bool(
             all(math.isfinite(v) for v in scalars)
-            and np.isfinite(nav.vel_enu_mps).all()
-            and np.isfinite(nav.q_nb).all()
-            and np.isfinite(est.P9).all()
+            and (math.isfinite(np.add.reduce(P9, axis=None)) or np.isfinite(P9).all())
             and abs(nav.lat_rad) <= math.pi / 2
             and MIN_HEIGHT_M <= nav.h_m <= MAX_HEIGHT_M
-            and math.hypot(*nav.vel_enu_mps) <= MAX_SPEED_MPS
+            and math.hypot(*vel) <= MAX_SPEED_MPS
         )
 
     # --- outputs --------------------------------------------------------------------------------

@@ -94,6 +94,7 @@ def alignment_truth(vehicle: str, node: str, prefix: str = DEFAULT_PREFIX) -> st
     return f"{prefix}/{_chunk(vehicle, 'vehicle')}/truth/alignment/{_chunk(node, 'node')}"
 
 
+@functools.lru_cache(maxsize=4096)  # every Solution of every vehicle: two regex matches and a format
 def nav(vehicle: str, pipeline: str, what: str, prefix: str = DEFAULT_PREFIX) -> str:
     if what not in ("solution", "faults", "integrity", "models"):
         raise ValueError(f"unknown nav output {what!r}")

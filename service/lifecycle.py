@@ -267,7 +267,7 @@ def full_state(p: Pipeline) -> tuple[np.ndarray, dict, np.ndarray | None] | None
         return None
     refs = {name: np.array(r, dtype=float, copy=True) for name, r in bank.reference.items()}
     if isinstance(bank, MhssInsBank) or (type(bank) is InsFilterBank and bank.B == 1):
-        if bank.x[0].any():  # errors not fed back: not a restartable state
+        if np.count_nonzero(bank.x[0]):  # errors not fed back: not a restartable state (as .any())
             return None
         return bank.P[0].copy(), refs, None
     if type(bank) is InsFilterBank and p.restores_members:

@@ -266,9 +266,10 @@ class InnovationBias:
         """Forget every window (a filter restarted: its new innovations start a new history)."""
         self._streams.clear()
 
-    def add(self, key: str, t: float, labels, r: np.ndarray, used: np.ndarray) -> bool:
+    def add(self, key: str, t: float, labels, r, used) -> bool:
         """One update of stream ``key`` at ``t``: its rows' ``labels``, standardised innovations
-        ``r`` and which of them the update ``used`` (only those, and finite ones, are averaged).
+        ``r`` and which of them the update ``used`` (only those, and finite ones, are averaged;
+        arrays, or lists of Python floats and bools as a pipeline's record_rows has them).
         Returns whether a row of the stream failed its latest test."""
         st = self._streams.get(key)
         if st is None:
@@ -283,7 +284,9 @@ class InnovationBias:
             st.bin = b
         cur_sum, cur_n = st.cur_sum, st.cur_n
         rows = range(len(cur_sum)) if (labels is st.labels or labels == st.labels) else st.rows_of(labels)
-        for i, x, u in zip(rows, r.tolist(), used.tolist(), strict=True):
+        r = r.tolist() if isinstance(r, np.ndarray) else r
+        used = used.tolist() if isinstance(used, np.ndarray) else used
+        for i, x, u in zip(rows, r, used, strict=True):
             if u and x - x == 0.0:  # (used and finite)
                 cur_sum[i] += x
                 cur_n[i] += 1

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fednav.service import earth
 from fednav.service.estimation import kalman
 from fednav.service.estimation.measurements.base import (
     ModelContext,
@@ -174,10 +175,16 @@ class InsFilterBank:
         """(Phi, Qd) over T at the current INS state: the 15 INS error states, block-diagonal
         with the private states' model."""
         s = self.ins.state
-        c_nb = s.mat_nb
-        F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
         if self._scaled is not None:
+            c_nb = s.mat_nb
+            F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
             return self._scaled_transition(F, c_nb, T)
+        # C_nb as rows of floats (the same entries as the array of NavState.mat_nb, which
+        # continuous_F would read back as floats)
+        q = s.q_nb
+        f64 = isinstance(q, np.ndarray) and q.dtype == np.float64
+        c_nb = earth.quat_to_mat_f(*q.tolist()) if f64 else s.mat_nb
+        F = em.continuous_F(s.lat_rad, s.h_m, s.vel_enu_mps, c_nb, self.ins.last_fn_mps2)
         Phi15, Qd15 = em.discretise(F, em.continuous_Q(self.noise), T)
         if self.n == em.N_STATES:
             return Phi15, Qd15
@@ -215,7 +222,9 @@ class InsFilterBank:
 
     def predict_members(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
         """Time update of the members (banks with more to propagate override this)."""
-        if (self.q_scale == 1.0).all():  # the method: no np.all dispatch (every propagation)
+        # every scale 1 (a NaN counts as a scale): count_nonzero, not ndarray.all, whose Python
+        # wrapper costs twice the test (every propagation)
+        if not np.count_nonzero(self.q_scale != 1.0):
             Qb = Qd
         else:
             # Q_i = S_i^1/2 Q S_i^1/2 with S_i = diag(q_scale_i) (scalar sharing: Q / beta_i)

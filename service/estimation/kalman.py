@@ -22,6 +22,7 @@ batched path's to rounding (tests/test_kalman.py).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,7 +60,9 @@ def _eye(n: int) -> np.ndarray:
 
 
 def symmetrise(P: np.ndarray) -> np.ndarray:
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
+    # the array's own swapaxes: np.swapaxes's Python wrapper costs as much as the sum at 15 x 15
+    P = np.asanyarray(P)
+    return 0.5 * (P + P.swapaxes(-1, -2))
 
 
 def predict(x: np.ndarray, P: np.ndarray, Phi: np.ndarray, Qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +71,7 @@ def predict(x: np.ndarray, P: np.ndarray, Phi: np.ndarray, Qd: np.ndarray) -> tu
     Phi and Qd may be shared (n, n) or per member (B, n, n).
     """
     x = np.einsum("...ij,...j->...i", Phi, x) if Phi.ndim == 3 else x @ Phi.T
-    P = Phi @ P @ np.swapaxes(Phi, -1, -2) + Qd
+    P = Phi @ P @ Phi.swapaxes(-1, -2) + Qd
     return x, symmetrise(P)
 
 
@@ -122,7 +125,8 @@ def gain(
     blocks). Shapes as :func:`update`; ``R`` may also be (m,), a diagonal."""
     B, n = x.shape
     if B == 1:
-        return _gain_one(x, P, z, H, R, mask)
+        x_new, K, IKH, R0, res = _gain_one(x, P, z, H, R, mask)
+        return Gain(x_new, K[None], IKH[None], R0[None], res)
     m = H.shape[-2]
     shared_H = H.ndim == 2
     R = np.asarray(R, dtype=float)
@@ -161,11 +165,12 @@ def gain(
     return Gain(x_new, K, IKH, R, res)
 
 
-def _gain_one(x, P, z, H, R, mask) -> Gain:
+def _gain_one(x, P, z, H, R, mask) -> tuple:
     """:func:`gain` of a bank of one (a loosely coupled filter, transfer alignment): the same
     steps on (n, n) arrays with LAPACK's Cholesky and triangular solves, without the bank's
     broadcasting and its row-by-row substitution (a quarter of the batched path's cost for one
-    member; the same results to rounding)."""
+    member; the same results to rounding). Returns :class:`Gain`'s fields (x, K, IKH, R, result),
+    :func:`update` reads them without the wrapper."""
     n = x.shape[1]
     H0 = H if H.ndim == 2 else H[0]
     m = H0.shape[0]
@@ -199,16 +204,21 @@ def _gain_one(x, P, z, H, R, mask) -> Gain:
     # LAPACK's dtrtrs: OpenBLAS runs every dtrtrs on its thread pool whatever its size (a 6 x 16
     # solve kept a second core spinning for ~14 us a call, which doubled a fleet service's CPU),
     # and dtrtrs's only other work, the test for a zero on L's diagonal, cannot fail after a
-    # successful dpotrf (whose pivots are all > 0).
-    W = _blas.dtrsm(1.0, L, np.column_stack((PHt.T, r)), lower=1)
+    # successful dpotrf (whose pivots are all > 0). The right-hand side is built in Fortran order
+    # and solved in place (the wrapper would copy a C-ordered one; np.column_stack's Python
+    # wrapper cost as much as the solve): the same values, the same solve.
+    Y = np.empty((m, n + 1), order="F")
+    Y[:, :n] = PHt.T
+    Y[:, n] = r
+    W = _blas.dtrsm(1.0, L, Y, lower=1, overwrite_b=1)
     Kt = _blas.dtrsm(1.0, L, W[:, :n], lower=1, trans_a=1)
     w = W[:, n]
     K = Kt.T  # (n, m)
     x_new = x0 + K @ r
     IKH = _eye(n) - K @ H0
-    std = r / np.sqrt(np.diagonal(S))
+    std = r / np.sqrt(S.diagonal())
     res = UpdateResult(r[None], S[None], w[None], std[None], np.array([w @ w]), dof, K[None])
-    return Gain(x_new[None], K[None], IKH[None], R0[None], res)
+    return x_new[None], K, IKH, R0, res
 
 
 def update(
@@ -232,11 +242,11 @@ def update(
     x, P : updated bank (new arrays).
     UpdateResult : innovation statistics per member.
     """
-    g = gain(x, P, z, H, R, mask)
     if x.shape[0] == 1:  # one member: (n, n) products
-        IKH, K = g.IKH[0], g.K[0]
-        P_new = IKH @ P[0] @ IKH.T + K @ g.R[0] @ K.T
-        return g.x, (0.5 * (P_new + P_new.T))[None], g.result
+        x_new, K, IKH, R0, result = _gain_one(x, P, z, H, R, mask)
+        P_new = IKH @ P[0] @ IKH.T + K @ R0 @ K.T
+        return x_new, (0.5 * (P_new + P_new.T))[None], result
+    g = gain(x, P, z, H, R, mask)
     Kt = np.swapaxes(g.K, 1, 2)
     P_new = g.IKH @ P @ np.swapaxes(g.IKH, 1, 2) + g.K @ g.R @ Kt
     return g.x, symmetrise(P_new), g.result
@@ -249,7 +259,20 @@ def is_positive_definite(P: np.ndarray) -> np.ndarray:
         P = P[None]
     # the usual case first: every member finite and exactly symmetric (banks symmetrise their
     # covariances), and LAPACK's Cholesky succeeds on all of them (a fifth of the eigenvalues' cost)
-    if np.isfinite(P).all() and (P == np.swapaxes(P, 1, 2)).all():
+    if P.shape[0] == 1:
+        # one member (a loosely coupled filter's every update): finite, as its sum is (a NaN or an
+        # infinity makes the sum one; an overflowing sum of finite entries only sends P to the
+        # tests below), and symmetric, as its bytes equal its transpose's (equal bytes are equal
+        # values; -0.0 against 0.0 goes to the tests below): one C call each instead of numpy's
+        # isfinite/compare and two Python-level all()s (~25 us of a fix epoch's 200)
+        P0 = P[0]
+        quick = math.isfinite(np.add.reduce(P0, axis=None)) and P0.tobytes() == P0.T.tobytes()
+    else:
+        quick = False
+    if quick:
+        if _lapack.dpotrf(P0, lower=1, overwrite_a=0)[1] == 0:
+            return np.array([True])
+    elif np.isfinite(P).all() and (P == np.swapaxes(P, 1, 2)).all():
         if P.shape[0] == 1:  # one member: LAPACK's potrf directly (a tenth of numpy's wrapper)
             if _lapack.dpotrf(P[0], lower=1, overwrite_a=0)[1] == 0:
                 return np.ones(1, dtype=bool)

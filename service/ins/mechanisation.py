@@ -70,13 +70,16 @@ class NavState:
         )
 
 
+def _floats3(v) -> list[float]:
+    """A 3-vector's components as Python floats (a float64 array's by tolist, the same values as
+    float() of each element, without iterating over numpy scalars)."""
+    if isinstance(v, np.ndarray) and v.dtype == np.float64:
+        return v.tolist()
+    return [float(a) for a in v]
+
+
 def _cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-
-
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """3-vector cross product without np.cross's per-call overhead (~40 us)."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 class Preintegrator:
@@ -158,15 +161,28 @@ class Preintegrator:
 
     def corrected(self, gyro_bias_rps: np.ndarray, accel_bias_mps2: np.ndarray):
         """(alpha, beta, nu, scul) with the biases removed (class docstring)."""
-        v = np.array(self.v)
-        b, a, T = gyro_bias_rps, accel_bias_mps2, self.T
-        s12 = v[12:15] - v[15:18]
-        s43 = v[21:24] - v[18:21]
-        alpha = v[0:3] - b * T
-        beta = v[3:6] - 0.5 * _cross3(s12, b)
-        nu = v[6:9] - a * T
-        scul = v[9:12] - 0.5 * (_cross3(s12, a) + _cross3(s43, b))
-        return alpha, beta, nu, scul
+        return tuple(np.array(v) for v in self.corrected_f(gyro_bias_rps, accel_bias_mps2))
+
+    def corrected_f(self, gyro_bias_rps: np.ndarray, accel_bias_mps2: np.ndarray):
+        """:meth:`corrected` as four 3-tuples of Python floats: the same elementwise operations in
+        the same order (so the same values), without ~20 numpy calls on 3-vectors (the major
+        update reads them as floats; it runs at every epoch of every vehicle)."""
+        (al0, al1, al2, be0, be1, be2, nu0, nu1, nu2, sc0, sc1, sc2,
+         S10, S11, S12, S20, S21, S22, S30, S31, S32, S40, S41, S42) = self.v  # fmt: skip
+        b0, b1, b2 = gyro_bias_rps.tolist()
+        a0, a1, a2 = accel_bias_mps2.tolist()
+        T = self.T
+        s0, s1, s2 = S10 - S20, S11 - S21, S12 - S22  # S1 - S2
+        t0, t1, t2 = S40 - S30, S41 - S31, S42 - S32  # S4 - S3
+        c0, c1, c2 = _cross(s0, s1, s2, b0, b1, b2)
+        d0, d1, d2 = _cross(s0, s1, s2, a0, a1, a2)
+        e0, e1, e2 = _cross(t0, t1, t2, b0, b1, b2)
+        return (
+            (al0 - b0 * T, al1 - b1 * T, al2 - b2 * T),
+            (be0 - 0.5 * c0, be1 - 0.5 * c1, be2 - 0.5 * c2),
+            (nu0 - a0 * T, nu1 - a1 * T, nu2 - a2 * T),
+            (sc0 - 0.5 * (d0 + e0), sc1 - 0.5 * (d1 + e1), sc2 - 0.5 * (d2 + e2)),
+        )
 
 
 class Ins:
@@ -224,13 +240,19 @@ class Ins:
         if T <= 0.0:
             return
         s = self.state
-        a, beta, nu, scul = pre.corrected(s.gyro_bias_rps, s.accel_bias_mps2)
         # the algebra below on Python floats (3-vectors as scalars: a tenth of numpy's per-call
-        # cost at this size; the same operations in the same order, equal to rounding)
-        a0, a1, a2 = a.tolist()
-        b0, b1, b2 = beta.tolist()
-        n0, n1, n2 = nu.tolist()
-        k0, k1, k2 = scul.tolist()
+        # cost at this size; the same operations in the same order, equal to rounding); a plain
+        # preintegrator's increments as floats directly (a scaled one's through its arrays)
+        if type(pre) is Preintegrator:
+            (a0, a1, a2), (b0, b1, b2), (n0, n1, n2), (k0, k1, k2) = pre.corrected_f(
+                s.gyro_bias_rps, s.accel_bias_mps2
+            )
+        else:
+            a, beta, nu, scul = pre.corrected(s.gyro_bias_rps, s.accel_bias_mps2)
+            a0, a1, a2 = a.tolist()
+            b0, b1, b2 = beta.tolist()
+            n0, n1, n2 = nu.tolist()
+            k0, k1, k2 = scul.tolist()
         phi_b = (a0 + b0, a1 + b1, a2 + b2)  # body rotation vector over the interval
         # rotation compensation to third order (Savage eq. 7.2.2.2-22): the 1/6 a x (a x nu) term
         # matters in sustained turns at 10 Hz major rates (~1e-5 m/s per update otherwise)
@@ -257,7 +279,8 @@ class Ins:
         en2 = m0 * math.tan(lat_mid) / (rn_mid + h_mid)
         z0, z1, z2 = (0.0 + en0) * T, (ie1 + en1) * T, (ie2 + en2) * T
 
-        c_nb = earth.quat_to_mat(s.q_nb).tolist()
+        q_nb = s.q_nb.tolist()
+        c_nb = earth.quat_to_mat_f(*q_nb)
         f0 = c_nb[0][0] * d0 + c_nb[0][1] * d1 + c_nb[0][2] * d2
         f1 = c_nb[1][0] * d0 + c_nb[1][1] * d1 + c_nb[1][2] * d2
         f2 = c_nb[2][0] * d0 + c_nb[2][1] * d1 + c_nb[2][2] * d2
@@ -280,9 +303,9 @@ class Ins:
 
         qz = earth.rotvec_to_quat_f(-z0, -z1, -z2)
         qb = earth.rotvec_to_quat_f(*phi_b)
-        q = earth.quat_mul_f(earth.quat_mul_f(qz, s.q_nb.tolist()), qb)
-        qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-        s.q_nb = np.array(q) / qn
+        q0, q1, q2, q3 = earth.quat_mul_f(earth.quat_mul_f(qz, q_nb), qb)
+        qn = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        s.q_nb = np.array([q0 / qn, q1 / qn, q2 / qn, q3 / qn])
         s.vel_enu_mps = np.array([u0, u1, u2])
         s.lat_rad, s.lon_rad, s.h_m = lat_new, lon_new, h_new
         s.t = pre.t_end
@@ -321,12 +344,12 @@ class Ins:
         s = self.state
         r_m, r_n = earth.radii(s.lat_rad)
         # on Python floats (a fix epoch's feedback: the same operations, the same results)
-        p0, p1, p2 = (float(v) for v in dp_enu_m)
+        p0, p1, p2 = _floats3(dp_enu_m)
         s.lat_rad = float(s.lat_rad - p1 / (r_m + s.h_m))
         s.lon_rad = float(s.lon_rad - p0 / ((r_n + s.h_m) * math.cos(s.lat_rad)))
         s.h_m = float(s.h_m - p2)
         s.vel_enu_mps = s.vel_enu_mps - dv_enu_mps
-        a0, a1, a2 = (float(v) for v in phi_rad)
+        a0, a1, a2 = _floats3(phi_rad)
         q = np.array(earth.quat_mul_f(earth.rotvec_to_quat_f(a0, a1, a2), s.q_nb.tolist()))
         s.q_nb = q / math.sqrt(float(q @ q))
         # bias states are "remaining bias" (true - estimated): add them to the estimate

@@ -134,6 +134,15 @@ def sensor_option_errors(cfg, used: set[str]) -> list[tuple[str, str]]:
     return out
 
 
+@lru_cache(maxsize=16)
+def _all_rows(m: int) -> np.ndarray:
+    """(m,) True: the rows of an update that used every row (read-only, shared: the innovations
+    kept for the recording carry it, and np.ones costs more than the rest of their entry)."""
+    a = np.ones(m, dtype=bool)
+    a.flags.writeable = False
+    return a
+
+
 @lru_cache(maxsize=256)
 def _chi2_quantile(dof: int, p: float) -> float:
     return float(chi2.isf(p, dof))
@@ -151,7 +160,8 @@ def observes_horizontal(H: np.ndarray, used: np.ndarray | None = None) -> bool:
     """Whether an update's rows (``used`` of them) observe horizontal position or velocity: what
     keeps a horizontal solution from being free-inertial (a star tracker's rows do not)."""
     Hh = np.asarray(H)
-    Hh = Hh.reshape(-1, Hh.shape[-1])
+    if Hh.ndim != 2:
+        Hh = Hh.reshape(-1, Hh.shape[-1])
     if used is not None:
         u = np.asarray(used, dtype=bool).reshape(-1)
         if not u.all():
@@ -429,23 +439,33 @@ class Pipeline(ABC):
         took, the only ones the bias test averages (a suspect of a faulty source shares its
         source's fault: averaged, it made the covariance grow towards the fault, and the grown
         covariance let the fault in as a suspect within SUSPECT_SIGMA; tests/test_fix_groups.py);
-        default ``used``)."""
-        innovation = np.asarray(innovation, dtype=float)
-        S_diag = np.asarray(S_diag, dtype=float)
-        sd = np.sqrt(np.maximum(S_diag, 1e-300))
-        ok = np.abs(innovation) <= self.HISTORY_MAX_SIGMA * sd
-        if used is not None:
-            ok &= np.asarray(used, dtype=bool)
-        self.floors.record(key, meas, claimed, innovation, S_diag - np.diagonal(meas.R), ok)
+        default ``used``).
+
+        The rows on Python floats (a handful per update: sqrt, max, abs, the comparison and the
+        division give numpy's values, a NaN as numpy treats it), with numpy only for the sum of
+        squares (its dot product, whose rounding a Python sum need not share) and the arrays the
+        recording keeps: some 25 numpy calls fewer per fix epoch."""
+        inn = np.asarray(innovation, dtype=float).tolist()
+        S_l = np.asarray(S_diag, dtype=float).tolist()
+        R_l = np.asanyarray(meas.R).diagonal().tolist()
+        use = None if used is None else np.asarray(used, dtype=bool).tolist()
+        lim = self.HISTORY_MAX_SIGMA
+        sd = [math.sqrt(max(v, 1e-300)) for v in S_l]  # max(NaN, 1e-300) is NaN, as np.maximum's
+        ok = [abs(v) <= lim * d for v, d in zip(inn, sd, strict=True)]
+        if use is not None:
+            ok = [a and b for a, b in zip(ok, use, strict=True)]
+        hph = [v - rv for v, rv in zip(S_l, R_l, strict=True)]
+        self.floors.record_floats(key, meas.labels, np.asarray(claimed, dtype=float).tolist(), inn, hph, ok)
         ins = getattr(self.bank, "ins", None)
         t = ins.state.t if ins is not None else getattr(self.bank, "t", None)
-        used_rows = np.ones(len(innovation), bool) if used is None else np.asarray(used, dtype=bool)
-        r = innovation / sd
+        used_rows = _all_rows(len(inn)) if used is None else np.asarray(used, dtype=bool)
+        r_l = [v / d for v, d in zip(inn, sd, strict=True)]
+        r = np.array(r_l, dtype=float)
         if ins is not None:  # for the recording's innovation windows (fednav-inspect's NIS per row)
             self.innovations.append((t, key, meas.labels, r, used_rows))
         if t is None:
             return
-        ru = r[used_rows]
+        ru = r if use is None else r[used_rows]
         was = self.consistency.is_failing(key)
         if self.consistency.add(key, t, float(ru @ ru), int(ru.size)):
             self.last_inconsistent_t = t
@@ -453,8 +473,11 @@ class Pipeline(ABC):
                 self.screened["innovations_inconsistent"] += 1
         if self.bias_test:
             was = self.bias.is_failing(key)
-            took = used_rows if taken is None else np.asarray(taken, dtype=bool)
-            if self.bias.add(key, t, meas.labels, r, took):
+            if taken is not None:
+                took = np.asarray(taken, dtype=bool).tolist()
+            else:
+                took = [True] * len(r_l) if use is None else use
+            if self.bias.add(key, t, meas.labels, r_l, took):
                 self.last_inconsistent_t = t
                 if not was:
                     self.screened["innovations_biased"] += 1
@@ -818,7 +841,9 @@ class Pipeline(ABC):
     def solution(self, est: Estimate | None = None) -> Solution:
         est = est or self.estimate()
         nav, P = est.nav, est.P9
-        sd = np.sqrt(np.clip(np.diagonal(P), 0.0, None)).tolist()  # Python floats, as float(v) gives
+        # Python floats, as float(v) gives; np.maximum is what np.clip(d, 0.0, None) calls, without
+        # its Python wrappers (every output epoch of every vehicle)
+        sd = np.sqrt(np.maximum(np.asanyarray(P).diagonal(), 0.0)).tolist()
         # roll, pitch, heading: earth.mat_nb_to_rpy of the entries of earth.quat_to_mat it reads
         # (the same arithmetic on floats, without the matrix)
         w, x, y, z = nav.q_nb.tolist()
@@ -838,8 +863,9 @@ class Pipeline(ABC):
             pos_std_enu_m=tuple(sd[0:3]),
             vel_std_enu_mps=tuple(sd[3:6]),
             rpy_std_deg=(level, level, math.degrees(sd[8])),
-            gyro_bias_dph=tuple((nav.gyro_bias_rps / earth.DPH).tolist()),
-            accel_bias_ug=tuple((nav.accel_bias_mps2 / earth.UG).tolist()),
+            # (the divisions on floats: the same elementwise operation as numpy's)
+            gyro_bias_dph=tuple([v / earth.DPH for v in np.asarray(nav.gyro_bias_rps, float).tolist()]),
+            accel_bias_ug=tuple([v / earth.UG for v in np.asarray(nav.accel_bias_mps2, float).tolist()]),
             status=self.current_status(nav.t),
         )
 

@@ -85,7 +85,7 @@ def _groups(rows: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=16)
-def _plain_rows(n_states: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+def _plain_rows(n_states: int, rows: int) -> tuple[np.ndarray, tuple[float, ...]]:
     """(H, sigma floors) of a fix's ``rows`` rows (3: position, 6: and velocity) with the antenna
     at the IMU, as the general path builds them (the attitude columns hold the skew of a zero
     offset); read-only, shared."""
@@ -97,10 +97,8 @@ def _plain_rows(n_states: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
         H[3:, em.VEL] = np.eye(3)
         H[3:, em.ATT] = earth.skew(np.zeros(3))
         mins += [MIN_VEL_STD_MPS] * 3
-    mins_a = np.array(mins)
     H.flags.writeable = False
-    mins_a.flags.writeable = False
-    return H, mins_a
+    return H, tuple(mins)
 
 
 MIN_POS_STD_M = 0.005
@@ -229,7 +227,7 @@ class GnssFixModel:
             self.gm_sigma is None
             and not self.estimate_lever_arm
             and msg.speed_mps is None
-            and not self.lever_arm_b_m.any()
+            and not np.count_nonzero(self.lever_arm_b_m)  # (as .any(), without its Python wrapper)
         ):
             return self._at_imu(nav, msg, ctx)
         lat, lon = math.radians(msg.lat_deg), math.radians(msg.lon_deg)
@@ -316,7 +314,7 @@ class GnssFixModel:
         dt = ctx.dt_late_s
         c0, c1, c2 = (0.0, 0.0, 0.0) if vel_fix is None else (v * dt for v in vel_fix)
         z = [
-            (earth.wrap_pi(nav.lon_rad - lon) * (r_n + h) * math.cos(nav.lat_rad) + 0.0) - c0,
+            (earth.wrap_pi_f(nav.lon_rad - lon) * (r_n + h) * math.cos(nav.lat_rad) + 0.0) - c0,
             ((nav.lat_rad - lat) * (r_m + h) + 0.0) - c1,
             ((h - msg.height_m) + 0.0) - c2,
         ]
@@ -330,7 +328,15 @@ class GnssFixModel:
             return None
         m = len(z)
         H, mins = _plain_rows(ctx.n_states, m)
-        var, floored = floored_variances(np.array(std, dtype=float), mins)
+        # floored_variances on floats (max then square, NaN kept, as np.maximum and np.square) and
+        # R as np.diag builds it (zeros, the diagonal set), without their Python wrappers
+        var, floored = [], 0
+        for s, lo in zip(map(float, std), mins, strict=True):
+            floored += s < lo
+            s = lo if lo > s else s
+            var.append(s * s)
+        R = np.zeros((m, m))
+        R.ravel()[:: m + 1] = var
         return Measurement(
-            np.array(z), H, np.diag(var), LABELS[:m], groups=_groups(m), group_ids=FIX_GROUPS, floored=floored
+            np.array(z), H, R, LABELS[:m], groups=_groups(m), group_ids=FIX_GROUPS, floored=floored
         )
