@@ -195,7 +195,9 @@ class VehicleEngine:
                 self._node_imus.setdefault(sid, []).append(p)
         self._sample_pipes = [p for p in self.pipelines if p.wants_imu_samples]
         self._node_truth: dict[tuple[str, int], WireModel] = {}
-        self._imu_keys: dict[str, str] = {}  # IMU sensor id -> its stream key ("imu/<id>")
+        #: IMU sensor id -> its stream key ("imu/<id>"), for the ids the rules know (an id adopted
+        #: or listed stays known: the rules are not asked again per sample)
+        self._imu_keys: dict[str, str] = {}
         #: the vehicle's life: starts, verification, suspicion, resets (service/lifecycle.py)
         self.life = VehicleLife(self)
 
@@ -254,16 +256,18 @@ class VehicleEngine:
     def _imu_sample(self, sensor_id: str, msg: ImuSample) -> bool:
         """:meth:`handle` of an IMU sample (every message of a JSON IMU stream): the same steps
         (no time-base watch, which skips the IMU), with the stream's key made once."""
-        key = self._imu_keys.get(sensor_id)
-        if key is None:
+        key = self._imu_keys.get(sensor_id)  # only ids the rules know (known once, known for good)
+        if key is None and self.rules.known_sensor("imu", sensor_id):
             key = self._imu_keys[sensor_id] = f"imu/{sensor_id}" if sensor_id else "imu"
-        if self.rules.known_sensor("imu", sensor_id):
+        if key is not None:
             (a0, a1, a2), (v0, v1, v2) = msg.dtheta_rad, msg.dvel_mps
             n = self._imu_n  # the row into the ring (struct's pack_into: a numpy row cost 4 %)
             _PACK_ROW(self._imu_buf, (n % IMU_LOG_LEN) * 64, msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2)
             self._imu_n = n + 1
             if not self._sample_pipes and self._usual_imu(key, msg.t, msg.dt_s, a0, a1, a2, v0, v1, v2):
                 return True
+        else:
+            key = f"imu/{sensor_id}" if sensor_id else "imu"
         verdict = self.rules.decide("imu", sensor_id, msg, self.last_imu_t, self.life.initialised)
         reason = verdict.reason
         if reason is None or reason in ("not_initialised", "imu_gap", "time_jump"):
@@ -281,14 +285,16 @@ class VehicleEngine:
         list of 8-tuples (t, dt_s, dtheta_rad, dvel_mps). Returns the number accepted."""
         if sensor_id in self._node_imus:
             return sum(self._on_node_imu(sensor_id, ImuRow(r)) for r in rows)
-        if not self.rules.known_sensor("imu", sensor_id):
-            for r in rows:
-                self._watch_refusals("imu", sensor_id, float(r[0]), "unexpected_sensor")
-            self.rejected["unexpected_sensor"] += len(rows)
-            return 0
+        key = self._imu_keys.get(sensor_id)  # (as _imu_sample)
+        if key is None:
+            if not self.rules.known_sensor("imu", sensor_id):
+                for r in rows:
+                    self._watch_refusals("imu", sensor_id, float(r[0]), "unexpected_sensor")
+                self.rejected["unexpected_sensor"] += len(rows)
+                return 0
+            key = self._imu_keys[sensor_id] = f"imu/{sensor_id}" if sensor_id else "imu"
         self._log_imu_rows(rows if isinstance(rows, np.ndarray) else np.asarray(rows, dtype=float))
         decide = self.rules.decide_imu
-        key = f"imu/{sensor_id}" if sensor_id else "imu"
         refusals = self._refusals
         usual = self._usual_imu if not self._sample_pipes else None
         accepted = 0
