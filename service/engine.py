@@ -278,11 +278,12 @@ class VehicleEngine:
             self._watch_refusals("imu", sensor_id, msg.t, reason)
         return self._imu_values(msg.t, msg.dt_s, msg.dtheta_rad, msg.dvel_mps, verdict, msg)
 
-    def handle_imu_batch(self, sensor_id: str, rows) -> int:
+    def handle_imu_batch(self, sensor_id: str, rows, records=None) -> int:
         """The records of an ImuBatch (:mod:`service.imu_batch`; already validated record by record),
         in order, each judged and used exactly as an ImuSample with the same values would be
         (:meth:`handle`), without a message object per record. ``rows``: an (N, 8) array or a
-        list of 8-tuples (t, dt_s, dtheta_rad, dvel_mps). Returns the number accepted."""
+        list of 8-tuples (t, dt_s, dtheta_rad, dvel_mps); ``records``: an array's ``tolist()``
+        when the caller has it already. Returns the number accepted."""
         if sensor_id in self._node_imus:
             return sum(self._on_node_imu(sensor_id, ImuRow(r)) for r in rows)
         key = self._imu_keys.get(sensor_id)  # (as _imu_sample)
@@ -298,7 +299,9 @@ class VehicleEngine:
         refusals = self._refusals
         usual = self._usual_imu if not self._sample_pipes else None
         accepted = 0
-        for t, dt, a0, a1, a2, v0, v1, v2 in rows.tolist() if isinstance(rows, np.ndarray) else rows:
+        if records is None:
+            records = rows.tolist() if isinstance(rows, np.ndarray) else rows
+        for t, dt, a0, a1, a2, v0, v1, v2 in records:
             if usual is not None and usual(key, t, dt, a0, a1, a2, v0, v1, v2):
                 accepted += 1
                 continue
