@@ -115,7 +115,8 @@ def decode(payload: bytes | bytearray | memoryview) -> np.ndarray:
     if n_bytes > expected:
         text = f"ImuBatch declares {count} samples but has {n_bytes} bytes, not {expected}"
         raise BatchError("batch_size", text)
-    # the records in place, by one constructor (frombuffer and reshape: two calls, ~2x the cost)
+    # the records in place, by one constructor (frombuffer and reshape: two calls, ~2x the time in
+    # a micro-benchmark)
     return np.ndarray((count, RECORD_FIELDS), _F8, payload, HEADER_BYTES)
 
 
