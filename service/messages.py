@@ -126,7 +126,12 @@ def decode_imu_json(payload: bytes) -> ImuJson | None:
         m = _IMU_JSON.decode(payload)
     except msgspec.MsgspecError:
         return None
-    if _norm(m.dtheta_rad) <= MAX_RATE_RPS * m.dt_s and _norm(m.dvel_mps) <= MAX_SPECIFIC_FORCE_MPS2 * m.dt_s:
+    # _norm's arithmetic inline (two calls fewer on every JSON IMU sample)
+    (a0, a1, a2), (v0, v1, v2), dt = m.dtheta_rad, m.dvel_mps, m.dt_s
+    if (
+        math.sqrt(a0 * a0 + a1 * a1 + a2 * a2) <= MAX_RATE_RPS * dt
+        and math.sqrt(v0 * v0 + v1 * v1 + v2 * v2) <= MAX_SPECIFIC_FORCE_MPS2 * dt
+    ):
         return m
     return None
 

@@ -290,14 +290,15 @@ def _feed(cfg, msgs: list, batch: int, as_json: bool) -> VehicleLoop:
 @pytest.mark.parametrize("seed", [5, 6])
 def test_the_usual_imu_step_takes_an_irregular_stream_as_the_general_path(seed, monkeypatch):
     """The one-step path of the usual IMU interval (service/engine.py ``_usual_imu``, taken by
-    JSON samples and batch records) against the general path (the rules' verdict, then
-    ``_imu_values``) on every irregularity: the same solutions to the last bit, the same counts;
-    and batches against JSON samples with the same arrivals."""
+    JSON samples, and ``_usual_run``, by batch records) against the general path (the rules'
+    verdict, then ``_imu_values``) on every irregularity: the same solutions to the last bit, the
+    same counts; and batches against JSON samples with the same arrivals."""
     cfg, msgs = _first_40_s(seed)
     msgs = _irregular(msgs, np.random.default_rng(seed))
     runs = [_feed(cfg, msgs, 7, as_json=True), _feed(cfg, msgs, 7, as_json=False)]
     with monkeypatch.context() as m:
         m.setattr(VehicleEngine, "_usual_imu", lambda self, *args: False)  # the general path only
+        m.setattr(VehicleEngine, "_usual_run", lambda self, *args: 0)
         runs += [_feed(cfg, msgs, 7, as_json=True), _feed(cfg, msgs, 7, as_json=False)]
     ref = runs[2]
     assert ref.counters != {}
