@@ -289,16 +289,7 @@ class Fleet:
         for v, zids in sorted(refused.items()):
             if vehicles.get(v, {}).get("services"):
                 continue  # another service has it (spilled over in a fleet group)
-            vehicles[v] = {
-                "vehicle": v,
-                "alive": v in alive,
-                "service": None,
-                "services": [],
-                "served_twice": False,
-                "pipelines": {},
-                "by_service": {},
-                "refused_by": zids,
-            }
+            vehicles[v] = _unserved(v, v in alive, refused_by=zids)
             limits = ", ".join(f"{z} (max_vehicles {capacity[z]['max_vehicles']})" for z in zids)
             problems.append(f"vehicle {v} is not served: refused by a service at its limit: {limits}")
         # a vehicle its publisher announces that no service serves (nor refused: named above):
@@ -312,15 +303,7 @@ class Fleet:
                 k.split("/")[1] for k in _tokens(self.session, f"{p}/*/service/alive", self.timeout_s)
             }
         for v in sorted(unserved):
-            vehicles[v] = {
-                "vehicle": v,
-                "alive": v in alive,
-                "service": None,
-                "services": [],
-                "served_twice": False,
-                "pipelines": {},
-                "by_service": {},
-            }
+            vehicles[v] = _unserved(v, v in alive)
             problems.append(f"vehicle {v} is published (its publisher announces it) but no service serves it")
         for v, d in vehicles.items():
             d["announced"] = v in announced
@@ -367,6 +350,20 @@ class Fleet:
 
 
 # --- status ----------------------------------------------------------------------------------------
+def _unserved(vehicle: str, alive: bool, **extra) -> dict:
+    """A snapshot's entry of a vehicle no service serves (refused, or only announced)."""
+    return {
+        "vehicle": vehicle,
+        "alive": alive,
+        "service": None,
+        "services": [],
+        "served_twice": False,
+        "pipelines": {},
+        "by_service": {},
+        **extra,
+    }
+
+
 def _fmt(x: float | None, unit: str = " s") -> str:
     return "-" if x is None else f"{x:.1f}{unit}"
 

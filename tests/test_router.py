@@ -362,14 +362,7 @@ def test_mutual_tls_and_access_control_through_the_router(certs, monkeypatch):
                 time.sleep(0.01)
         # the reader tries to ask the service's status; the operator does, with fednav-fleet
         reader_status = [r for r in reader_probe.get("fednav/v1/service/status", timeout=2.0) if r.ok]
-        fleet = subprocess.run(
-            [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
-            + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            cwd=tmp_path,
-        )
+        fleet = _secure_status(ep, tmp_path)
         time.sleep(1.5)  # a health period: the last counts
     finally:
         if svc is not None:
@@ -453,14 +446,7 @@ def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
         assert sim.wait_for("publishing", timeout=60), sim.output()
         snap, deadline = None, time.monotonic() + 18  # while the simulator publishes (20 s)
         while time.monotonic() < deadline:
-            r = subprocess.run(
-                [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
-                + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep],
-                capture_output=True,
-                text=True,
-                timeout=60,
-                cwd=certs,
-            )
+            r = _secure_status(ep, certs)
             snap = json.loads(r.stdout)
             shares = [s["vehicles"] for s in snap["services"]]
             if len(snap["vehicles"]) == 6 and len(shares) == 2 and all(shares) and not snap["problems"]:
@@ -482,6 +468,19 @@ def test_services_share_a_fleet_through_the_secure_router(certs, monkeypatch):
     served = {s["zid"]: s["vehicles"] for s in snap["services"]}
     assert sorted(served) == zids and all(served.values()), served  # both services serve a share
     assert sorted(v for vs in served.values() for v in vs) == [f"veh{i:03d}" for i in range(6)]
+
+
+def _secure_status(ep: str, cwd) -> subprocess.CompletedProcess:
+    """``fednav-fleet status --json`` with the operator's certificate (run in ``cwd``, where the
+    configs' relative ``certs/`` paths resolve) through the router at ``ep``."""
+    return subprocess.run(
+        [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
+        + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=cwd,
+    )
 
 
 def _worst_gap_s(watch, since: float, until: float) -> tuple[float, int]:
@@ -627,14 +626,7 @@ def test_the_secure_readers_router_relays_what_readers_and_operators_may_ask_and
         assert wait_until(lambda: len(got["far"]) >= 3000, 30), len(got["far"])
         genuine = got["far"][-1]
         far.put("fednav/v1/nav/lc/solution", json.dumps(dict(genuine, lat_deg=SPOOF_LAT_DEG)))
-        r = subprocess.run(
-            [sys.executable, "-m", "fednav.dashboards.fleet", "status", "--json"]
-            + ["--zenoh-config", str(SECURE / "ops.json5"), "--connect", ep2],
-            capture_output=True,
-            text=True,
-            timeout=60,
-            cwd=certs,
-        )
+        r = _secure_status(ep2, certs)
         time.sleep(1.0)
     finally:
         for s in sessions:
