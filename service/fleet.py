@@ -183,11 +183,18 @@ class FleetView:
 
     def joiner_owner(self, vehicle: str) -> str | None:
         """The joining service that will own ``vehicle`` once it joins (rendezvous over the members
-        and the joining services), or None (a member keeps it)."""
+        and the joining services, with capacity as :meth:`owner` applies it: a full member that
+        does not hold the vehicle is passed over, so the vehicle may fall to a joiner further down
+        its order), or None (a member keeps it)."""
         with self._lock:
             if not self._joining - self._members:
                 return None
-            o = owner(vehicle, self._members | self._joining)
+            everyone = self._members | self._joining
+            if self._full or self.me_full:  # a joining service is never full (not a member yet)
+                order = ranked(vehicle, everyone)
+                o = next((m for m in order if self._eligible(m, vehicle)), order[0])
+            else:
+                o = owner(vehicle, everyone)
             return o if o in self._joining and o not in self._members else None
 
     def heir(self, vehicle: str) -> str | None:

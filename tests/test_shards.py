@@ -101,6 +101,27 @@ def test_a_full_member_keeps_its_vehicles_and_the_rest_go_to_the_next_with_room(
     assert all(view.owner(v) == "a" for v in names if plain[v] == "a")
 
 
+def test_a_joining_service_is_named_owner_of_what_a_full_member_passes_on():
+    """joiner_owner (where a member's handover states of a vehicle go besides its heir) applies
+    capacity as owner() does: a vehicle whose first member is full and does not hold it goes to
+    the next in its order, which may be the joining service."""
+    names = vehicle_names(300)
+    view = fleet.FleetView("a", holds_me=lambda v: True)
+    view.active = True
+    view.update("b", True)
+    view.set_joining("j", True)
+    plain = {v: fleet.owner(v, ["a", "b", "j"]) for v in names}
+    assert {v for v in names if plain[v] == "j"} == {v for v in names if view.joiner_owner(v) == "j"}
+    view.set_full("b", True)  # b full, holding nothing: its share goes down each vehicle's order
+    passed = [v for v in names if fleet.ranked(v, ["a", "b", "j"])[:2] == ["b", "j"]]
+    assert passed
+    for v in names:
+        order = [m for m in fleet.ranked(v, ["a", "b", "j"]) if m != "b"]
+        assert view.joiner_owner(v) == ("j" if order[0] == "j" else None), v
+    view.set_holds("b", passed[0], True)  # what a full member holds stays with it
+    assert view.joiner_owner(passed[0]) is None
+
+
 def test_shard_of_is_stable_and_covers_every_shard():
     names = vehicle_names(200)
     got = [fleet.shard_of(v, 4) for v in names]
