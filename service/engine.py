@@ -115,6 +115,10 @@ class EngineSink(Protocol):
 log = logging.getLogger("fednav.service")
 #: a stream refused this many times in a row is reported once in the log, with the likely cause
 WHOLESALE_REFUSALS = 100
+#: aiding refused ``not_initialised`` is reported only once its streak has lasted longer than a
+#: static alignment ([init] align_time_s) and this much more: a vehicle aligning as configured
+#: refuses every fix until it is aligned (a 10 Hz receiver's 100th came at 10 s of a 60 s alignment)
+ALIGNMENT_WARNING_MARGIN_S = 10.0
 #: a stream further than this from the running time is reported as a time base mismatch
 TIME_BASE_MISMATCH_S = 60.0
 #: wall seconds between two log warnings of a vehicle's INS lost to an IMU gap or a time jump
@@ -185,6 +189,7 @@ class VehicleEngine:
         self.last_t: float | None = None
         self.streams: dict[str, tuple[float, float | None]] = {}  # "kind/id" -> (last t, interval)
         self._refusals: dict[str, int] = {}  # stream -> consecutive refusals
+        self._refusals_t0: dict[str, float] = {}  # stream -> time of its streak's first refusal
         self._warned: set[tuple[str, str]] = set()
         #: streams whose time is more than TIME_BASE_MISMATCH_S from the IMU time: offset, s (Health)
         self.time_base_mismatch: dict[str, float] = {}
@@ -474,10 +479,18 @@ class VehicleEngine:
             self._refusals.pop(key, None)
             return
         n = self._refusals[key] = self._refusals.get(key, 0) + 1
-        if n != WHOLESALE_REFUSALS or ("refused", key) in self._warned:
+        if n == 1:
+            self._refusals_t0[key] = t
+        if n < WHOLESALE_REFUSALS or ("refused", key) in self._warned:
             return
-        self._warned.add(("refused", key))
         dt = t - self.last_imu_t if self.last_imu_t is not None else 0.0
+        if (
+            reason == "not_initialised"
+            and abs(dt) <= TIME_BASE_MISMATCH_S
+            and t - self._refusals_t0.get(key, t) < self.config.init.align_time_s + ALIGNMENT_WARNING_MARGIN_S
+        ):
+            return  # still within what an alignment takes: the vehicle may be aligning as configured
+        self._warned.add(("refused", key))
         if (
             reason in ("late", "time_backwards", "future", "early", "not_initialised")
             and abs(dt) > TIME_BASE_MISMATCH_S
