@@ -870,6 +870,9 @@ def real_run_summary(
     return {
         "status": timeline,
         "solution_gaps": _gaps(lat.t_ns) if lat is not None else [],
+        # solutions at a time already recorded: two runs over the same times in one recording (a
+        # log replayed twice into one running service), whose rows the reader interleaves by time
+        "repeated_times": int(len(lat.t_ns) - len(np.unique(lat.t_ns))) if lat is not None else 0,
         "sigma": _sigma_levels(v, p, data, t_from),
         "fix_residuals": fixres,
         "fix_residuals_apply": correlated is not True,
@@ -1049,6 +1052,13 @@ def _render_real_run(p: dict[str, Any], t0: float) -> list[str]:
         times = ", ".join(f"{k} {v:.1f} s" for k, v in st["time_in_s"].items())
         out.append(
             f"    status: {tl}{more}; time in each: {times}; re-initialisations {st['reinitialisations']}"
+        )
+    if p.get("repeated_times"):
+        out.append(
+            f"    WARNING: {p['repeated_times']} solutions share their time with an earlier one: the "
+            "recording holds more than one run over the same times, interleaved (the same log replayed "
+            "twice into one running service?); the figures below mix them: give each replay its own "
+            "service or recording"
         )
     gaps = p.get("solution_gaps") or []
     if gaps:

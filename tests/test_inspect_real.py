@@ -224,3 +224,24 @@ def test_final_status_is_the_last_recorded_and_the_stopped_input_is_named(tmp_pa
     else:
         assert s["input_stopped"] == {} and "health_final_status" not in p
         assert "final status aided (the last recorded), no truth" in text
+
+
+def test_two_runs_over_the_same_times_in_one_recording_are_named(tmp_path, capsys):
+    """The same log replayed twice into one running service: its second run's solutions land at the
+    times of the first's, and the reader interleaves them; the summary says so instead of showing
+    doubled counts as one run."""
+    path = tmp_path / "twice.rrd"
+    with RerunSink(path, recording_id="twice") as sink:
+        for _run in range(2):
+            sink.log_solution("car", _sol(T0, "initialising"))
+            for k in range(1, 30):
+                sink.log_solution("car", _sol(T0 + 0.1 * k, "aided"))
+    s = inspect.inspect_rrd(path)
+    assert s["pipelines"]["lc"]["repeated_times"] == 30
+    inspect.main([str(path)])
+    assert "WARNING: 30 solutions share their time with an earlier one" in capsys.readouterr().out
+    once = tmp_path / "once.rrd"
+    with RerunSink(once, recording_id="once") as sink:
+        for k in range(30):
+            sink.log_solution("car", _sol(T0 + 0.1 * k, "aided"))
+    assert inspect.inspect_rrd(once)["pipelines"]["lc"]["repeated_times"] == 0
