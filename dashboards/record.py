@@ -29,7 +29,7 @@ from fednav.service.config import ServiceConfig, recording_kinds
 from fednav.service.transport.rerun_sink import RerunSink
 from fednav.service.vehicle import VehicleLoop
 from fednav.simulators.evaluate import service_config
-from fednav.simulators.scenario import Scenario, load_scenario
+from fednav.simulators.scenario import Scenario, duration_arg, load_scenario, load_scenario_cli
 
 
 class _NoPublish:
@@ -117,12 +117,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scenario", help="a scenario file or the name of a shipped one (e.g. seed000_faults)")
     ap.add_argument("-o", "--out", type=Path, required=True, help="the .rrd to write")
     ap.add_argument("--seed", type=int, help="noise seed (default: the scenario's)")
-    ap.add_argument("--duration", type=float, help="stop after this many seconds of scenario time")
+    ap.add_argument("--duration", type=duration_arg, help="stop after this many seconds of scenario time")
     ap.add_argument(
         "--optimize", action=argparse.BooleanOptionalAction, default=None, help="compact the file at the end"
     )
     args = ap.parse_args(argv)
-    r = record(args.scenario, args.out, seed=args.seed, optimize=args.optimize, duration_s=args.duration)
+    scenario = load_scenario_cli(args.scenario, "fednav-record")
+    if scenario is None:
+        return 2
+    r = record(scenario, args.out, seed=args.seed, optimize=args.optimize, duration_s=args.duration)
     print(
         f"{r['rrd']}: {r['bytes'] / 1e6:.1f} MB, {r['scenario_s']:.0f} s of {r['scenario']}, "
         f"{r['messages']} messages in {r['wall_s']:.1f} s",

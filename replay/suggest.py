@@ -89,6 +89,8 @@ class Suggestion:
     correlated: dict | None
     toml: str = ""
     notes: list[str] = field(default_factory=list)
+    #: per override, what was done (the comment of its line in the written file)
+    imu_override_why: dict[str, str] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {
@@ -266,6 +268,28 @@ def covering_grades(noise: dict, bias: dict | None) -> list[str]:
     return out
 
 
+def consumer_overrides(noise: dict, bias: dict | None) -> tuple[dict[str, float], dict[str, str]]:
+    """An IMU no preset covers: the consumer_mems numbers raised to the measurement (noise x 1.25,
+    biases as measured), and per number what was done (its comment in the written file)."""
+    p = PRESETS["consumer_mems"]
+    # field: (measured, margin, digits): the larger of the preset's number and margin x measured
+    measured = {"arw_dpsh": (noise["arw_dpsh"], 1.25, 4), "vrw_ugpsHz": (noise["vrw_ugpsHz"], 1.25, 2)}
+    if bias is not None:
+        measured["gyro_bias_dph"] = (bias["gyro_up_dph"], 1.0, 1)
+        measured["accel_bias_ug"] = (bias["accel_up_ug"], 1.0, 0)
+    overrides, why = {}, {}
+    for k, (m, margin, digits) in measured.items():
+        preset = getattr(p, k)
+        overrides[k] = round(max(preset, margin * m), digits)
+        times = f" x {margin}" if margin != 1.0 else ""
+        why[k] = (
+            f"measured {m:.3g}{times} (above the preset's {preset})"
+            if margin * m > preset
+            else f"the preset's: measured {m:.3g}{times} is below it"
+        )
+    return overrides, why
+
+
 # --- the in-process run -------------------------------------------------------------------------------
 class _Collect:
     """Engine sink keeping each pipeline's (t, position ENU-ready llh, velocity)."""
@@ -373,20 +397,17 @@ def suggest_config(mapping: ReplayMapping, base_dir: Path, report: Report) -> Su
     covering = covering_grades(noise, bias)
     runs: list[dict] = []
     overrides: dict[str, float] = {}
+    why: dict[str, str] = {}
     notes: list[str] = []
     if covering:
         candidates = [g for g in ORDER if ORDER.index(g) >= ORDER.index(covering[0])]
     else:  # worse than every preset: consumer numbers raised to the measurement
         candidates = ["consumer_mems"]
-        p = PRESETS["consumer_mems"]
-        overrides = {
-            "arw_dpsh": round(max(p.arw_dpsh, 1.25 * noise["arw_dpsh"]), 4),
-            "vrw_ugpsHz": round(max(p.vrw_ugpsHz, 1.25 * noise["vrw_ugpsHz"]), 2),
-        }
-        if bias is not None:
-            overrides["gyro_bias_dph"] = round(max(p.gyro_bias_dph, bias["gyro_up_dph"]), 1)
-            overrides["accel_bias_ug"] = round(max(p.accel_bias_ug, bias["accel_up_ug"]), 0)
-        notes.append("the IMU is noisier than the consumer_mems preset: its measured numbers are written")
+        overrides, why = consumer_overrides(noise, bias)
+        notes.append(
+            "the IMU is not covered by the consumer_mems preset: each [imu] number is the larger of the "
+            "preset's and the measured one (noise x 1.25)"
+        )
     # the in-process runs: the most cautious grade first (its innovations only reflect how the
     # fixes are modelled), then the best covering grade, one lower at a time while its innovations
     # are clearly larger than the cautious grade's (its bias model trusts the IMU too much)
@@ -455,7 +476,9 @@ def suggest_config(mapping: ReplayMapping, base_dir: Path, report: Report) -> Su
                 "sigma_enu_m": [round(float(x), 3) for x in gm],
                 "correlation_time_s": DEFAULT_TAU_S,
             }
-    sug = Suggestion(grade, overrides, noise, bias, runs, fixes, correlated, notes=notes)
+    sug = Suggestion(
+        grade, overrides, noise, bias, runs, fixes, correlated, notes=notes, imu_override_why=why
+    )
     sug.toml = render_toml(mapping, sug)
     from fednav.service.config import from_dict
 
@@ -506,7 +529,7 @@ def render_toml(mapping: ReplayMapping, s: Suggestion) -> str:
         f"{NIS_RELATIVE}x consumer_mems')"
     )
     for k, v in s.imu_overrides.items():
-        lines.append(f"{k} = {v}   # measured x 1.25 (noisier than the preset)")
+        lines.append(f"{k} = {v}   # {s.imu_override_why.get(k, 'measured')}")
     lines += [
         "",
         "[[pipelines]]",
@@ -528,8 +551,21 @@ def render_toml(mapping: ReplayMapping, s: Suggestion) -> str:
     )
     if s.correlated:
         c = s.correlated
+        below = [a for a, r in zip("ENU", f.get("sigma_over_white", ()), strict=False) if not r > 1.0]
+        if below:  # (a sigma more than WHITE_ONLY_RATIO x below it would give a note, no states)
+            above = [a for a in "ENU" if a not in below]
+            lines += [
+                f"# the fixes' sigma does not exceed their white scatter on {'/'.join(below)} (it is less "
+                f"than {WHITE_ONLY_RATIO}x below it);",
+                f"# on {'/'.join(above)} it does: the rest is a slowly varying error,"
+                if above
+                else "# a slowly varying error is modelled all the same,",
+            ]
+        else:
+            lines.append(
+                "# the fixes' sigma exceeds their white scatter: the rest is a slowly varying error,"
+            )
         lines += [
-            "# the fixes' sigma exceeds their white scatter: the rest is a slowly varying error,",
             "# estimated as states (docs/own_data.md); sigma = sqrt(fix sigma^2 - white^2) per axis",
             f"# and at least {MIN_CORRELATED_FRACTION:.0%} of the fix sigma (real receivers' errors are "
             "correlated; at 10 Hz even a",

@@ -10,26 +10,51 @@ import typing
 from pydantic import BaseModel, ValidationError
 
 
-def field_names(model: type[BaseModel]) -> set[str]:
-    """Every field name of a model and of the models nested in it (unions and lists included)."""
-    seen: set[type] = set()
-    names: set[str] = set()
+def _members(tp) -> list:
+    """The types an annotation admits: unions, ``X | None`` and ``Annotated`` opened."""
+    origin = typing.get_origin(tp)
+    if origin is typing.Annotated:
+        return _members(typing.get_args(tp)[0])
+    if isinstance(tp, types.UnionType) or origin is typing.Union:
+        return [m for a in typing.get_args(tp) for m in _members(a)]
+    return [tp]
 
-    def visit(tp) -> None:
-        if isinstance(tp, type) and issubclass(tp, BaseModel):
-            if tp in seen:
-                return
-            seen.add(tp)
-            for name, f in tp.model_fields.items():
-                names.add(name)
-                visit(f.annotation)
-            return
-        if isinstance(tp, types.UnionType) or typing.get_origin(tp) is not None:
-            for arg in typing.get_args(tp):
-                visit(arg)
 
-    visit(model)
-    return names
+def _is_model(tp) -> bool:
+    return isinstance(tp, type) and issubclass(tp, BaseModel)
+
+
+def _is_tag(model: type[BaseModel], item) -> bool:
+    """Whether an error location's ``item`` names this member of a union: its discriminator's
+    value (a ``Literal`` field) or, for a union without one, its class name."""
+    if item == model.__name__:
+        return True
+    return any(
+        typing.get_origin(f.annotation) is typing.Literal and item in typing.get_args(f.annotation)
+        for f in model.model_fields.values()
+    )
+
+
+def field_names(model: type[BaseModel], path=()) -> set[str]:
+    """The field names valid at ``path`` (an error location, field names, list indexes, dict keys
+    and union tags) inside ``model``: those of the model(s) there, not of the models nested in them.
+    Empty where the path leads to no model (a suggestion from elsewhere would mislead)."""
+    here = _members(model)
+    for item in path:
+        step = []
+        for tp in here:
+            args = typing.get_args(tp)
+            origin = typing.get_origin(tp)
+            if _is_model(tp):
+                if isinstance(item, str) and item in tp.model_fields:
+                    step += _members(tp.model_fields[item].annotation)
+            elif origin in (list, set, frozenset) and args and isinstance(item, int):
+                step += _members(args[0])
+            elif origin is dict and len(args) == 2:
+                step += _members(args[1])
+        # no field, item or value: pydantic's tag of a union's member (discriminator value or class name)
+        here = step or [tp for tp in here if _is_model(tp) and _is_tag(tp, item)]
+    return {name for tp in here if _is_model(tp) for name in tp.model_fields}
 
 
 def suggest(name: str, candidates) -> str:
@@ -40,14 +65,14 @@ def suggest(name: str, candidates) -> str:
 
 def format_errors(err: ValidationError, model: type[BaseModel], heading: str) -> str:
     """``heading`` then one line per error: ``  field.path: message``, with a suggestion for an
-    unknown field."""
-    known = field_names(model)
+    unknown field (from the fields of the model at its location)."""
     lines = [heading]
     for e in err.errors(include_url=False):
         loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
         msg = e["msg"]
         if e["type"] == "extra_forbidden" and e["loc"]:
-            msg = "unknown field" + suggest(e["loc"][-1], known)
+            *path, name = e["loc"]
+            msg = "unknown field" + suggest(name, field_names(model, path) - {name})
         elif e["type"] == "union_tag_invalid":
             ctx = e.get("ctx", {})
             known = [t.strip(" '") for t in str(ctx.get("expected_tags", "")).split(",")]

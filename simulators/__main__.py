@@ -1,4 +1,5 @@
-"""fednav-sim: ``run`` publishes a scenario over Zenoh; ``eval`` runs it in-process."""
+"""fednav-sim: ``run`` publishes a scenario over Zenoh; ``eval`` runs it in-process; ``fleet``,
+``eval-rinex`` and ``rinex2raw`` (their own modules' parsers)."""
 
 from __future__ import annotations
 
@@ -49,7 +50,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(
         prog="fednav-sim",
         description="fednav sensor simulators: publish a scenario over Zenoh (run), or evaluate the "
-        "service's pipelines on it in-process, faster than real time (eval)",
+        "service's pipelines on it in-process, faster than real time (eval); a fleet of vehicles (fleet); "
+        "real RINEX data (eval-rinex, rinex2raw)",
     )
     ap.add_argument("--version", action="version", version=f"fednav-sim {version()}")
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -103,6 +105,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         metavar=("T0", "T1"),
         help="also report metrics inside [T0, T1] s from the scenario start",
     )
+    # parsed by their own modules (_main dispatches them before this parser): listed for --help
+    sub.add_parser("fleet", add_help=False, help="publish N simulated vehicles from one process over Zenoh")
+    sub.add_parser(
+        "eval-rinex", add_help=False, help="tightly coupled (GNSS-only) vs gnss-lib-py WLS on real RINEX data"
+    )
+    sub.add_parser(
+        "rinex2raw", add_help=False, help="RINEX 2/3 observation + navigation -> GnssRaw JSON lines"
+    )
     return ap.parse_args(argv)
 
 
@@ -126,12 +136,10 @@ def _main(argv: list[str] | None = None) -> int:
 
         return fleet_main(rest[1:])
     args = parse_args(argv)
-    from fednav.simulators.scenario import ScenarioError, load_scenario
+    from fednav.simulators.scenario import load_scenario_cli
 
-    try:
-        scenario = load_scenario(args.scenario)
-    except ScenarioError as exc:
-        print(f"fednav-sim: {exc}", file=sys.stderr)
+    scenario = load_scenario_cli(args.scenario, "fednav-sim")
+    if scenario is None:
         return 2
     if args.cmd == "run":
         from fednav.simulators.publisher import MatchTimeout, publish_stream, report_end, session_args_problem

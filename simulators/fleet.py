@@ -231,6 +231,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fednav.service.imu_batch import batch_size_arg
     from fednav.simulators.publisher import timeout_arg
+    from fednav.simulators.scenario import ScenarioError, duration_arg
 
     ap = argparse.ArgumentParser(
         prog="fednav-sim fleet", description=__doc__.split("\n\n")[0].replace("``", "")
@@ -240,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default=DEFAULT_SCENARIO, help="scenario (default demo_aircraft)")
     ap.add_argument("--imu-rate", type=float, default=200.0, help="IMU rate, Hz (default 200)")
     ap.add_argument("--fix-rate", type=float, default=10.0, help="GNSS fix rate, Hz (default 10)")
-    ap.add_argument("--duration", type=float, default=60.0, help="scenario seconds (default 60)")
+    ap.add_argument("--duration", type=duration_arg, default=60.0, help="scenario seconds (default 60)")
     ap.add_argument("--speed", type=float, default=1.0, help="pacing, x real time (default 1)")
     ap.add_argument("--imu-batch", type=batch_size_arg, default=10, help="IMU samples per ImuBatch (1: JSON)")
     ap.add_argument(
@@ -266,20 +267,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fednav-sim fleet: {problem}", file=sys.stderr)
         return 2
 
-    data = fleet_scenario(args.scenario, args.imu_rate, args.fix_rate, args.duration)
     n_var = max(1, min(args.variants, args.vehicles))
     t_build = time.monotonic()
-    variants = [
-        variant_items(
-            data,
-            args.seed + j,
-            (data["start"]["heading_deg"] + 360.0 * j / n_var) % 360.0,
-            args.imu_batch,
-            args.truth,
-            args.prefix,
-        )
-        for j in range(n_var)
-    ]
+    try:
+        data = fleet_scenario(args.scenario, args.imu_rate, args.fix_rate, args.duration)
+        variants = [
+            variant_items(
+                data,
+                args.seed + j,
+                (data["start"]["heading_deg"] + 360.0 * j / n_var) % 360.0,
+                args.imu_batch,
+                args.truth,
+                args.prefix,
+            )
+            for j in range(n_var)
+        ]
+    except ScenarioError as exc:
+        print(f"fednav-sim fleet: {exc}", file=sys.stderr)
+        return 2
     print(f"fednav-sim fleet: {n_var} variants built in {time.monotonic() - t_build:.1f} s", flush=True)
     log: list | None = [] if args.log else None
     period = args.imu_batch / args.imu_rate

@@ -196,15 +196,13 @@ def main(argv: list[str] | None = None) -> int:
     from fednav.service.config import ZenohConfig
     from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S, make_config
     from fednav.simulators.publisher import MatchTimeout, drain, open_session
-    from fednav.simulators.scenario import ScenarioError, load_scenario
+    from fednav.simulators.scenario import load_scenario_cli
 
     if args.vehicle != "*" and not keys.valid_name(args.vehicle):
         print(f"ros2_publish: --vehicle {args.vehicle!r} is not a valid vehicle name", file=sys.stderr)
         return 2
-    try:
-        sc = load_scenario(args.scenario)
-    except ScenarioError as exc:
-        print(f"ros2_publish: {exc}", file=sys.stderr)
+    sc = load_scenario_cli(args.scenario, "ros2_publish")
+    if sc is None:
         return 2
     cfg = example_config(carrier=args.carrier, domain_id=args.domain_id)
     seed = sc.seed if args.seed is None else args.seed

@@ -446,3 +446,28 @@ def load_scenario(path: str | Path) -> Scenario:
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"invalid TOML in {p}: {e}") from e
     return parse_scenario(data, str(p))
+
+
+def load_scenario_cli(path: str | Path, prog: str) -> Scenario | None:
+    """:func:`load_scenario` for a command line: a :class:`ScenarioError` is printed as one line
+    ``prog: message`` on stderr, no traceback; None then (the command exits 2)."""
+    import sys
+
+    try:
+        return load_scenario(path)
+    except ScenarioError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return None
+
+
+def duration_arg(text: str) -> float:
+    """``--duration S`` of scenario time on a command line: a finite number of seconds > 0."""
+    import argparse
+
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(s) and s > 0):
+        raise argparse.ArgumentTypeError(f"{text}: use a finite number of seconds > 0")
+    return s
