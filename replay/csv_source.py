@@ -102,6 +102,11 @@ class _Table:
                 self.line, self.terminated = n, line.endswith(("\n", "\r"))
                 yield line
         except UnicodeDecodeError:
+            if _gzip(self.path):
+                raise SourceError(
+                    f"{self.path}: compressed with gzip (it starts with gzip's bytes 1f 8b), not text: "
+                    f"decompress it first (gunzip -c {self.path.name} > unpacked.csv)"
+                ) from None
             raise SourceError(
                 f"{self.path}: not UTF-8 text (a byte at or after line {self.read + 1} is no UTF-8): "
                 "save the file as UTF-8"
@@ -191,6 +196,15 @@ class _Table:
         if self.delimiter != "," and "," in value:
             hint = ": a decimal comma? the reader expects '.' as the decimal mark"
         return SourceError(f"{self.path} line {line}: {column} = {value.strip()!r} is not a number{hint}")
+
+
+def _gzip(path: Path) -> bool:
+    """Whether the file starts with gzip's magic bytes (a ``.gz`` renamed ``.csv``)."""
+    try:
+        with path.open("rb") as f:
+            return f.read(2) == b"\x1f\x8b"
+    except OSError:
+        return False
 
 
 def _open(path: Path) -> IO[str]:

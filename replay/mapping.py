@@ -20,6 +20,11 @@ Time bases (``t_gps = convert(stamp) + time_offset_s``):
   start with the logger's own stamp), else from the first fix, then refined by the IMU's yaw rate
   against the GNSS course rate; the derived value is printed so that it can be written in.
 
+Formats from the source's name (``format`` overrides): ``.nmea``, ``.ubx``, ``.csv``; ``.obs``,
+``.rnx``, ``.YYo`` RINEX; ``.bag``, ``.mcap``, ``.db3`` and a name without an extension (a ROS 2 bag
+directory) ROS. Any other extension is refused, asking for ``format``; a ``.gz`` file is refused
+whatever the format (no reader decompresses: gunzip it first).
+
 Misplaced fields are named as such: in TOML every key after a ``[[streams]]`` header belongs to
 that stream, so ``leap_seconds`` written there is told to move above the first ``[[streams]]``.
 """
@@ -28,13 +33,14 @@ from __future__ import annotations
 
 import re
 import tomllib
+import typing
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from fednav.service.validation_errors import format_errors
+from fednav.service.validation_errors import format_errors, suggest
 
 GPS_EPOCH_UNIX_S = 315964800.0  # 1980-01-06T00:00:00Z as POSIX seconds
 LEAP_SECONDS_NOW = 18  # GPS - UTC since 2017-01-01 (IERS Bulletin C); older logs need their value
@@ -51,6 +57,18 @@ _AXIS = {
 
 Format = Literal["ros", "nmea", "ubx", "csv", "rinex"]
 TimeBase = Literal["gps", "unix", "utc", "boot"]
+#: a source's extension -> its format (a name without an extension: a ROS 2 bag directory)
+EXTENSIONS: dict[str, Format] = {
+    ".nmea": "nmea",
+    ".ubx": "ubx",
+    ".csv": "csv",
+    ".bag": "ros",
+    ".mcap": "ros",
+    ".db3": "ros",
+    ".obs": "rinex",
+    ".rnx": "rinex",
+}
+_RINEX2_OBS = re.compile(r"\.\d\d[o]")  # RINEX 2 observation file: .19o
 #: Zenoh endpoint ``<protocol>/<address>`` (tcp/127.0.0.1:7447, udp/..., tls/..., unixsock-stream/...)
 ENDPOINT_RE = r"^[a-z][a-z0-9\-]*/\S+$"
 #: receive stamps written in front of NMEA lines: their unit
@@ -59,6 +77,11 @@ RECEIVE_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 
 class MappingError(ValueError):
     pass
+
+
+def gzipped(name: str) -> str:
+    """The message refusing a ``.gz`` file (no reader decompresses)."""
+    return f"{name} is compressed with gzip: decompress it first (gunzip {name})"
 
 
 def axes_matrix(axes: str | list[list[float]]) -> np.ndarray:
@@ -101,13 +124,51 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class RinexOptions(_Model):
+    """A RINEX stream's ``rinex_options``: the keyword options of
+    ``simulators.gnss.rinex_raw.iter_gnss_raw`` (its documentation; tests/test_replay_mapping_user.py
+    holds these to its signature). An option left out keeps iter_gnss_raw's default."""
+
+    systems: list[Literal["G", "E", "C"]] | None = Field(
+        None, min_length=1, description="System letters converted: G GPS, E Galileo, C BeiDou (G, E, C)"
+    )
+    pseudorange_sigma_m: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="Zenith 1-sigma pseudorange noise, m (3.0)"
+    )
+    range_rate_sigma_mps: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="Zenith 1-sigma range-rate noise, m/s (0.1)"
+    )
+    start_gps_s: float | None = Field(None, allow_inf_nan=False, description="First epoch converted, GPS s")
+    stop_gps_s: float | None = Field(None, allow_inf_nan=False, description="Last epoch converted, GPS s")
+    max_age_s: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="Oldest ephemeris used, s from its reference time"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known(cls, data):
+        if isinstance(data, dict):
+            for k in data:
+                if k not in cls.model_fields:
+                    raise ValueError(
+                        f"unknown option {k!r}{suggest(k, cls.model_fields)}; the options are "
+                        f"{', '.join(cls.model_fields)}"
+                    )
+        return data
+
+    def kwargs(self) -> dict:
+        """The options set, as iter_gnss_raw's keyword arguments."""
+        return self.model_dump(exclude_none=True)
+
+
 class StreamMapping(_Model):
     """One recorded stream -> one fednav sensor."""
 
     source: str = Field(
-        description="File (path relative to the mapping file): bag dir/.bag/.mcap, .nmea, .ubx, .csv"
+        description="File (path relative to the mapping file): bag dir/.bag/.mcap/.db3, .nmea, .ubx, .csv, "
+        "RINEX .obs/.rnx/.YYo"
     )
-    format: Format | None = Field(None, description="Parser; None: from the file name")
+    format: Format | None = Field(None, description="Parser; None: from the file name (module doc)")
     kind: str = Field(
         description="fednav sensor kind it becomes: imu, gnss_fix, gnss_raw, or a kind of the sensor "
         "registry with a CSV hook (e.g. baro: columns t, altitude_m[, std_m])"
@@ -151,8 +212,8 @@ class StreamMapping(_Model):
         description="Seconds per unit of the source's stamps: UBX ESF-RAW, one sensor time-tag tick "
         "(receiver manual); a CSV, its t and dt column's unit (0.001 for milliseconds)",
     )
-    rinex_options: dict[str, Any] = Field(
-        default_factory=dict, description="RINEX: keyword options passed to iter_gnss_raw (its documentation)"
+    rinex_options: RinexOptions = Field(
+        default_factory=RinexOptions, description="RINEX: keyword options passed to iter_gnss_raw"
     )
     pos_std_m: tuple[float, float, float] | None = Field(
         None,
@@ -180,6 +241,8 @@ class StreamMapping(_Model):
 
     @model_validator(mode="after")
     def _consistent(self):
+        if self.source.lower().endswith(".gz"):
+            raise ValueError(gzipped(self.source))
         fmt = self.resolved_format()
         if self.time_base == "boot" and self.boot_offset_s is None:
             raise ValueError(
@@ -192,7 +255,13 @@ class StreamMapping(_Model):
                 "remove it, or set time_base = 'boot'"
             )
         if fmt == "ros" and not self.topic:
-            raise ValueError("a ROS bag/MCAP stream needs 'topic'")
+            taken = ""
+            if not self.format and not Path(self.source).suffix:
+                taken = (
+                    f" ({self.source} has no extension: it is read as a ROS 2 bag directory; if it is not "
+                    "one, set format)"
+                )
+            raise ValueError(f"a ROS bag/MCAP stream needs 'topic'{taken}")
         if fmt == "nmea" and self.kind != "gnss_fix":
             raise ValueError("NMEA gives GNSS fixes: kind must be 'gnss_fix'")
         if fmt == "nmea" and self.time_base != "utc":
@@ -216,22 +285,21 @@ class StreamMapping(_Model):
         return self
 
     def resolved_format(self) -> Format:
+        """``format``, else the one the source's extension names (ValueError for an unknown one)."""
         if self.format:
             return self.format
-        s = self.source.lower()
-        for ext, fmt in (
-            (".nmea", "nmea"),
-            (".ubx", "ubx"),
-            (".csv", "csv"),
-            (".bag", "ros"),
-            (".mcap", "ros"),
-        ):
-            if s.endswith(ext):
-                return fmt  # type: ignore[return-value]
-        suffix = Path(s).suffix
-        if suffix in (".obs", ".rnx") or re.fullmatch(r"\.\d\d[o]", suffix):
+        suffix = Path(self.source.lower()).suffix
+        if suffix in EXTENSIONS:
+            return EXTENSIONS[suffix]
+        if _RINEX2_OBS.fullmatch(suffix):
             return "rinex"
-        return "ros"  # a ROS 2 bag directory
+        if not suffix:
+            return "ros"  # a ROS 2 bag directory
+        formats = ", ".join(repr(f) for f in typing.get_args(Format))
+        raise ValueError(
+            f"cannot tell the format of {self.source} from its extension: set format = one of {formats} "
+            f"(known extensions: {', '.join(EXTENSIONS)}, .YYo; no extension: a ROS 2 bag directory)"
+        )
 
     def matrix(self) -> np.ndarray:
         return axes_matrix(self.axes)
@@ -257,6 +325,14 @@ class ReplayMapping(_Model):
     leap_seconds: int = Field(LEAP_SECONDS_NOW, ge=0, le=60, description="GPS - UTC at the log's date, s")
     rinex_nav: list[str] = Field(default_factory=list, description="RINEX navigation files (gnss_raw)")
     streams: list[StreamMapping] = Field(min_length=1)
+
+    @field_validator("rinex_nav")
+    @classmethod
+    def _not_gzip(cls, v):
+        for p in v:
+            if p.lower().endswith(".gz"):
+                raise ValueError(gzipped(p))
+        return v
 
     @model_validator(mode="after")
     def _unique(self):

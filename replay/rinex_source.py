@@ -4,7 +4,8 @@ The RINEX readers and the satellite models live in ``simulators/gnss/`` (docs/re
 ``simulators.gnss.rinex_raw.iter_gnss_raw(obs_path, nav_paths, **options)`` yields
 ``(t_gps_s, GnssRaw)`` per observation epoch and this module only calls it, with the mapping's
 ``rinex_nav`` files and the stream's ``rinex_options`` table as keyword arguments (systems,
-pseudorange_sigma_m, range_rate_sigma_mps, start_gps_s, stop_gps_s, max_age_s). In a build
+pseudorange_sigma_m, range_rate_sigma_mps, start_gps_s, stop_gps_s, max_age_s: checked when the
+mapping is read, ``mapping.RinexOptions``). In a build
 without that module (a trimmed install), a ``rinex`` stream is refused with a plain message
 before anything is published. End to end over Zenoh: tests/test_replay_rinex_zenoh.py.
 """
@@ -47,5 +48,5 @@ def events(
         raise SourceError("a rinex stream needs 'rinex_nav' (navigation files) in the mapping")
     suffix = key_suffix(stream.kind, stream.sensor_id)
     nav = [base / p for p in mapping.rinex_nav]
-    for t, raw in iter_gnss_raw(base / stream.source, nav, **stream.rinex_options):
+    for t, raw in iter_gnss_raw(base / stream.source, nav, **stream.rinex_options.kwargs()):
         yield Event(float(t) + stream.time_offset_s, suffix, raw)

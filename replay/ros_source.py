@@ -32,8 +32,31 @@ TWIST_MATCH_S = 0.05  # a twist is paired with a fix whose stamp is within this,
 NAVSAT_FIX_TYPE = {0: "single", 1: "sbas", 2: "dgnss"}
 
 
+#: what rosbags reads: a ROS 1 bag, a ROS 2 storage file, or a ROS 2 bag directory (metadata.yaml)
+BAG_SUFFIXES = (".bag", ".db3", ".mcap")
+#: first bytes that name another format, for the message refusing a file that is no bag
+MAGIC = (
+    (b"$", "NMEA text (it starts with '$'): set format = 'nmea'"),
+    (b"\xb5\x62", "u-blox UBX (it starts with b5 62): set format = 'ubx'"),
+)
+
+
 class SourceError(ValueError):
     pass
+
+
+def _not_a_bag(path: Path) -> str | None:
+    """Why ``path`` is no ROS bag rosbags reads, or None."""
+    if path.is_dir():
+        if (path / "metadata.yaml").exists():
+            return None
+        return f"{path}: a directory without metadata.yaml, so no ROS 2 bag"
+    if path.suffix.lower() in BAG_SUFFIXES:
+        return None
+    with path.open("rb") as f:
+        head = f.read(2)
+    hint = next((h for magic, h in MAGIC if head.startswith(magic)), "set the stream's format")
+    return f"{path}: not a ROS bag (a bag directory with metadata.yaml, or a .bag, .db3, .mcap file): {hint}"
 
 
 def _stamp(msg) -> float:
@@ -59,6 +82,9 @@ def events(
     path = base / stream.source
     if not path.exists():
         raise SourceError(f"{path}: no such file or bag directory")
+    why = _not_a_bag(path)
+    if why:
+        raise SourceError(why)
     suffix = key_suffix(stream.kind, stream.sensor_id)
     leap = mapping.leap_seconds
     if stream.kind == "imu":

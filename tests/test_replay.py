@@ -475,14 +475,14 @@ def test_rinex_slot_calls_iter_gnss_raw_when_present(tmp_path, monkeypatch):
                     "source": "site.19o",
                     "kind": "gnss_raw",
                     "sensor_id": "rx",
-                    "rinex_options": {"elevation_mask_deg": 10},
+                    "rinex_options": {"systems": ["G"], "max_age_s": 7200},
                 }
             ],
         }
     )
     ev = list(stream_events(m.streams[0], tmp_path, m))
     assert [e.t_gps_s for e in ev] == [1.4e9, 1.4e9 + 1.0] and ev[0].key_suffix == "sensor/gnss/rx/raw"
-    assert calls == [(tmp_path / "site.19o", [tmp_path / "brdc.19n"], {"elevation_mask_deg": 10})]
+    assert calls == [(tmp_path / "site.19o", [tmp_path / "brdc.19n"], {"systems": ["G"], "max_age_s": 7200})]
 
 
 def test_gyro_in_deg_per_s_declared_rad_per_s_is_named(tmp_path):
