@@ -148,12 +148,22 @@ def _main(argv: list[str] | None = None) -> int:
     mapping = report.mapping  # boot_offset_s = "auto" resolved
     summary: dict = {"vehicle": vehicle, "check": report.as_dict()}
     out = sys.stderr if args.suggest_config == "-" and not args.json else sys.stdout
+    # --force publishes despite the errors, but not a stream whose boot offset was not derived: its
+    # stamps convert to no time
+    underived = [s.sensor_id for s in mapping.streams if s.boot_offset_s == "auto"]
+    forced = bool(report.errors) and args.force and not args.check and args.suggest_config is None
     if not args.json:
         print(f"fednav-replay {args.mapping} -> {mapping.prefix}/{vehicle}/...", file=out)
-        print(report.text(), file=out)
+        print(report.text(forced=forced and not underived), file=out)
     if args.suggest_config is not None:
         return _suggest(args, mapping, base, report, summary)
-    if args.check or (report.errors and not args.force):
+    if forced and underived:
+        print(
+            "fednav-replay: --force cannot publish: boot_offset_s = 'auto' of stream(s) "
+            f"{', '.join(map(repr, underived))} was not derived: write boot_offset_s in the mapping",
+            file=sys.stderr,
+        )
+    if args.check or (report.errors and not args.force) or (forced and underived):
         if args.json:
             print(json.dumps(summary))
         return 2 if report.errors else 0

@@ -18,13 +18,15 @@ CSV, NMEA, UBX and ROS bags alike), and checked:
   A wrong mapping is named with the one that fits ("the IMU's axes look like FLU, not FRD:
   set axes = 'FLU'");
 - stamps: converted stamps that are no plausible GPS time (what the stamps look like: seconds
-  since boot, milliseconds, POSIX), streams whose first stamps are more than a minute apart,
+  since boot, milliseconds, POSIX), a log that starts after the present (POSIX seconds declared
+  as GPS time land in the 2030s), streams whose first stamps are more than a minute apart,
   stamps going backwards or repeating;
 - rates: an empty stream, an IMU below 50 Hz or with gaps the service treats as IMU loss;
 - sigmas: per GNSS stream, the sigma its fixes carry and where it came from (the receiver's
   GST / covariance / accuracy fields, the mapping, or GnssFix's default for the fix type and HDOP).
 
-Errors stop the replay (``--force`` publishes anyway); warnings and notes are printed.
+Errors stop the replay (``--force`` publishes anyway, except a stream whose ``"auto"`` boot offset
+could not be derived); warnings and notes are printed.
 ``resolve_boot_offsets`` turns ``boot_offset_s = "auto"`` into a number before the checks.
 """
 
@@ -33,6 +35,7 @@ from __future__ import annotations
 import datetime as dt
 import itertools
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -62,6 +65,9 @@ MOTION_GRAVITY_RANGE_MPS2 = (9.0, 11.5)
 TIME_BASES_DIFFER_S = 60.0
 #: a converted first stamp outside 1989..2059 (GPS seconds) is not a plausible GPS time of a log
 PLAUSIBLE_GPS_S = (3.0e8, 2.5e9)
+#: a log cannot start after the present: a first stamp later than now (the system clock) plus this
+#: margin is an error (POSIX seconds of 2024 declared as GPS time start in 2034)
+FUTURE_MARGIN_S = 86400.0
 MIN_IMU_RATE_HZ = 50.0
 IMU_GAP_S = 0.5  # the service's default [intake] max_imu_gap_s
 COMMON_AXES = ("FLU", "FRD", "RFU")
@@ -69,6 +75,8 @@ SKIP_HINTS = {
     "implausible": ": rates or specific forces beyond the wire limits (50 rad/s, 50 g): check gyro_unit "
     "(deg/s data declared rad/s?) and accel_unit",
     "no_velocity": ": no twist within 0.05 s of the fix (published as position-only fixes)",
+    "no_checksum": ": NMEA sentences without a '*hh' checksum are refused (it guards against corrupted "
+    "lines): log them with checksums",
 }
 
 # --- motion against the GNSS --------------------------------------------------------------------
@@ -144,7 +152,8 @@ class Report:
             "messages": self.total,
         }
 
-    def text(self) -> str:
+    def text(self, forced: bool = False) -> str:
+        """The summary; ``forced``: the caller publishes despite the errors (``--force``)."""
         lines = []
         for s in self.streams:
             span = f"{s.t_last - s.t_first:.1f} s" if s.count else "-"
@@ -156,7 +165,11 @@ class Report:
         lines += [f"ERROR: {e}" for e in self.errors]
         lines += [f"warning: {w}" for w in self.warnings]
         if self.errors:
-            lines.append(f"{len(self.errors)} error(s): nothing published")
+            lines.append(
+                f"{len(self.errors)} error(s): publishing anyway (--force)"
+                if forced
+                else f"{len(self.errors)} error(s): nothing published"
+            )
         elif self.warnings:
             lines.append(f"checks passed with {len(self.warnings)} warning(s): read them before publishing")
         else:
@@ -173,6 +186,11 @@ def gps_str(t: float | None) -> str:
     except (OverflowError, OSError, ValueError):
         return f"t={t:.3f}"
     return f"{when:%Y-%m-%d %H:%M:%S} GPS (t={t:.3f})"
+
+
+def gps_now(leap_seconds: int) -> float:
+    """The present (the system clock) in GPS seconds."""
+    return time.time() - GPS_EPOCH_UNIX_S + leap_seconds
 
 
 # --- decoded data -----------------------------------------------------------------------------------
@@ -689,9 +707,9 @@ def motion_check(
             why = " (the leap seconds: is one stream in UTC and the other in GPS time? check time_base)"
         at_zero = f"{c0:.2f}" if c0 is not None else "none: the logs do not overlap"
         text = (
-            f"{name}'s stamps are {abs(L):.3f} s {'late' if L > 0 else 'early'} against {fix_label}'s "
-            f"(its rotation against the course over {lag['turn_windows']} turning windows, correlation "
-            f"{c:.2f}){why}: set {fix_hint} in stream {stream.sensor_id!r}"
+            f"{name}: its stamps are {abs(L):.3f} s {'late' if L > 0 else 'early'} against those of "
+            f"{fix_label} (the IMU's rotation against the course over {lag['turn_windows']} turning windows, "
+            f"correlation {c:.2f}){why}: set {fix_hint} in stream {stream.sensor_id!r}"
         )
         if doubt is None:
             if abs(L) > LAG_ERROR_S:
@@ -708,16 +726,16 @@ def motion_check(
             # not confirmed, yet the stamps as they are fit clearly worse: the service would refuse
             # the fixes (its innovation gate) and coast
             report.errors.append(
-                f"{name}'s stamps look {abs(L):.3f} s {'late' if L > 0 else 'early'} against {fix_label}'s: "
-                f"at that lag its rotation follows the course with a correlation of {c:.2f} over "
-                f"{lag['turn_windows']} turning windows, at the stamps as they are {at_zero}{why} (not "
-                f"confirmed: {doubt}): set {fix_hint} in stream {stream.sensor_id!r} and run --check again; "
-                f"{_alignment_advice(stream, derived)}"
+                f"{name}: its stamps look {abs(L):.3f} s {'late' if L > 0 else 'early'} against those of "
+                f"{fix_label}: at that lag the IMU's rotation follows the course with a correlation of "
+                f"{c:.2f} over {lag['turn_windows']} turning windows, at the stamps as they are "
+                f"{at_zero}{why} (not confirmed: {doubt}): set {fix_hint} in stream {stream.sensor_id!r} and "
+                f"run --check again; {_alignment_advice(stream, derived)}"
             )
             shift = L
         elif not warned:
             report.warnings.append(
-                f"TIME ALIGNMENT NOT CONFIRMED: {name}'s stamps against {fix_label}'s: {doubt}; "
+                f"TIME ALIGNMENT NOT CONFIRMED: the stamps of {name} against those of {fix_label}: {doubt}; "
                 f"correlation at the stamps as they are {at_zero}. The service may refuse the fixes and "
                 f"coast if they are off: {_alignment_advice(stream, derived)}"
             )
@@ -977,13 +995,14 @@ def _imu_data(rows: list) -> ImuData:
 
 def run_checks(mapping: ReplayMapping, base: Path) -> Report:
     """Read every stream once (as it will be published) and check it. ``boot_offset_s = 'auto'``
-    is resolved first (:func:`resolve_boot_offsets`); ``report.mapping`` is the mapping to publish."""
+    is resolved first (:func:`resolve_boot_offsets`); ``report.mapping`` is the mapping to publish.
+    A stream whose offset could not be derived is not read (the resolution's errors say why, after
+    the streams' own: a GNSS file's problem first, then what it left underived)."""
     report = Report()
     derived = {s.sensor_id for s in mapping.streams if s.boot_offset_s == "auto"}
     mapping, notes, errors, doubted = _resolve_boot_offsets(mapping, base)
     report.mapping = mapping
     report.notes += notes
-    report.errors += errors
     report.warnings += list(doubted.values())
     imu_streams = [s for s in mapping.streams if s.kind == "imu"]
     if not imu_streams:
@@ -997,6 +1016,8 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
         report.streams.append(sr)
         stats: dict = {}
         label = f"{stream.kind} {stream.sensor_id!r}"
+        if stream.boot_offset_s == "auto":
+            continue  # not derived: its stamps convert to no time (the resolution's errors say why)
         try:
             rows, first, dts = _read(stream, base, mapping, stats, sr)
         except SourceError as exc:
@@ -1016,17 +1037,31 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
                 )
             else:
                 skipped = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in sorted(sr.skipped.items()))
+                hints = "".join(SKIP_HINTS.get(k, "") for k in sorted(sr.skipped))
                 report.errors.append(
                     f"{label}: no messages read from {stream.source}"
-                    + (f" (skipped: {skipped})" if skipped else "")
+                    + (f" (skipped: {skipped}){hints}" if skipped else "")
                 )
             continue
+        now = gps_now(mapping.leap_seconds)
         if not PLAUSIBLE_GPS_S[0] <= sr.t_first <= PLAUSIBLE_GPS_S[1]:
             raw = from_gps_s(sr.t_first, stream, mapping.leap_seconds)
             report.errors.append(
                 f"{label}: first stamp {sr.t_first:.1f} s ({gps_str(sr.t_first)}) is not a plausible "
                 "GPS time "
                 f"of a log: its stamps ({raw:.3f} as written) look like {stamp_looks_like(raw, stream)}"
+            )
+        elif sr.t_first > now + FUTURE_MARGIN_S:
+            raw = from_gps_s(sr.t_first, stream, mapping.leap_seconds)
+            cause = (
+                "POSIX (UTC) seconds declared as GPS time: set time_base = 'unix'"
+                if stream.time_base == "gps" and 1.0e9 < raw < 2.5e9
+                else f"check time_base ('{stream.time_base}'), boot_offset_s and time_offset_s"
+            )
+            report.errors.append(
+                f"{label}: the log starts {gps_str(sr.t_first)}, after the present "
+                f"({gps_str(now)[:10]}): a log cannot start in the future: its stamps ({raw:.3f} as "
+                f"written) look like {cause}"
             )
         elif bad_t is not None:
             report.warnings.append(
@@ -1081,6 +1116,7 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
                 report.warnings.append(
                     f"{label}: {sr.skipped[why]} sample(s) skipped ({why.replace('_', ' ')}){hint}"
                 )
+    report.errors += errors  # the offsets' resolution: after the problems of the streams it read
     # A time-base mistake shifts a whole stream: its start AND its end. A GNSS that starts later
     # (cold start) still ends with the IMU, so only both ends apart count.
     spans = [s for s in report.streams if s.t_first is not None]
@@ -1165,14 +1201,18 @@ def _resolve_boot_offsets(
         try:
             rows, _, _ = _read(m0.streams[i], base, m0, stats, None)
         except SourceError as exc:
-            errors.append(f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: {exc}")
+            errors.append(str(exc))  # the file's own problem, said as that (it names the stream)
             continue
-        if not rows:
+        if not rows:  # the stream's own problem, said as the checks say it of any stream
+            skipped = ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in sorted(stats.items()) if k[0] != "_")
             errors.append(
-                f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: no messages read from {s.source}"
+                f"{s.kind} {s.sensor_id!r}: no messages read from {s.source}"
+                + (f" (skipped: {skipped})" if skipped else "")
             )
             continue
-        raw_first = rows[0][0] if s.kind == "imu" else rows[0].t
+        # the stream's first stamp: for an IMU the start of its first interval (a rate-form
+        # source's first sample only opens it: the first row's end is one sample later)
+        raw_first = rows[0][0] - rows[0][1] if s.kind == "imu" else rows[0].t
         how = None
         pairs = stats.get("_clock_pairs")
         if pairs:
@@ -1188,7 +1228,8 @@ def _resolve_boot_offsets(
             try:
                 frows, _, _ = _read(fs, base, mapping, fstats, None)
             except SourceError as exc:
-                errors.append(f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: {exc}")
+                if str(exc) not in errors:  # the fix stream's own problem, said once
+                    errors.append(str(exc))
                 continue
             if not frows:
                 continue
@@ -1207,6 +1248,14 @@ def _resolve_boot_offsets(
             how = (
                 "the first fix's GPS time minus the stream's first stamp (assumes both logs started together)"
             )
+        if how is None and fix_streams:
+            # the fix streams' own problem is said as that (here, or when the checks read them)
+            names = " or ".join(f"gnss_fix {fs.sensor_id!r}" for fs in fix_streams)
+            errors.append(
+                f"boot_offset_s = 'auto' for stream {s.sensor_id!r} needs fixes from {names}, which gave "
+                f"none: not derived, stream {s.sensor_id!r} not checked"
+            )
+            continue
         if how is None:
             errors.append(
                 f"boot_offset_s = 'auto' for stream {s.sensor_id!r}: no GNSS fix stream to derive it from: "

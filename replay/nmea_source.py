@@ -7,8 +7,10 @@ indicator) and HDOP from GGA, position sigmas from GST (else the mapping's ``pos
 the documented defaults from fix type and HDOP), the date from RMC (else the mapping's ``date``).
 The variant is what the log gives: speed + course over ground (RMC or VTG) when both are there,
 position only when not; NMEA has no vertical velocity and none is invented. Lines that are not
-NMEA or fail their checksum are
-counted in ``stats`` and skipped. The message itself is built by ``events.nmea_fix_to_wire``.
+NMEA or fail their checksum are counted in ``stats`` and skipped (``bad_sentence``); a sentence
+without a ``*hh`` checksum is refused too, counted as ``no_checksum`` (a log written without
+checksums: every sentence refused, and the checks say why). The message itself is built by
+``events.nmea_fix_to_wire``.
 
 A logger's own receive stamp in front of a line (``12345.678,$GPGGA,...``, or separated by a
 space, tab or ';'; unit ``receive_unit``) is kept: each epoch's (receive stamp, fix GPS time)
@@ -61,7 +63,8 @@ def _epochs(path: Path, wanted: set[str], stats: dict):
             try:
                 m = pynmea2.parse(line, check=True)
             except (pynmea2.ParseError, ValueError, AttributeError):
-                stats["bad_sentence"] = stats.get("bad_sentence", 0) + 1
+                why = "no_checksum" if "*" not in line else "bad_sentence"
+                stats[why] = stats.get(why, 0) + 1
                 continue
             typ = m.sentence_type
             if typ not in wanted:

@@ -133,13 +133,13 @@ WRONG = [
         "nmea_csv",
         (f"boot_offset_s = {rf.BOOT_GPS_S}", f"boot_offset_s = {rf.BOOT_GPS_S + 0.077}"),
         None,
-        "IMU 'imu''s stamps are 0.0",  # completed by the test: late by ~77 ms, with the value to set
+        "IMU 'imu': its stamps are 0.0",  # completed by the test: late by ~77 ms, with the value to set
     ),
     (
         "nmea_csv",
         (f"boot_offset_s = {rf.BOOT_GPS_S}", f"boot_offset_s = {rf.BOOT_GPS_S - 18.0}"),
         None,
-        "early against gnss_fix 'rx''s (its rotation against the course over",
+        "early against those of gnss_fix 'rx' (the IMU's rotation against the course over",
     ),
     (
         "nmea_csv",
