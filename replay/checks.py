@@ -291,6 +291,60 @@ class FixData:
         return v
 
 
+#: the fixes' velocities are judged against their positions' track (differences over about
+#: VELOCITY_SPAN_S) when at least VELOCITY_CHECK_FIXES fixes in motion carry one: a frame mistake
+#: is named when east and north exchanged fit at least VELOCITY_FRAME_RATIO times better
+VELOCITY_CHECK_FIXES = 20
+VELOCITY_SPAN_S = 1.0
+VELOCITY_FRAME_RATIO = 3.0
+
+
+def velocity_check(stream: StreamMapping, fx: FixData, report: Report) -> FixData | None:
+    """The fixes' own velocities against the track of their positions in motion. When east and
+    north look exchanged (a Twist in ENU mapped as NED or the reverse: ``twist_frame``), an error
+    that says so, and the fixes with their velocities in the other frame (what the IMU's motion
+    is then checked against); else None. Before this, velocities in the wrong frame were blamed on
+    the IMU ("the data are mirrored", "the gyro's axes or rate signs differ from the
+    accelerometer's")."""
+    n = len(fx)
+    if n < 3:
+        return None
+    step = float(np.median(np.diff(fx.t)))
+    if not step > 0:
+        return None
+    k = max(1, int(round(0.5 * VELOCITY_SPAN_S / step)))
+    if n < 2 * k + 1:
+        return None
+    p = fx.enu()
+    i = np.arange(k, n - k)
+    dp = (p[i + k, :2] - p[i - k, :2]) / (fx.t[i + k] - fx.t[i - k])[:, None]
+    v = fx.vel[i, :2]
+    ok = np.isfinite(v).all(axis=1) & np.isfinite(dp).all(axis=1) & (np.hypot(*dp.T) >= MIN_SPEED_MPS)
+    if ok.sum() < VELOCITY_CHECK_FIXES:
+        return None
+    v, dp = v[ok], dp[ok]
+    as_is = math.sqrt(float(np.mean(np.sum((v - dp) ** 2, axis=1))))
+    swapped = math.sqrt(float(np.mean(np.sum((v[:, ::-1] - dp) ** 2, axis=1))))
+    if swapped * VELOCITY_FRAME_RATIO > as_is:
+        return None
+    frame = getattr(stream, "twist_frame", None)
+    if getattr(stream, "twist_topic", None) and frame in ("ENU", "NED"):
+        other = "NED" if frame == "ENU" else "ENU"
+        what = (
+            f"the Twist's velocities look {other}, the mapping says twist_frame = {frame!r}: "
+            f"set twist_frame = {other!r}"
+        )
+    else:
+        what = "its velocities' east and north look exchanged (a NED velocity read as ENU, or the reverse)"
+    report.errors.append(
+        f"gnss_fix {stream.sensor_id!r}: {what} (RMS misfit against the track of its positions {as_is:.2f} "
+        f"m/s over {int(ok.sum())} fixes in motion, {swapped:.2f} m/s with east and north exchanged); the "
+        "IMU is checked against the velocities in the other frame"
+    )
+    vel = fx.vel[:, [1, 0, 2]] * np.array([1.0, 1.0, -1.0])
+    return FixData(fx.t, fx.lat_deg, fx.lon_deg, fx.h_m, vel, fx.msgs)
+
+
 # --- gravity and units -------------------------------------------------------------------------------
 def suggest_axes(declared: str, axis: int, up: bool) -> str | None:
     """The right-handed three-letter name closest to ``declared`` whose source axis ``axis``
@@ -1109,6 +1163,7 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
             fx = FixData.from_fixes(rows)
             report.data[idx] = fx
             sr.sigma = sigma_summary(stream, fx, stats)
+            fx = velocity_check(stream, fx, report) or fx  # (a frame mistake: the other frame's)
             fixes.append((stream, fx))
         for why in sorted(set(sr.skipped) - {"stamp_not_increasing", "gap"}):
             if sr.skipped.get(why):

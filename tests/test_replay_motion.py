@@ -307,3 +307,23 @@ def test_each_stream_says_its_sigma_and_why(files, drive, tmp_path):
         fix = next(s for s in _check(files[case]).streams if s.kind == "gnss_fix")
         assert fix.sigma["pos_origin"] == {origin: len(drive.fixes)}
         assert fix.sigma["vel_origin"] == {origin: len(drive.fixes)}
+
+
+@pytest.mark.parametrize("case", ["ros2", "mcap"])
+def test_a_twist_in_the_wrong_frame_is_named_not_blamed_on_the_imu(files, case):
+    """The Twist is ENU; a mapping that says twist_frame = "NED" gets its velocities with east and
+    north exchanged: the check names twist_frame (from the velocities against the positions' track)
+    and checks the IMU against the velocities in the other frame, so the IMU is not called mirrored."""
+    p = _variant(
+        files[case], 'twist_topic = "/gnss/vel"\n', 'twist_topic = "/gnss/vel"\ntwist_frame = "NED"\n', "ned"
+    )
+    r = _check(p)
+    assert len(r.errors) == 1, r.text()
+    assert (
+        "the Twist's velocities look ENU, the mapping says twist_frame = 'NED': set twist_frame = 'ENU'"
+        in (r.errors[0])
+    )
+    assert not [w for w in r.warnings if "mirrored" in w or "gyro" in w], r.text()
+    mo = r.motion["imu"]
+    assert abs(mo["time_offset"]["lag_s"]) < 0.02 and mo["yaw"]["sign"] == 1.0
+    assert replay_main([str(p), "--check"]) == 2  # refused: nothing published
