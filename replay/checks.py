@@ -291,6 +291,26 @@ class FixData:
         return v
 
 
+#: a file's first bytes, what they are, and the format they need (``content_hint``)
+_CONTENT = (
+    (b"\x1f\x8b", "gzip", "it is compressed with gzip: decompress it first (gunzip)"),
+    (b"$", "nmea", "it holds NMEA text (it starts with '$'): set format = 'nmea'"),
+    (b"\xb5\x62", "ubx", "it holds u-blox UBX (it starts with b5 62): set format = 'ubx'"),
+)
+
+
+def content_hint(path: Path, fmt: str) -> str:
+    """Why a file of format ``fmt`` gave no message, when its first bytes say it is something
+    else (gzip, NMEA, UBX): ": ..." to append to the error, or ""."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(4)
+    except OSError:
+        return ""
+    head = head.removeprefix(b"\xef\xbb\xbf")  # a UTF-8 BOM before NMEA text
+    return next((f": {hint}" for magic, what, hint in _CONTENT if head.startswith(magic) and what != fmt), "")
+
+
 #: the fixes' velocities are judged against their positions' track (differences over about
 #: VELOCITY_SPAN_S) when at least VELOCITY_CHECK_FIXES fixes in motion carry one: a frame mistake
 #: is named when east and north exchanged fit at least VELOCITY_FRAME_RATIO times better
@@ -1095,6 +1115,7 @@ def run_checks(mapping: ReplayMapping, base: Path) -> Report:
                 report.errors.append(
                     f"{label}: no messages read from {stream.source}"
                     + (f" (skipped: {skipped}){hints}" if skipped else "")
+                    + content_hint(base / stream.source, stream.resolved_format())
                 )
             continue
         now = gps_now(mapping.leap_seconds)
@@ -1263,6 +1284,7 @@ def _resolve_boot_offsets(
             errors.append(
                 f"{s.kind} {s.sensor_id!r}: no messages read from {s.source}"
                 + (f" (skipped: {skipped})" if skipped else "")
+                + content_hint(base / s.source, s.resolved_format())
             )
             continue
         # the stream's first stamp: for an IMU the start of its first interval (a rate-form

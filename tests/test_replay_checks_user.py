@@ -227,3 +227,24 @@ def test_motion_check_messages_name_the_stream_without_a_doubled_apostrophe(
     said = r.errors + r.warnings
     assert any(words in s for s in said), said
     assert not any("''s" in s for s in said), said
+
+
+@pytest.mark.parametrize(
+    "name, kind, hint",
+    [
+        ("fix.nmea", "gzip", "it is compressed with gzip: decompress it first (gunzip)"),
+        ("fix.ubx", "nmea", "it holds NMEA text (it starts with '$'): set format = 'nmea'"),
+    ],
+)
+def test_a_file_whose_bytes_say_another_format_is_named_by_them(tmp_path, name, kind, hint):
+    """A gzip file under a plain .nmea name, NMEA text in a .ubx: no message is read, and the error
+    says what the file's first bytes are instead of leaving "no messages read" alone."""
+    import gzip
+
+    nmea = write_nmea(tmp_path / "plain.nmea")
+    data = nmea.read_bytes()
+    (tmp_path / name).write_bytes(gzip.compress(data) if kind == "gzip" else data)
+    write_imu(tmp_path / "imu.csv", fix_gps_s(0))
+    r = check(write_mapping(tmp_path, 'time_base = "gps"', nmea=name))
+    err = next(e for e in r.errors if e.startswith("gnss_fix 'rx': no messages read"))
+    assert err.endswith(hint), r.text()
