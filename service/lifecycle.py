@@ -1057,6 +1057,16 @@ class VehicleLife:
             return False
         if plan is None:  # a stream that is not replayed (node IMUs) or not unambiguously
             if fix is None:
+                if isinstance(ref[2], InitStd) and not self._gnss_streams():
+                    # a vehicle without GNSS: the checkpoint carried over the gap is its only
+                    # reference, and it holds no sample of the contest: restart from it, as a
+                    # fix restarts a GNSS vehicle's pipeline (a state that merely passed
+                    # plausibility against it kept the forged samples: the underwater federated
+                    # filter, seed 23, 6.3 deg of heading and 270 m, 'degraded' for the rest of
+                    # the run once the checkpoint had expired with no reference left)
+                    self.engine.notes[f"reset:{p.name}"] += 1
+                    self._start_one(p, ref[0], ref[2], "reset", verified=False, reason="reset", refs=ref[3])
+                    return True
                 return False  # (no fix: the pipeline's own screening decides, as before)
             self._reset_from_reference(p, fix, t)  # the checkpoint carried over the gap
             return True
@@ -1070,6 +1080,11 @@ class VehicleLife:
         self.checkpoints[p.name].append(cp)
         self.replayed_checkpoint[p.name] = cp
         return True
+
+    def _gnss_streams(self) -> bool:
+        """Whether the vehicle has a GNSS stream (fixes or raw epochs): its reference after a
+        contest (:meth:`_reset_after_long_contest`)."""
+        return any(k.startswith(("gnss_fix", "gnss_raw")) for k in self.engine.streams)
 
     def _reset_after_long_contest(self, p: Pipeline, life: Life, fix: GnssFix | None, t: float) -> bool:
         """While the IMU key is contested with no checkpoint left to replay or carry (the contest

@@ -1154,3 +1154,31 @@ def test_only_an_imu_duplicate_that_differs_is_ambiguous():
     assert not eng._duplicate_differs(s.t)
     eng.handle("imu", "main", s.model_copy(update={"dtheta_rad": (0.0, 0.0, 2e-4)}))
     assert eng._duplicate_differs(s.t) and not eng._duplicate_differs(s.t + 0.01)
+
+
+def test_an_underwater_vehicle_without_a_replay_is_reset_from_its_carried_checkpoint():
+    """Forged IMU samples close to the genuine ones on the genuine time stamps (benchmarks/
+    hardening.py ``imu_close`` 0.05x500, seed 23: 500 samples with 0.05 rad/s more yaw rate over
+    5 s at 10x), an underwater vehicle (USBL and DVL, no GNSS): the contested slots cannot be
+    replayed and no fix comes to restart from. The federated filter kept the forged heading (6.3
+    deg) because its state still passed plausibility against its carried checkpoint, and once that
+    checkpoint was too old nothing could verify or reset it: 'degraded' for the rest of the run,
+    270 m off at its end (its USBL excluded by its chi-square test). Now each epoch of the contest
+    restarts it from the checkpoint carried over the gap, as a fix restarts a GNSS vehicle's."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hardening
+
+    _, labels, start, aiding = hardening.FAMILIES["underwater"]
+    sc = hardening.underwater_scenario(200.0)
+    clean, _, _ = hardening.run_case(sc, 23, None, None, start, aiding)
+    rec, eng, inj = hardening.run_case(sc, 23, "imu_close", "0.05x500", start, aiding)
+    assert eng.rejected["overlap"] + eng.rejected["time_backwards"] > 100, eng.rejected
+    for name in labels:
+        row = hardening.assess(rec[name], clean[name], start, inj.end_s)
+        p95 = float(np.percentile(hardening._h(clean[name][1], clean[name][2])[0], 95))
+        assert row.peak < p95 and row.lies == 0, (name, row.peak, p95, row.lies)
+        assert row.recovered is not None and row.recovered <= 10.0, (name, row.recovered)
+        assert rec[name][3][-1] == "aided", (name, row.timeline)
