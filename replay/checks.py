@@ -326,15 +326,10 @@ def velocity_check(stream: StreamMapping, fx: FixData, report: Report) -> FixDat
     is then checked against); else None. Before this, velocities in the wrong frame were blamed on
     the IMU ("the data are mirrored", "the gyro's axes or rate signs differ from the
     accelerometer's")."""
-    n = len(fx)
-    if n < 3:
+    w = _half_window(fx, VELOCITY_SPAN_S, 3)
+    if w is None:
         return None
-    step = float(np.median(np.diff(fx.t)))
-    if not step > 0:
-        return None
-    k = max(1, int(round(0.5 * VELOCITY_SPAN_S / step)))
-    if n < 2 * k + 1:
-        return None
+    k, n = w[0], len(fx)
     p = fx.enu()
     i = np.arange(k, n - k)
     dp = (p[i + k, :2] - p[i - k, :2]) / (fx.t[i + k] - fx.t[i - k])[:, None]
@@ -502,17 +497,26 @@ class Kinematics:
         return len(self.ta)
 
 
-def fix_kinematics(fx: FixData, window_s: float = WINDOW_S) -> Kinematics | None:
-    """Windows of about ``window_s`` (whole fix intervals) between fixes in motion."""
+def _half_window(fx: FixData, span_s: float, min_fixes: int) -> tuple[int, float] | None:
+    """(the fixes on each side of a window of about ``span_s`` in whole fix intervals, the median
+    interval), or None for a stream shorter than ``min_fixes`` or than one window, or whose stamps
+    do not advance."""
     n = len(fx)
-    if n < 5:
+    if n < min_fixes:
         return None
     step = float(np.median(np.diff(fx.t)))
     if not step > 0:
         return None
-    k = max(1, int(round(0.5 * window_s / step)))
-    if n < 2 * k + 1:
+    k = max(1, int(round(0.5 * span_s / step)))
+    return (k, step) if n >= 2 * k + 1 else None
+
+
+def fix_kinematics(fx: FixData, window_s: float = WINDOW_S) -> Kinematics | None:
+    """Windows of about ``window_s`` (whole fix intervals) between fixes in motion."""
+    w = _half_window(fx, window_s, 5)
+    if w is None:
         return None
+    (k, step), n = w, len(fx)
     v = fx.velocity()
     i = np.arange(k, n - k)
     a_i, b_i = i - k, i + k

@@ -22,6 +22,7 @@ from fednav.service import keys as fkeys
 from fednav.service.config import ZenohConfig
 from fednav.service.messages import ImuSample, InitialNav, WireModel
 from fednav.service.transport.zenoh_io import PUBLISHER_BLOCK_WAIT_S, make_config
+from fednav.simulators.scenario import duration_arg
 
 #: IMU samples per published ImuBatch by default (``--imu-batch``; 1 = one JSON ImuSample each)
 DEFAULT_IMU_BATCH = 10
@@ -50,18 +51,9 @@ def session_args_problem(connect: list[str] | None, zenoh_config: str | None) ->
     return None
 
 
-def timeout_arg(text: str) -> float:
-    """``--match-timeout S`` of the publishers: a finite number of seconds > 0."""
-    import argparse
-    import math
-
-    try:
-        s = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(s) and s > 0):
-        raise argparse.ArgumentTypeError(f"{text}: use a finite number of seconds > 0")
-    return s
+#: ``--match-timeout S`` of the publishers: a finite number of seconds > 0 (the same rule as a
+#: scenario's ``--duration``)
+timeout_arg = duration_arg
 
 
 class MatchWatch:

@@ -461,7 +461,8 @@ def load_scenario_cli(path: str | Path, prog: str) -> Scenario | None:
 
 
 def duration_arg(text: str) -> float:
-    """``--duration S`` of scenario time on a command line: a finite number of seconds > 0."""
+    """``--duration S`` of scenario time on a command line (and the publishers' ``--match-timeout``,
+    ``publisher.timeout_arg``): a finite number of seconds > 0."""
     import argparse
 
     try:
