@@ -487,12 +487,29 @@ class VehicleWorker:
         return True
 
     def final_outputs(self) -> None:
+        """At shutdown or release: the Solutions at the vehicle's last time, unless its last output
+        epoch was that time (published already: again under the same time, a client saw the epoch
+        twice and fednav-inspect read the recording as two runs interleaved), and its Health."""
         try:
-            if self.engine.initialised:
+            if self.engine.initialised and not self._outputs_current():
                 self.engine.emit_solutions()
             self.publish_health()
         except Exception:
             log.exception("vehicle %s: final outputs failed", self.vehicle)
+
+    def _outputs_current(self) -> bool:
+        """Whether every running pipeline's last published Solution is at the vehicle's last IMU time."""
+        t = self.engine.last_imu_t
+        if t is None:
+            return False
+        last = self.sink.last_solution
+        for p in self.engine.pipelines:
+            if p.failed:
+                continue
+            sol = last.get((self.vehicle, p.name))
+            if sol is None or abs(sol.t - t) > 1e-6:
+                return False
+        return True
 
 
 def json_imu_runs(routed: list) -> list:
