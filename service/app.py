@@ -934,6 +934,8 @@ class Service:
         # reads which services are full and what they refuse)
         self._health_key = keys.service_health(str(self.session.zid()), cfg.prefix)
         qexprs = [f"{cfg.prefix}/{v}/**" for v in ([sel] if sel else cfg.vehicles)]
+        if not sel:  # the named vehicles' queryables do not cover the ServiceHealth's own key
+            qexprs.append(self._health_key)
         self.queries = zenoh_io.QueryServer(self.session, qexprs, self._answer)
         self.liveliness.declare(keys.service_token(str(self.session.zid()), cfg.prefix))
         if self.fleet_view is not None:

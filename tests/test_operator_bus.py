@@ -9,6 +9,7 @@ import signal
 import time
 
 import pytest
+import zenoh
 
 from fednav.simulators.processes import free_port, start_service, start_sim, wait_idle
 
@@ -20,12 +21,49 @@ pytestmark = pytest.mark.integration
 
 @pytest.fixture(scope="module")
 def service():
-    """One service (vehicle v1, no recording) and its port; stopped with SIGTERM at the end."""
+    """One service (vehicles v1 and v2, no recording) and its port; stopped with SIGTERM at the end."""
     port = free_port()
-    svc = start_service(port, config=SCENARIOS / "demo_aircraft.toml", table="service")
+    svc = start_service(
+        port,
+        config=SCENARIOS / "demo_aircraft.toml",
+        table="service",
+        extra=["--vehicle", "v1", "--vehicle", "v2"],
+    )
     yield svc, port
     svc.signal(signal.SIGTERM)
     assert svc.wait(timeout=30) == 0, svc.output()[-3000:]
+
+
+def test_service_health_answers_its_own_key(service):
+    """docs: ``fednav/_services/{zid}/health`` is the service's ServiceHealth; a client that asks it
+    by that key (or ``fednav/_services/**``) gets it, as ``fednav/**`` does, from a service of named
+    vehicles too (it answered ``fednav/**`` only: its queryables covered ``fednav/v1/**``)."""
+    _, port = service
+    with zenoh_client(port) as s:
+        zids = [
+            str(r.ok.key_expr).split("/")[2] for r in s.liveliness().get("fednav/_services/*", timeout=5.0)
+        ]
+        assert len(zids) == 1, zids
+        for selector in (
+            f"fednav/_services/{zids[0]}/health",
+            "fednav/_services/*/health",
+            "fednav/_services/**",
+        ):
+            replies = [r.ok for r in s.get(selector, timeout=5.0) if r.ok is not None]
+            assert [str(r.key_expr) for r in replies] == [f"fednav/_services/{zids[0]}/health"], selector
+            assert str(replies[0].encoding) == "application/json;fednav.ServiceHealth/1"
+            assert json.loads(replies[0].payload.to_bytes())["vehicles"] == ["v1", "v2"]
+        # a query that reaches every queryable of the service (one per vehicle, one for its health):
+        # each resource once, without the client's consolidation (each queryable answered them all)
+        none = zenoh.ConsolidationMode.NONE
+        got = [str(r.ok.key_expr) for r in s.get("fednav/**", timeout=5.0, consolidation=none) if r.ok]
+        assert sorted(got) == [
+            f"fednav/_services/{zids[0]}/health",
+            "fednav/v1/service/config",
+            "fednav/v1/service/status",
+            "fednav/v2/service/config",
+            "fednav/v2/service/status",
+        ], got
 
 
 def test_a_run_stopped_after_its_end_publishes_each_solution_once(tmp_path):

@@ -744,20 +744,26 @@ Reply = tuple[str, bytes, str]
 class QueryServer:
     """Answers queries from a thread with ``answer(query key expression) -> [Reply, ...]``: every
     resource whose concrete key intersects the query's key expression, each under its own key and
-    typed encoding (a wildcard query gets one reply per vehicle and resource)."""
+    typed encoding (a wildcard query gets one reply per vehicle and resource). Each queryable
+    replies only with the resources under its own key expression: a query that reaches several of
+    them (``fednav/**`` and the queryables of vehicles ``v1``, ``v2`` and the service's health)
+    gets each resource once, not once per queryable."""
 
     def __init__(
         self, session: zenoh.Session, key_exprs: list[str], answer: Callable[[zenoh.KeyExpr], list[Reply]]
     ):
         self._qs = [session.declare_queryable(k, zenoh.handlers.FifoChannel(64)) for k in key_exprs]
+        self._scopes = [zenoh.KeyExpr(k) for k in key_exprs]
         self._answer = answer
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="fednav-queries", daemon=True)
         self._thread.start()
 
-    def _reply(self, query) -> None:
+    def _reply(self, query, scope: zenoh.KeyExpr | None = None) -> None:
         try:
             for key, payload, encoding in self._answer(query.key_expr):
+                if scope is not None and not zenoh.KeyExpr(key).intersects(scope):
+                    continue  # another of the service's queryables answers it
                 query.reply(key, payload, encoding=zenoh.Encoding(encoding))
         except Exception as exc:  # a bad query must not kill the server
             try:
@@ -778,11 +784,11 @@ class QueryServer:
                 self._reply(query)
         while not self._stop.is_set():
             got = False
-            for q in self._qs:
+            for q, scope in zip(self._qs, self._scopes, strict=True):
                 query = q.try_recv()
                 while query is not None:
                     got = True
-                    self._reply(query)
+                    self._reply(query, scope)
                     query = q.try_recv()
             if not got:
                 self._stop.wait(0.01)
