@@ -66,6 +66,30 @@ def test_service_health_answers_its_own_key(service):
         ], got
 
 
+def test_a_client_cannot_announce_a_vehicle_in_the_services_name(service):
+    """``fednav/{vehicle}/service/alive`` tokens say which vehicles the service serves (README): a
+    token another client declares there (or under any other output key) reaches no other client,
+    while a publisher's ``sensor/alive`` token is routed as before."""
+    _, port = service
+    with zenoh_client(port) as other, zenoh_client(port) as reader:
+        seen: list[str] = []
+        reader.liveliness().declare_subscriber(
+            "fednav/**", lambda s: seen.append(str(s.key_expr)), history=True
+        )
+        tokens = [
+            other.liveliness().declare_token(k)
+            for k in ("fednav/ghost/service/alive", "fednav/v1/nav/lc/solution", "fednav/ghost/sensor/alive")
+        ]
+        time.sleep(1.5)
+        got = sorted(str(r.ok.key_expr) for r in reader.liveliness().get("fednav/**", timeout=5.0) if r.ok)
+        for t in tokens:
+            t.undeclare()
+    assert "fednav/ghost/sensor/alive" in got and "fednav/ghost/sensor/alive" in seen, got
+    assert "fednav/v1/service/alive" in got, got
+    assert "fednav/ghost/service/alive" not in got + seen, got
+    assert "fednav/v1/nav/lc/solution" not in got + seen, got
+
+
 def test_a_run_stopped_after_its_end_publishes_each_solution_once(tmp_path):
     """A client reading Solutions and the recording of a finished run stopped with SIGTERM: every
     Solution time once (the shutdown's last outputs republished the last epoch's Solution under the

@@ -105,12 +105,14 @@ def egress_drop_rules() -> list[dict]:
 
 
 def outputs_guard(prefix: str) -> dict:
-    """Zenoh access control that refuses, from every remote session, publications and queryables
-    under the service's output keys (``{prefix}/*/nav/**``, ``{prefix}/*/service/**``) over any
-    network link (:data:`NETWORK_LINK_PROTOCOLS`; the service's own shards connect over a private
-    unix socket and publish their vehicles' outputs through it): only the
-    service itself publishes solutions and health and answers status, so a client on the bus cannot
-    spoof them to the other clients routed through the service. Everything else is allowed."""
+    """Zenoh access control that refuses, from every remote session, publications, queryables and
+    liveliness tokens under the service's output keys (``{prefix}/*/nav/**``,
+    ``{prefix}/*/service/**``) over any network link (:data:`NETWORK_LINK_PROTOCOLS`; the service's
+    own shards connect over a private unix socket and publish their vehicles' outputs through it):
+    only the service itself publishes solutions and health, answers status and declares the
+    ``{vehicle}/service/alive`` tokens, so a client on the bus cannot spoof them to the other
+    clients routed through the service. Everything else is allowed (``_services`` and ``_fleet``
+    keys included: the services of a fleet exchange them through each other's sessions)."""
     outputs = [f"{prefix}/*/nav/**", f"{prefix}/*/service/**"]
     return {
         "enabled": True,
@@ -120,7 +122,9 @@ def outputs_guard(prefix: str) -> dict:
                 "id": "no-spoofed-outputs",
                 "permission": "deny",
                 "flows": ["ingress"],
-                "messages": ["put", "delete", "declare_queryable", "reply"],
+                # liveliness tokens too: ``{prefix}/{vehicle}/service/alive`` says which vehicles
+                # a service serves, and a client's token there announced a vehicle nobody served
+                "messages": ["put", "delete", "declare_queryable", "reply", "liveliness_token"],
                 "key_exprs": outputs,
             }
         ],
