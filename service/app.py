@@ -54,7 +54,11 @@ log = logging.getLogger("fednav.service")
 _SHUTDOWN_DRAIN_S = 5.0
 #: control item of a pool worker: the vehicle moved to another service of the fleet
 RETIRE = "__retire__"
+#: vehicle names whose refused messages ServiceHealth counts one by one (unserved_vehicles)
 _MAX_LOGGED_NAMES = 100
+#: (reason, vehicle name) pairs the log names (then one line says it names no more): another
+#: application publishing under 300 names of the prefix wrote 100 warnings in one burst
+_MAX_LOGGED_REFUSALS = 10
 #: a vehicle of a '*' service that has accepted no message yet (only refused ones: another
 #: client's data under a vehicle's sensor keys) is released after this long without input, not
 #: [intake] vehicle_idle_s: foreign names must not hold max_vehicles slots for minutes
@@ -1175,8 +1179,8 @@ class Service:
 
     def _refuse(self, reason: str, vehicle: str) -> None:
         """Data the service does not take for any vehicle: counted (ServiceHealth, status
-        queryable) and logged once per vehicle name and reason (at most ``_MAX_LOGGED_NAMES``
-        names)."""
+        queryable) and logged once per vehicle name and reason (at most ``_MAX_LOGGED_REFUSALS``
+        of them, then one line that says the log names no more)."""
         self.unrouted[reason] += 1
         if reason == "vehicle_limit" and (
             vehicle in self._limit_refused or len(self._limit_refused) < _MAX_LOGGED_NAMES
@@ -1186,8 +1190,16 @@ class Service:
             vehicle in self.unserved or len(self.unserved) < _MAX_LOGGED_NAMES
         ):
             self.unserved[vehicle] += 1
-        if len(self._logged) < _MAX_LOGGED_NAMES and (reason, vehicle) not in self._logged:
+        if (reason, vehicle) not in self._logged and len(self._logged) <= _MAX_LOGGED_REFUSALS:
             self._logged.add((reason, vehicle))
+            if len(self._logged) > _MAX_LOGGED_REFUSALS:
+                log.warning(
+                    "further refused vehicle names are not logged (%d named); ServiceHealth counts "
+                    "them (refused_before_routing, unserved_vehicles): %s",
+                    _MAX_LOGGED_REFUSALS,
+                    getattr(self, "_health_key", f"{self.config.prefix}/_services/*/health"),
+                )
+                return
             served = self.config.vehicles
             hint = (
                 " (publish under a served name, or add it to 'vehicles' in the configuration)"

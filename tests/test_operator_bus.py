@@ -90,6 +90,27 @@ def test_a_client_cannot_announce_a_vehicle_in_the_services_name(service):
     assert "fednav/v1/nav/lc/solution" not in got + seen, got
 
 
+def test_many_foreign_names_do_not_flood_the_log(service):
+    """Another application publishing under 300 names of the prefix: each refused message is counted
+    (ServiceHealth), the log names a few of them and then says, once, that it names no more."""
+    svc, port = service
+    with zenoh_client(port) as other:
+        for i in range(300):
+            other.put(f"fednav/app{i}/data", b"not fednav")
+        time.sleep(1.5)
+        health = [
+            json.loads(r.ok.payload.to_bytes())
+            for r in other.get("fednav/**", timeout=5.0)
+            if r.ok is not None and str(r.ok.key_expr).startswith("fednav/_services/")
+        ]
+    assert health and health[0]["refused_before_routing"]["unserved_vehicle"] >= 300, health
+    assert len(health[0]["unserved_vehicles"]) == 100
+    out = svc.output()
+    named = out.count("unserved_vehicle: data for vehicle 'app")
+    assert 1 <= named <= 10, out[-3000:]
+    assert out.count("further refused vehicle names are not logged") == 1, out[-3000:]
+
+
 def test_a_run_stopped_after_its_end_publishes_each_solution_once(tmp_path):
     """A client reading Solutions and the recording of a finished run stopped with SIGTERM: every
     Solution time once (the shutdown's last outputs republished the last epoch's Solution under the
