@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import json
 import logging
 import math
 import queue
@@ -40,6 +39,7 @@ from fednav.service.messages import (
     Integrity,
     ServiceHealth,
     Solution,
+    Status,
     Truth,
     WireModel,
 )
@@ -71,7 +71,7 @@ REFUSING_WINDOW_S = 10.0
 #: vehicles announced by their publishers (keys.sensors_alive) a fleet member remembers at most
 ANNOUNCED_MAX = 100_000
 #: encodings of the queryables' JSON replies (the samples carry application/json;fednav.<Type>/1)
-STATUS_ENCODING = "application/json;fednav.Status/1"
+STATUS_ENCODING = Status.encoding()
 CONFIG_ENCODING = "application/json;fednav.ServiceConfig/1"
 
 
@@ -1496,16 +1496,15 @@ class Service:
         return out
 
     def _status(self, vehicle: str) -> str:
+        """The status reply (docs/schemas/Status.schema.json)."""
         w = self.workers.get(vehicle)
-        return json.dumps(
-            {
-                "vehicle": vehicle,
-                "running": True,
-                "pipelines": [p.name for p in self.config.pipelines],
-                "health": json.loads(w.health().model_dump_json()) if w else None,
-                "refused_before_routing": dict(self.unrouted),
-            }
-        )
+        return Status(
+            vehicle=vehicle,
+            running=True,
+            pipelines=[p.name for p in self.config.pipelines],
+            health=w.health() if w else None,
+            refused_before_routing=dict(self.unrouted),
+        ).model_dump_json()
 
     def stop(self) -> None:
         if self.session is None:

@@ -721,6 +721,23 @@ class Health(WireModel):
 SatId = Annotated[str, Field(min_length=1, max_length=16)]
 
 
+class Status(WireModel):
+    """Reply of the queryable ``{prefix}/{vehicle}/service/status``: the vehicle's state now."""
+
+    vehicle: str
+    """The vehicle the reply is about"""
+    running: bool
+    """True: the service that answers is running"""
+    pipelines: list[str]
+    """The service's configured pipelines (each publishes under ``{prefix}/{vehicle}/nav/{pipeline}/...``)"""
+    health: Health | None = None
+    """The vehicle's Health as it stands (null before the vehicle's first message)"""
+    refused_before_routing: dict[str, int] = Field(
+        default_factory=dict,
+        description="Messages the service refused before any vehicle, by reason (as in ServiceHealth)",
+    )
+
+
 class HandoverState(WireModel):
     """A served vehicle's pipeline state for another service of its fleet (``[fleet] sharding =
     'rendezvous'``, key ``{prefix}/_fleet/{group}/to/{member}/state/{vehicle}/{pipeline}``, about
@@ -902,6 +919,7 @@ ALL_MESSAGES: list[type[WireModel]] = [
     Alignment,
     AlignmentTruth,
     ServiceHealth,
+    Status,
     HandoverState,
 ]
 

@@ -66,6 +66,30 @@ def test_service_health_answers_its_own_key(service):
         ], got
 
 
+def test_every_reply_has_a_shipped_schema(service):
+    """A client in another language decodes each reply by the schema its encoding names
+    (``application/json;fednav.<Type>/1`` -> docs/schemas/<Type>.schema.json): the status reply's
+    ``Status`` had no schema there."""
+    from pathlib import Path
+
+    from jsonschema import Draft202012Validator
+
+    folder = Path(__file__).resolve().parents[1] / "docs" / "schemas"
+    _, port = service
+    with zenoh_client(port) as s:
+        replies = [r.ok for r in s.get("fednav/**", timeout=5.0) if r.ok is not None]
+    kinds = {}
+    for r in replies:
+        kind = str(r.encoding).split(";fednav.")[1].split("/")[0]
+        kinds[kind] = str(r.key_expr)
+        if kind == "ServiceConfig":  # the service's configuration: service/config.py (README)
+            continue
+        path = folder / f"{kind}.schema.json"
+        assert path.exists(), f"{r.key_expr}: {r.encoding} names no shipped schema"
+        Draft202012Validator(json.loads(path.read_text())).validate(json.loads(r.payload.to_bytes()))
+    assert {"Status", "ServiceHealth", "ServiceConfig"} <= set(kinds), kinds
+
+
 def test_a_client_cannot_announce_a_vehicle_in_the_services_name(service):
     """``fednav/{vehicle}/service/alive`` tokens say which vehicles the service serves (README): a
     token another client declares there (or under any other output key) reaches no other client,
