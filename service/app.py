@@ -1482,7 +1482,7 @@ class Service:
         for v in vehicles:
             resources = {
                 keys.service(v, "status", prefix): (lambda v=v: self._status(v), STATUS_ENCODING),
-                keys.service(v, "config", prefix): (self.config.model_dump_json, CONFIG_ENCODING),
+                keys.service(v, "config", prefix): (self._effective_config_json, CONFIG_ENCODING),
             }
             for (vehicle, pipeline), sol in latest:
                 if vehicle == v:
@@ -1494,6 +1494,22 @@ class Service:
                 if intersects(key, query_ke):
                     out.append((key, payload().encode(), encoding))
         return out
+
+    def _effective_config_json(self) -> str:
+        """The configuration reply: the service's configuration with the Zenoh endpoints and
+        config file it really uses (a command line's ``--listen``, ``--connect`` and
+        ``--zenoh-config`` replace the file's; the reply used to show the file's)."""
+        z: dict = {}
+        if self.listen is not None:
+            z["listen"] = list(self.listen)
+        if self.connect is not None:
+            z["connect"] = list(self.connect)
+        if self.zenoh_config_file is not None:
+            z["config_file"] = Path(self.zenoh_config_file)
+        cfg = self.config
+        if z:
+            cfg = cfg.model_copy(update={"zenoh": cfg.zenoh.model_copy(update=z)})
+        return cfg.model_dump_json()
 
     def _status(self, vehicle: str) -> str:
         """The status reply (docs/schemas/Status.schema.json)."""

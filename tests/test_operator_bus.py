@@ -90,6 +90,17 @@ def test_every_reply_has_a_shipped_schema(service):
     assert {"Status", "ServiceHealth", "ServiceConfig"} <= set(kinds), kinds
 
 
+def test_the_config_reply_names_the_endpoints_the_service_uses(service):
+    """A service started with ``--listen`` (as every test's) replies with that endpoint in its
+    configuration, not the config file's default ``tcp/127.0.0.1:7447``."""
+    _, port = service
+    with zenoh_client(port) as s:
+        replies = [r.ok for r in s.get("fednav/v1/service/config", timeout=5.0) if r.ok is not None]
+    assert replies, "no configuration reply"
+    zc = json.loads(replies[0].payload.to_bytes())["zenoh"]
+    assert zc["listen"] == [f"tcp/127.0.0.1:{port}"], zc
+
+
 def test_a_client_cannot_announce_a_vehicle_in_the_services_name(service):
     """``fednav/{vehicle}/service/alive`` tokens say which vehicles the service serves (README): a
     token another client declares there (or under any other output key) reaches no other client,
