@@ -741,6 +741,9 @@ class Service:
         #: intake hands those shards' vehicles' inputs (service.transport.shard_feed)
         self.feeds = feeds or {}
         self._feed_of: dict[str, object | None] = {}
+        #: shard 0 of local shards in a fleet group: each shard's Zenoh id -> its index (the
+        #: supervisor's ShardSupervisor.by_zid, kept up to date as shards start and restart)
+        self.shard_members: dict[str, int] = {}
         #: a shard 1..K-1: its inputs come from shard 0 through this file descriptor, not Zenoh
         self.feed_fd = feed_fd
         self._on_feed_end = on_feed_end
@@ -1259,6 +1262,15 @@ class Service:
         if len(parts) < 3 or parts[2] in ("nav", "service"):
             return None  # outputs (the prefix's own, other shards' included): _route ignores them
         vehicle = parts[1]
+        if self.fleet_view is not None:
+            # in a fleet group each local shard is a member under its own Zenoh id: a vehicle goes
+            # to the shard the fleet gives it (the local hash would send some of them to a shard
+            # that does not own them, while their owner never hears them); not cached: ownership
+            # changes with the members
+            index = self.shard_members.get(self.fleet_view.owner(vehicle))
+            if index is None or not keys.valid_name(vehicle) or vehicle in ("_services", "_fleet"):
+                return None  # this shard's (or another member's, or a name _route refuses)
+            return self.feeds.get(index)
         try:
             return self._feed_of[vehicle]
         except KeyError:
@@ -1274,8 +1286,8 @@ class Service:
     def shard_states(self, index: int) -> list[list]:
         """Shard 0: the latest handover states of local shard ``index``'s vehicles, as feed items
         (the first frame of a restarted shard's new pipe)."""
-        if self.fleet_states is None or self.shard_group is None:
-            return []
+        if self.fleet_states is None or self.shard_group is None or self.fleet_view is not None:
+            return []  # (in a fleet group a restarted shard is a new member: the fleet hands it states)
         now, k, prefix = time.monotonic(), self.shard[1], self.config.prefix
         return [
             [now, keys.fleet_state(self.shard_group, vehicle, pipeline, prefix), payload]

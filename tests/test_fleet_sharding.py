@@ -551,3 +551,60 @@ def test_handover_states_go_to_the_member_that_takes_the_vehicle_over(tmp_path):
         spy.close()
         stop_all(procs)
         bus.close()
+
+
+def test_a_member_with_local_shards_serves_its_share_once(tmp_path):
+    """A fleet member run with ``--shards 2`` (SCALING.md: machines of 8 cores with ``--shards 8``,
+    all in one fleet group) beside a plain member: every vehicle is served, once. Each shard is a
+    member of the group under its own Zenoh id; shard 0, which alone receives the inputs, hands a
+    vehicle's to the shard the fleet gives it. Before, shard 0 handed them by the local hash
+    instead, and a vehicle whose two hashes disagreed reached a shard that did not own it (about
+    a third of the fleet unserved, each "published, not served" in ``fednav-fleet status``). When
+    the plain member stops, the shards take its vehicles, again once each."""
+    n = 12
+    names = vehicle_names(n)
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 0.5\n'
+    )
+    port = free_port()
+    procs = [_router(port)]
+    bus = FleetWatch(port)
+
+    def served() -> list[str]:
+        return sorted(sum(bus.assignment(time.monotonic() - 1.5).values(), []))
+
+    try:
+        plain = _service(port, cfg, split_zids(names, 1)[0], tmp_path)
+        procs.append(plain)
+        sharded = Proc(
+            [sys.executable, "-m", "fednav.service", "--config", str(cfg), "--no-record", "--shards", "2"]
+            + ["--connect", f"tcp/127.0.0.1:{port}"],
+            "fednav-service --shards 2",
+        )
+        procs.append(sharded)
+        assert sharded.wait_for("fednav-service ready", timeout=60), sharded.output()
+        procs.append(_fleet_sim(port, "--vehicles", str(n)))
+        assert _wait(lambda: served() == names and len(bus.assignment(time.monotonic() - 1.5)) == 3, 30), (
+            bus.assignment(time.monotonic() - 1.5),
+            sharded.output()[-3000:],
+        )
+        code, snap = _status(port)
+        assert code == 0, snap["problems"]
+        assert sorted(v["vehicle"] for v in snap["vehicles"] if v["service"]) == names, snap["vehicles"]
+        # the plain member stops: the two shards serve the whole fleet, each vehicle once
+        plain.signal(signal.SIGTERM)
+        assert plain.wait(timeout=60) == 0, plain.output()
+        assert _wait(lambda: served() == names and len(bus.assignment(time.monotonic() - 1.5)) == 2, 20), (
+            bus.assignment(time.monotonic() - 1.5)
+        )
+        t0 = {v: bus.last_t(v) for v in names}
+        assert _wait(lambda: all(bus.last_t(v) > t0[v] + 1.0 for v in names), 10), {
+            v: bus.last_t(v) - t0[v] for v in names
+        }
+        code, snap = _status(port)
+        assert code == 0, snap["problems"]
+    finally:
+        stop_all(procs)
+        bus.close()
