@@ -487,12 +487,27 @@ class VehicleWorker:
         return True
 
     def final_outputs(self) -> None:
+        """The vehicle's last Solutions (at its last IMU time) and Health, as it leaves this service
+        (stopped, released idle); not a Solution already published at that time (a stream whose
+        last IMU sample fell on the output grid), which would reach readers twice under one ``t``."""
         try:
-            if self.engine.initialised:
-                self.engine.emit_solutions()
+            eng = self.engine
+            if eng.initialised and not self._published_at(eng.last_imu_t):
+                eng.emit_solutions()
             self.publish_health()
         except Exception:
             log.exception("vehicle %s: final outputs failed", self.vehicle)
+
+    def _published_at(self, t: float | None) -> bool:
+        """Whether every running pipeline's last published Solution is at ``t`` or later."""
+        if t is None:
+            return False
+        last = self.sink.last_solution
+        for p in self.engine.pipelines:
+            sol = None if p.failed else last.get((self.vehicle, p.name))
+            if not p.failed and (sol is None or sol.t < t - 1e-6):
+                return False
+        return True
 
 
 def json_imu_runs(routed: list) -> list:

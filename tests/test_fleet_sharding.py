@@ -608,3 +608,28 @@ def test_a_member_with_local_shards_serves_its_share_once(tmp_path):
     finally:
         stop_all(procs)
         bus.close()
+
+
+def test_a_member_stopped_with_sigterm_publishes_no_solution_twice(tmp_path):
+    """A member stopped with SIGTERM publishes its vehicles' last Solutions as it goes (README: "last
+    solutions published"), but not one it has already published: with ImuBatches of 10 at 100 Hz
+    every batch ends on the 10 Hz output grid, and the stop republished the Solution of the last
+    batch's end under the same ``t``, one duplicate per moved vehicle on the bus."""
+    names = vehicle_names(N)
+    procs, bus, ids, a, b = _two_members(tmp_path, 0.5, "--imu-rate", "100")
+    try:
+        time.sleep(5.0)  # past the joining period: every vehicle served, Solutions flowing
+        asg = bus.assignment(time.monotonic() - 1.5)
+        moved = asg[ids[0]]
+        assert moved and sorted(moved + asg[ids[1]]) == names, asg
+        a.signal(signal.SIGTERM)
+        assert a.wait(timeout=60) == 0, a.output()
+        assert _wait(lambda: all(f"vehicle {v} handed over from service" in b.output() for v in moved), 15), (
+            b.output()[-3000:]
+        )
+        t0 = {v: bus.last_t(v) for v in moved}
+        assert _wait(lambda: all(bus.last_t(v) > t0[v] + 1.0 for v in moved), 10)
+        assert {v: bus.duplicates(v, 0.0) for v in names} == dict.fromkeys(names, 0)
+    finally:
+        stop_all(procs)
+        bus.close()
