@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from fednav.service import keys
+from fednav.service.config import navigation_settings
 from fednav.service.transport.rerun_paths import GPS_EPOCH_UNIX_S, gps_minus_utc_s
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
@@ -134,11 +135,21 @@ def config_difference(cfg: dict, ref: dict) -> str:
     if [(n, p.get("kind")) for n, p in mine.items()] != [(n, p.get("kind")) for n, p in theirs.items()]:
         return f"pipelines {_pipelines_text(cfg)} vs {_pipelines_text(ref)}"
     changed = sorted(n for n in mine if mine[n] != theirs[n])
-    return f"settings of pipeline(s) {', '.join(changed)} differ" if changed else ""
+    words = [f"settings of pipeline(s) {', '.join(changed)} differ"] if changed else []
+    # the rest of what changes a vehicle's navigation (and the fleet group's digest): IMU model,
+    # initialisation, solution rate, major interval, the intake's acceptance rules
+    nav, nav_ref = navigation_settings(cfg), navigation_settings(ref)
+    others = [k for k in nav if k not in ("prefix", "pipelines") and nav[k] != nav_ref[k]]
+    if others:
+        words.append(f"{', '.join(others)} differ")
+    return "; ".join(words)
 
 
 def _signature(cfg: dict) -> str:
-    return json.dumps({"prefix": cfg.get("prefix"), "pipelines": cfg.get("pipelines")}, sort_keys=True)
+    """What services sharing a fleet must agree on (config.navigation_settings: until 2026-12-01
+    only the prefix and the pipelines, and a service with another IMU grade and solution rate,
+    in a fleet group of its own, was shown with the configuration "same")."""
+    return json.dumps(navigation_settings(cfg), sort_keys=True)
 
 
 def _pipeline_row(health: dict | None, sol: dict | None, name: str, now_gps: float) -> dict:
@@ -231,6 +242,8 @@ class Fleet:
                     # 'owned'): how many it subscribes to (None: every vehicle's inputs)
                     "subscribed": d.get("subscribed_vehicles"),
                     "active": len(d.get("active_vehicles") or []),
+                    # a fleet member's group ([fleet] group, or its digest): None for others
+                    "fleet_group": d.get("fleet_group"),
                 }
         services: dict[str, dict] = {
             z: {"zid": z, "alive": True, "vehicles": [], "pipelines": [], "received": 0}
@@ -330,6 +343,18 @@ class Fleet:
                     why = config_difference(self.configs[zid], self.configs[ref]) or "configuration differs"
                     services[zid]["config_differs"] = why
                     problems.append(f"service {zid}: configuration differs from service {ref}'s: {why}")
+        # fleet members of different groups share nothing: each serves every vehicle it hears
+        # (a typo in [fleet] group, or navigation settings that differ: the default group digests them)
+        groups: dict[str, list[str]] = {}
+        for zid, svc in services.items():
+            if svc.setdefault("fleet_group", None):
+                groups.setdefault(svc["fleet_group"], []).append(zid)
+        if len(groups) > 1:
+            named = "; ".join(f"{g}: {', '.join(zs)}" for g, zs in sorted(groups.items()))
+            problems.append(
+                f"services in {len(groups)} fleet groups do not share the fleet (each serves every "
+                f"vehicle it hears; [fleet] group, or the navigation settings it digests): {named}"
+            )
         for o in others:
             problems.append(f"service {o['zid']} runs under another prefix {o['prefix']!r} (not listed here)")
         if not services:

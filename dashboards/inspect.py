@@ -59,8 +59,8 @@ class Series:
 
 
 # --- reading ---------------------------------------------------------------------------------------
-def read_series(path: str | Path) -> tuple[dict[str, Any], dict[str, Series]]:
-    """Read the first recording of an .rrd: (store info, entity path -> Series).
+def read_series(path: str | Path, timeline: str = paths.TIMELINE) -> tuple[dict[str, Any], dict[str, Series]]:
+    """Read the first recording of an .rrd: (store info, entity path -> Series on ``timeline``).
 
     Scalars keep their first instance (the +3σ series of bounds); StateChange / TextLog their text.
     """
@@ -89,13 +89,13 @@ def read_series(path: str | Path) -> tuple[dict[str, Any], dict[str, Series]]:
     v_parts: dict[str, list[Any]] = defaultdict(list)
     kind: dict[str, str] = {}
     try:
-        stream = reader.stream(store=store).filter(has_timeline=paths.TIMELINE, components=list(_COMPONENTS))
+        stream = reader.stream(store=store).filter(has_timeline=timeline, components=list(_COMPONENTS))
         for chunk in stream:
             batch: pa.RecordBatch = chunk.to_record_batch()
             names = batch.schema.names
-            if paths.TIMELINE not in names:
+            if timeline not in names:
                 continue
-            t = pc.cast(batch.column(paths.TIMELINE), pa.int64()).to_numpy(zero_copy_only=False)
+            t = pc.cast(batch.column(timeline), pa.int64()).to_numpy(zero_copy_only=False)
             for comp in _COMPONENTS:
                 if comp not in names:
                     continue
@@ -940,10 +940,93 @@ def summarize(info: dict[str, Any], data: dict[str, Series], file: str, config=N
     return result
 
 
+#: the application id of ``fednav-fleet record``'s recordings (dashboards/fleet.py), on its own timeline
+FLEET_APPLICATION = "fednav-fleet"
+FLEET_TIMELINE = "wall_time"
+
+
+def summarize_fleet(info: dict[str, Any], data: dict[str, Series], file: str) -> dict[str, Any]:
+    """Summary of a ``fednav-fleet record`` file (its ``wall_time`` timeline): the snapshots, each
+    vehicle's status changes (``/status/{vehicle}``, "no answer" while no service answered for it)
+    and positions, each service's vehicles (``/load/vehicles/{zid}``; a last 0: it left)."""
+    times = sorted({int(t) for s in data.values() for t in s.t_ns})
+    vehicles: dict[str, dict[str, Any]] = {}
+    services: dict[str, dict[str, Any]] = {}
+    for ent, s in sorted(data.items()):
+        parts = [p for p in ent.strip("/").split("/") if p]
+        if len(parts) == 2 and parts[0] == "status" and len(s):
+            states = [str(x) for x in s.values]
+            changes = [x for i, x in enumerate(states) if i == 0 or x != states[i - 1]]
+            vehicles.setdefault(parts[1], {}).update(final_status=states[-1], statuses=changes)
+        elif len(parts) == 2 and parts[0] == "enu":
+            vehicles.setdefault(parts[1], {})["positions"] = len(s)
+        elif len(parts) == 3 and parts[:2] == ["load", "vehicles"] and len(s):
+            vals = np.asarray(s.values, dtype=float)
+            services[parts[2]] = {
+                "final_vehicles": int(vals[-1]),
+                "max_vehicles": int(vals.max()),
+                "left": bool(vals[-1] == 0 and len(vals) > 1),
+            }
+    for v in vehicles.values():
+        v.setdefault("positions", 0)
+        v.setdefault("final_status", None)
+        v.setdefault("statuses", [])
+    return {
+        "file": file,
+        "kind": "fleet",
+        "recording_id": info["recording_id"],
+        "application_id": info["application_id"],
+        "has_blueprint": info["blueprints"] > 0,
+        "snapshots": len(times),
+        "wall_start": times[0] / 1e9 if times else None,
+        "wall_end": times[-1] / 1e9 if times else None,
+        "duration_s": (times[-1] - times[0]) / 1e9 if times else 0.0,
+        "vehicles": vehicles,
+        "services": services,
+    }
+
+
+def render_fleet_text(s: dict[str, Any]) -> str:
+    from datetime import UTC, datetime
+
+    lines = [
+        f"file: {s['file']}",
+        f"recording: {s['recording_id']} (application {s['application_id']}), "
+        f"blueprint embedded: {'yes' if s['has_blueprint'] else 'no'}",
+    ]
+    if not s["snapshots"]:
+        lines.append("fleet recording (fednav-fleet record): no snapshot")
+        return "\n".join(lines)
+
+    def iso(t: float) -> str:
+        return datetime.fromtimestamp(t, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+    lines.append(
+        f"fleet recording (fednav-fleet record): {s['snapshots']} snapshots, wall time "
+        f"{iso(s['wall_start'])} .. {iso(s['wall_end'])} ({s['duration_s']:.1f} s)"
+    )
+    lines.append(f"vehicles ({len(s['vehicles'])}):")
+    width = max(len(v) for v in s["vehicles"]) if s["vehicles"] else 0
+    for v, d in sorted(s["vehicles"].items()):
+        lines.append(
+            f"  {v:<{width}}  final {d['final_status'] or '-'}; "
+            f"statuses {' -> '.join(d['statuses']) or '-'}; {d['positions']} positions"
+        )
+    lines.append(f"services ({len(s['services'])}):")
+    for z, d in sorted(s["services"].items()):
+        left = " (left)" if d["left"] else ""
+        lines.append(f"  {z}  vehicles at the end {d['final_vehicles']}{left}, at most {d['max_vehicles']}")
+    return "\n".join(lines)
+
+
 def inspect_rrd(path: str | Path, config=None) -> dict[str, Any]:
-    """Summary of a fednav .rrd (see the module docstring). ``config``: the service configuration
+    """Summary of a fednav .rrd (see the module docstring): a service's recording, or a
+    ``fednav-fleet record`` file (:func:`summarize_fleet`). ``config``: the service configuration
     of the run (a ServiceConfig), when known. Raises :class:`InspectError`."""
     info, data = read_series(path)
+    if info["application_id"] == FLEET_APPLICATION and not data:
+        info, data = read_series(path, FLEET_TIMELINE)
+        return summarize_fleet(info, data, str(path))
     return summarize(info, data, str(path), config)
 
 
@@ -1161,7 +1244,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(summary, indent=2, allow_nan=False))
     else:
-        print(render_text(summary))
+        print(render_fleet_text(summary) if summary.get("kind") == "fleet" else render_text(summary))
     return 0
 
 

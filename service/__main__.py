@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fednav-service: [ros2] is configured but {exc}", file=sys.stderr)
             return 2
     from fednav.service.app import Service
-    from fednav.service.shards import READY_TEXT, ShardSupervisor, parse_shard
+    from fednav.service.shards import READY_TEXT, READY_ZID, ShardSupervisor, parse_shard
 
     listen = args.listen
     if args.connect and not args.listen:
@@ -167,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     if supervisor is not None:
         supervisor.states_for = svc.shard_states
+        svc.shard_members = supervisor.by_zid
     if supervisor is not None and not args.no_record:
         supervisor.rrd = Path(svc.rrd_path)  # each shard's recording beside shard 0's
     signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -190,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
 
     tune_gc()
     if args.shard:
-        print(READY_TEXT.format(i=shard[0], k=shard[1]), flush=True)
+        print(READY_TEXT.format(i=shard[0], k=shard[1]) + READY_ZID.format(zid=svc.session.zid()), flush=True)
     if supervisor is not None and not supervisor.start():
         print("fednav-service: a shard did not start (see its output above)", file=sys.stderr)
         supervisor.stop()

@@ -491,27 +491,25 @@ class VehicleWorker:
         return True
 
     def final_outputs(self) -> None:
-        """At shutdown or release: the Solutions at the vehicle's last time, unless its last output
-        epoch was that time (published already: again under the same time, a client saw the epoch
-        twice and fednav-inspect read the recording as two runs interleaved), and its Health."""
+        """The vehicle's last Solutions (at its last IMU time) and Health, as it leaves this service
+        (stopped, released idle); not a Solution already published at that time (a stream whose
+        last IMU sample fell on the output grid), which would reach readers twice under one ``t``."""
         try:
-            if self.engine.initialised and not self._outputs_current():
-                self.engine.emit_solutions()
+            eng = self.engine
+            if eng.initialised and not self._published_at(eng.last_imu_t):
+                eng.emit_solutions()
             self.publish_health()
         except Exception:
             log.exception("vehicle %s: final outputs failed", self.vehicle)
 
-    def _outputs_current(self) -> bool:
-        """Whether every running pipeline's last published Solution is at the vehicle's last IMU time."""
-        t = self.engine.last_imu_t
+    def _published_at(self, t: float | None) -> bool:
+        """Whether every running pipeline's last published Solution is at ``t`` or later."""
         if t is None:
             return False
         last = self.sink.last_solution
         for p in self.engine.pipelines:
-            if p.failed:
-                continue
-            sol = last.get((self.vehicle, p.name))
-            if sol is None or abs(sol.t - t) > 1e-6:
+            sol = None if p.failed else last.get((self.vehicle, p.name))
+            if not p.failed and (sol is None or sol.t < t - 1e-6):
                 return False
         return True
 
@@ -762,6 +760,9 @@ class Service:
         #: intake hands those shards' vehicles' inputs (service.transport.shard_feed)
         self.feeds = feeds or {}
         self._feed_of: dict[str, object | None] = {}
+        #: shard 0 of local shards in a fleet group: each shard's Zenoh id -> its index (the
+        #: supervisor's ShardSupervisor.by_zid, kept up to date as shards start and restart)
+        self.shard_members: dict[str, int] = {}
         #: a shard 1..K-1: its inputs come from shard 0 through this file descriptor, not Zenoh
         self.feed_fd = feed_fd
         self._on_feed_end = on_feed_end
@@ -1290,6 +1291,15 @@ class Service:
         if len(parts) < 3 or parts[2] in ("nav", "service"):
             return None  # outputs (the prefix's own, other shards' included): _route ignores them
         vehicle = parts[1]
+        if self.fleet_view is not None:
+            # in a fleet group each local shard is a member under its own Zenoh id: a vehicle goes
+            # to the shard the fleet gives it (the local hash would send some of them to a shard
+            # that does not own them, while their owner never hears them); not cached: ownership
+            # changes with the members
+            index = self.shard_members.get(self.fleet_view.owner(vehicle))
+            if index is None or not keys.valid_name(vehicle) or vehicle in ("_services", "_fleet"):
+                return None  # this shard's (or another member's, or a name _route refuses)
+            return self.feeds.get(index)
         try:
             return self._feed_of[vehicle]
         except KeyError:
@@ -1305,8 +1315,8 @@ class Service:
     def shard_states(self, index: int) -> list[list]:
         """Shard 0: the latest handover states of local shard ``index``'s vehicles, as feed items
         (the first frame of a restarted shard's new pipe)."""
-        if self.fleet_states is None or self.shard_group is None:
-            return []
+        if self.fleet_states is None or self.shard_group is None or self.fleet_view is not None:
+            return []  # (in a fleet group a restarted shard is a new member: the fleet hands it states)
         now, k, prefix = time.monotonic(), self.shard[1], self.config.prefix
         return [
             [now, keys.fleet_state(self.shard_group, vehicle, pipeline, prefix), payload]

@@ -35,6 +35,8 @@ log = logging.getLogger("fednav.service")
 
 RESTART_BACKOFF_S = 2.0
 READY_TEXT = "fednav-service shard {i}/{k} ready"
+#: what follows READY_TEXT on a shard's ready line: its Zenoh id (ShardSupervisor.by_zid)
+READY_ZID = " zid={zid}"
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -78,6 +80,10 @@ class ShardSupervisor:
         #: (shard index) -> the latest states of its vehicles (Service.shard_states), handed to a
         #: restarted shard first: its vehicles go on from where the dead shard left them
         self.states_for = None
+        #: the Zenoh id of each running shard 1..K-1 (from its ready line) -> its index: in a fleet
+        #: group ([fleet] sharding = 'rendezvous') each shard is a member under its own id, and
+        #: shard 0 hands a vehicle's inputs to the shard the fleet gives it (Service._forward)
+        self.by_zid: dict[str, int] = {}
 
     def _command(self, i: int) -> list[str]:
         args = [sys.executable, "-m", "fednav.service", *self._argv, "--shard", f"{i}/{self.count}"]
@@ -109,6 +115,11 @@ class ShardSupervisor:
         def relay() -> None:  # the child's output on ours, each line marked with its shard
             for line in p.stdout:
                 if text in line:
+                    zid = line.split(" zid=", 1)[1].split()[0] if " zid=" in line else None
+                    if zid:  # (the restarted shard's new id replaces the old one)
+                        for z in [z for z, j in self.by_zid.items() if j == i]:
+                            self.by_zid.pop(z, None)
+                        self.by_zid[zid] = i
                     ready.set()
                 sys.stdout.write(f"[shard {i}] {line}")
                 sys.stdout.flush()
@@ -180,4 +191,4 @@ def _strip(argv: list[str]) -> list[str]:
     return out
 
 
-__all__ = ["READY_TEXT", "ShardSupervisor", "parse_shard", "shard_rrd"]
+__all__ = ["READY_TEXT", "READY_ZID", "ShardSupervisor", "parse_shard", "shard_rrd"]

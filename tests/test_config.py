@@ -108,3 +108,16 @@ def test_the_fleet_group_is_what_changes_navigation():
         {"prefix": "other"},
     ):
         assert group(other) != base, other
+
+
+def test_the_shipped_fleet_member_config_shares_the_fleet():
+    """docs/fleet.md's service command: two services started with the role's config must split the
+    fleet (a rendezvous member, a client of the router), not each serve every vehicle (the page's
+    command had only the Zenoh file, service.json5, which leaves a service static: two of them
+    served every vehicle twice)."""
+    member = config.load(EXAMPLE.parent / "fleet" / "member.toml")
+    assert member.vehicles == ["*"] and member.fleet.sharding == "rendezvous"
+    assert member.zenoh.mode == "client" and member.zenoh.listen == []
+    assert member.zenoh.connect == ["tcp/127.0.0.1:7447"]
+    docs = (EXAMPLE.parents[2] / "docs" / "fleet.md").read_text()
+    assert "fednav-service --config service/configs/fleet/member.toml" in docs

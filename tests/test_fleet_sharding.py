@@ -551,3 +551,85 @@ def test_handover_states_go_to_the_member_that_takes_the_vehicle_over(tmp_path):
         spy.close()
         stop_all(procs)
         bus.close()
+
+
+def test_a_member_with_local_shards_serves_its_share_once(tmp_path):
+    """A fleet member run with ``--shards 2`` (SCALING.md: machines of 8 cores with ``--shards 8``,
+    all in one fleet group) beside a plain member: every vehicle is served, once. Each shard is a
+    member of the group under its own Zenoh id; shard 0, which alone receives the inputs, hands a
+    vehicle's to the shard the fleet gives it. Before, shard 0 handed them by the local hash
+    instead, and a vehicle whose two hashes disagreed reached a shard that did not own it (about
+    a third of the fleet unserved, each "published, not served" in ``fednav-fleet status``). When
+    the plain member stops, the shards take its vehicles, again once each."""
+    n = 12
+    names = vehicle_names(n)
+    cfg = tmp_path / "svc.toml"
+    cfg.write_text(
+        'vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n'
+        '[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\nhandover_period_s = 0.5\n'
+    )
+    port = free_port()
+    procs = [_router(port)]
+    bus = FleetWatch(port)
+
+    def served() -> list[str]:
+        return sorted(sum(bus.assignment(time.monotonic() - 1.5).values(), []))
+
+    try:
+        plain = _service(port, cfg, split_zids(names, 1)[0], tmp_path)
+        procs.append(plain)
+        sharded = Proc(
+            [sys.executable, "-m", "fednav.service", "--config", str(cfg), "--no-record", "--shards", "2"]
+            + ["--connect", f"tcp/127.0.0.1:{port}"],
+            "fednav-service --shards 2",
+        )
+        procs.append(sharded)
+        assert sharded.wait_for("fednav-service ready", timeout=60), sharded.output()
+        procs.append(_fleet_sim(port, "--vehicles", str(n)))
+        assert _wait(lambda: served() == names and len(bus.assignment(time.monotonic() - 1.5)) == 3, 30), (
+            bus.assignment(time.monotonic() - 1.5),
+            sharded.output()[-3000:],
+        )
+        code, snap = _status(port)
+        assert code == 0, snap["problems"]
+        assert sorted(v["vehicle"] for v in snap["vehicles"] if v["service"]) == names, snap["vehicles"]
+        # the plain member stops: the two shards serve the whole fleet, each vehicle once
+        plain.signal(signal.SIGTERM)
+        assert plain.wait(timeout=60) == 0, plain.output()
+        assert _wait(lambda: served() == names and len(bus.assignment(time.monotonic() - 1.5)) == 2, 20), (
+            bus.assignment(time.monotonic() - 1.5)
+        )
+        t0 = {v: bus.last_t(v) for v in names}
+        assert _wait(lambda: all(bus.last_t(v) > t0[v] + 1.0 for v in names), 10), {
+            v: bus.last_t(v) - t0[v] for v in names
+        }
+        code, snap = _status(port)
+        assert code == 0, snap["problems"]
+    finally:
+        stop_all(procs)
+        bus.close()
+
+
+def test_a_member_stopped_with_sigterm_publishes_no_solution_twice(tmp_path):
+    """A member stopped with SIGTERM publishes its vehicles' last Solutions as it goes (README: "last
+    solutions published"), but not one it has already published: with ImuBatches of 10 at 100 Hz
+    every batch ends on the 10 Hz output grid, and the stop republished the Solution of the last
+    batch's end under the same ``t``, one duplicate per moved vehicle on the bus."""
+    names = vehicle_names(N)
+    procs, bus, ids, a, b = _two_members(tmp_path, 0.5, "--imu-rate", "100")
+    try:
+        time.sleep(5.0)  # past the joining period: every vehicle served, Solutions flowing
+        asg = bus.assignment(time.monotonic() - 1.5)
+        moved = asg[ids[0]]
+        assert moved and sorted(moved + asg[ids[1]]) == names, asg
+        a.signal(signal.SIGTERM)
+        assert a.wait(timeout=60) == 0, a.output()
+        assert _wait(lambda: all(f"vehicle {v} handed over from service" in b.output() for v in moved), 15), (
+            b.output()[-3000:]
+        )
+        t0 = {v: bus.last_t(v) for v in moved}
+        assert _wait(lambda: all(bus.last_t(v) > t0[v] + 1.0 for v in moved), 10)
+        assert {v: bus.duplicates(v, 0.0) for v in names} == dict.fromkeys(names, 0)
+    finally:
+        stop_all(procs)
+        bus.close()

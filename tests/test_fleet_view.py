@@ -27,6 +27,7 @@ import pyarrow.compute as pc
 import pytest
 import zenoh
 
+from fednav.dashboards import fleet as fleet_mod
 from fednav.dashboards.fleet import config_difference
 from fednav.simulators.processes import Proc, free_port
 
@@ -243,6 +244,48 @@ def test_config_difference_in_words():
     assert config_difference({"prefix": "fednav", "pipelines": [changed]}, ref) == (
         "settings of pipeline(s) lc differ"
     )
+
+
+def test_config_difference_names_the_navigation_settings_beyond_the_pipelines():
+    """The settings that put services in different fleet groups (config.navigation_settings: the IMU
+    model, the solution rate, ...) are a difference too: a service with another IMU grade and 1 Hz
+    solutions was shown with the configuration "same" (and its vehicles "served twice")."""
+    lc = {"name": "lc", "kind": "loosely_coupled"}
+    ref = {
+        "prefix": "fednav",
+        "pipelines": [lc],
+        "imu": {"grade": "tactical"},
+        "output": {"solution_rate_hz": 10},
+    }
+    other = dict(ref, imu={"grade": "consumer"}, output={"solution_rate_hz": 1})
+    assert config_difference(other, ref) == "imu, solution_rate_hz differ"
+    assert config_difference(dict(ref, vehicles=["x"], zenoh={"mode": "peer"}), ref) == ""  # not navigation
+    assert fleet_mod._signature(other) != fleet_mod._signature(ref)
+
+
+def test_status_names_services_of_different_fleet_groups(tmp_path):
+    """Two fleet members whose ``[fleet] group`` differs (a typo) do not share the fleet: each serves
+    every vehicle. fednav-fleet status names the groups (not only each vehicle "served twice", with
+    both configurations "same")."""
+    member = 'vehicles = ["*"]\n[zenoh]\nmode = "client"\n[fleet]\nsharding = "rendezvous"\n'
+    (tmp_path / "a.toml").write_text(member)
+    (tmp_path / "b.toml").write_text(member + 'group = "fleet-typo"\n')
+    port = free_port()
+    procs = [_router(port)]
+    try:
+        for name in ("a", "b"):
+            procs.insert(0, _service(port, "--config", str(tmp_path / f"{name}.toml")))
+        status = _fleet("status", "--json", port=port)
+        out, err = status.communicate(timeout=60)
+    finally:
+        rcs = _stop(*procs)
+    assert rcs == [0] * len(procs)
+    assert status.returncode == 1, out + err
+    snap = json.loads(out)
+    groups = {s["zid"]: s["fleet_group"] for s in snap["services"]}
+    assert len(groups) == 2 and "fleet-typo" in groups.values(), groups
+    (problem,) = [p for p in snap["problems"] if "fleet groups" in p]
+    assert "fleet-typo" in problem and all(z in problem for z in groups), problem
 
 
 def test_command_line_errors():

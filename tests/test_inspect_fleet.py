@@ -1,0 +1,63 @@
+"""``fednav-inspect`` on a ``fednav-fleet record`` file (docs/fleet.md): the fleet recording is on the
+``wall_time`` timeline, not the services' ``sensor_time``; until 2026-12-01 fednav-inspect said "no
+data on the sensor_time timeline" about it (exit 0) and nothing else."""
+
+from __future__ import annotations
+
+import json
+
+from fednav.dashboards import inspect
+from fednav.dashboards.fleet import FleetRecorder
+
+A, B = "a" * 32, "b" * 32
+
+
+def _snap(owners: dict[str, str | None], status: dict[str, str]) -> dict:
+    vehicles = []
+    for i, (v, zid) in enumerate(owners.items()):
+        rows = {"lc": {"status": status.get(v, "aided"), "position": [40.0 + 1e-4 * i, 116.0, 50.0]}}
+        vehicles.append(
+            {
+                "vehicle": v,
+                "served_twice": False,
+                "services": [zid] if zid else [],
+                "pipelines": rows if zid else {},
+                "by_service": {zid: {"received": 100}} if zid else {},
+            }
+        )
+    services = [
+        {"zid": z, "alive": True, "vehicles": [v for v, o in owners.items() if o == z]}
+        for z in sorted({z for z in owners.values() if z})
+    ]
+    return {"vehicles": vehicles, "services": services}
+
+
+def test_inspect_summarises_a_fleet_recording(tmp_path, capsys):
+    rrd = tmp_path / "fleet.rrd"
+    rec = FleetRecorder(rrd)
+    wall = 1_796_000_000.0
+    two = {"Tr.k-A_000": A, "Tr.k-A_001": B, "veh2": B}
+    for k in range(3):  # both services serve
+        rec.log(_snap(two, {"veh2": "degraded" if k == 0 else "aided"}), {}, wall + k)
+    # service B is killed: its vehicles go without an answer for a snapshot, then to A
+    rec.log(_snap({"Tr.k-A_000": A, "Tr.k-A_001": None, "veh2": None}, {}), {}, wall + 3)
+    for k in range(4, 6):
+        rec.log(_snap(dict.fromkeys(two, A), {"Tr.k-A_001": "degraded"}), {}, wall + k)
+    rec.close()
+
+    assert inspect.main([str(rrd)]) == 0
+    text = capsys.readouterr().out
+    assert "no data on the sensor_time timeline" not in text, text
+    assert "fleet recording" in text and "6 snapshots" in text, text
+    assert inspect.main([str(rrd), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["kind"] == "fleet"
+    assert s["snapshots"] == 6
+    assert abs(s["duration_s"] - 5.0) < 1e-6
+    assert sorted(s["vehicles"]) == ["Tr.k-A_000", "Tr.k-A_001", "veh2"]
+    assert s["vehicles"]["Tr.k-A_001"]["statuses"] == ["aided", "no answer", "degraded"]
+    assert s["vehicles"]["Tr.k-A_001"]["final_status"] == "degraded"
+    assert s["vehicles"]["veh2"]["statuses"] == ["degraded", "aided", "no answer", "aided"]
+    assert s["vehicles"]["Tr.k-A_000"]["positions"] == 6
+    assert s["services"][A] == {"final_vehicles": 3, "max_vehicles": 3, "left": False}
+    assert s["services"][B] == {"final_vehicles": 0, "max_vehicles": 2, "left": True}
