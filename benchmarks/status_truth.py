@@ -22,7 +22,7 @@ pipeline on the federated core (docs/DESIGN-NOTES.md, "The soft edge of the gate
 side-by-side run. The table also gives the horizontal and vertical RMS over every run.
 
 Usage: OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/status_truth.py --seeds 7-15 [--scenario NAME]
-       [--family gnss|demo|ta|underwater] [--soft-gate-prob P|none]
+       [--family gnss|demo|ta|underwater] [--soft-gate-prob P|none] [--zero initial,imu,dvl]
 """
 
 from __future__ import annotations
@@ -74,15 +74,45 @@ def expected_beyond_3_sigma(sd_e: np.ndarray, sd_n: np.ndarray) -> np.ndarray:
     return np.interp(r, _R, _P)
 
 
+def without_errors(sc, which: list[str]):
+    """The scenario with the named random errors fixed at zero (``--zero``)."""
+    unknown = set(which) - {"initial", "imu", "dvl"}
+    if unknown:
+        raise SystemExit(f"--zero: unknown {sorted(unknown)}; use initial, imu, dvl")
+    update: dict = {}
+    if "initial" in which:
+        update["initial_errors"] = sc.initial_errors.model_copy(
+            update={"mode": "fixed"} | {k: (0.0,) * 3 for k in ("pos_enu_m", "vel_enu_mps", "rpy_arcsec")}
+        )
+    if "imu" in which:
+        zero = (0.0,) * 3
+        update["imu"] = sc.imu.model_copy(
+            update={"bias_mode": "fixed", "gyro_bias_dph": zero, "accel_bias_ug": zero}
+            | {k: zero for k in ("gyro_scale_ppm", "accel_scale_ppm") if hasattr(sc.imu, k)}
+        )
+    if "dvl" in which and sc.dvl is not None:
+        update["dvl"] = sc.dvl.model_copy(
+            update={"error_mode": "fixed", "offset_mps": (0.0,) * 3, "scale": (0.0,) * 3}
+        )
+    return sc.model_copy(update=update) if update else sc
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="7-15", help="a range (7-15) or a list (7,9,11)")
     ap.add_argument("--scenario", help="run this scenario as it is (default: the clean GNSS one)")
     ap.add_argument("--family", default="gnss", choices=sorted(hb.FAMILIES), help="clean scenario of")
     ap.add_argument("--soft-gate-prob", help="soft_gate_prob of the federated-core pipelines (or none)")
+    ap.add_argument(
+        "--zero",
+        default="",
+        help="simulate without these random errors, comma-separated: initial (the initial state's), "
+        "imu (biases), dvl (offset and scale): which of them a run's excursions come from",
+    )
     args = ap.parse_args()
     build, _, start, aiding = hb.FAMILIES[args.family]
     sc = build() if args.scenario is None else load_scenario(args.scenario)
+    sc = without_errors(sc, [z for z in args.zero.split(",") if z])
     if args.soft_gate_prob is not None:
         value = None if args.soft_gate_prob.lower() == "none" else float(args.soft_gate_prob)
         for p in sc.service.get("pipelines", []):
