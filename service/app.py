@@ -837,7 +837,12 @@ class Service:
             )
         self.session = zenoh.open(
             zenoh_io.make_config(
-                cfg.zenoh, self.listen, self.connect, self.zenoh_config_file, outputs_prefix=cfg.prefix
+                cfg.zenoh,
+                self.listen,
+                self.connect,
+                self.zenoh_config_file,
+                outputs_prefix=cfg.prefix,
+                own_id=self.shard is None or self.shard[0] == 0,  # shards 1..K-1: an id of their own
             )
         )
         self.pubs = zenoh_io.Publishers(self.session, block=True)

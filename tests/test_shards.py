@@ -360,3 +360,49 @@ def test_a_killed_shard_is_restarted_and_fed_again(tmp_path):
         rc = svc.wait(timeout=90)
     assert rc == 0, svc.output()
     assert "restarting it" in svc.output()
+
+
+def test_shards_run_under_their_own_zenoh_ids_when_the_config_file_sets_one(tmp_path):
+    """Real processes: ``--shards 2`` with a Zenoh config file that sets ``id`` (every shard gets
+    shard 0's command line). Before, shard 1 opened its session under shard 0's id, its session to
+    shard 0 never connected, and its vehicles' Solutions reached nobody without a word."""
+    import zenoh
+
+    from fednav.simulators.processes import Proc, free_port, start_service
+
+    from .plain_zenoh import client as zenoh_client
+
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('vehicles = ["*"]\npipelines = [{ name = "lc", kind = "loosely_coupled" }]\n')
+    zcfg = tmp_path / "zenoh.json5"
+    zcfg.write_text('{ id: "a1b2c3d4" }\n')
+    port = free_port()
+    svc = start_service(port, config=cfg, extra=["--shards", "2", "--zenoh-config", str(zcfg)])
+    session = zenoh_client(port)
+    seen: Counter = Counter()
+    lock = threading.Lock()
+
+    def on_sol(sample: zenoh.Sample) -> None:
+        with lock:
+            seen[str(sample.key_expr).split("/")[1]] += 1
+
+    sub = session.declare_subscriber("fednav/*/nav/lc/solution", on_sol)
+    names = vehicle_names(4)
+    try:
+        gen = Proc(
+            [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "4", "--duration", "10"]
+            + ["--speed", "4", "--connect", f"tcp/127.0.0.1:{port}"],
+            "fleet",
+        )
+        assert gen.wait(timeout=120) == 0, gen.output()
+        assert wait_until(lambda: all(seen[v] > 50 for v in names), 30.0), dict(seen)
+    finally:
+        sub.undeclare()
+        session.close()
+        svc.signal(signal.SIGTERM)
+        rc = svc.wait(timeout=90)
+    assert rc == 0, svc.output()
+    owners = {v: fleet.shard_of(v, 2) for v in names}
+    assert set(owners.values()) == {0, 1}, owners  # both shards have vehicles
+    out = svc.output()
+    assert "zid=a1b2c3d4" in out and out.count("zid=a1b2c3d4") < out.count("zid="), out[-2000:]

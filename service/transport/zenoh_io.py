@@ -149,6 +149,7 @@ def make_config(
     config_file: str | None = None,
     outputs_prefix: str | None = None,
     block_wait_s: float | None = None,
+    own_id: bool = True,
 ) -> zenoh.Config:
     """The session config: fednav's safe defaults, a json5 file overlaid on them, explicit endpoints.
 
@@ -163,7 +164,10 @@ def make_config(
     unless the file configures that. ``block_wait_s`` (an input publisher's
     :data:`PUBLISHER_BLOCK_WAIT_S`) sets how long a blocking put may wait before Zenoh closes the
     link (:data:`BLOCK_WAIT_KEY`) unless the file sets it; None keeps Zenoh's 5 s (the service,
-    whose puts over network links do not block: :func:`egress_drop_rules`).
+    whose puts over network links do not block: :func:`egress_drop_rules`). ``own_id`` False: the
+    file's ``id`` is not used and Zenoh draws one (the local shards 1..K-1 of ``--shards K``, which
+    run with shard 0's command line: two sessions under one id do not connect, and a shard's
+    vehicles went unserved without a word).
     """
     zc = zc or ZenohConfig()
     path = config_file or (str(zc.config_file) if zc.config_file else None)
@@ -192,6 +196,8 @@ def make_config(
         c.insert_json5("timestamping/enabled", "{ router: true, peer: true, client: true }")
     if block_wait_s is not None and not (path and _explicit(content, c, BLOCK_WAIT_KEY)):
         c.insert_json5(BLOCK_WAIT_KEY, str(int(block_wait_s * 1e6)))
+    if not own_id and path and _explicit(content, c, "id"):
+        c.insert_json5("id", "null")
     if listen is not None:
         c.insert_json5("listen/endpoints", json.dumps(listen))
     if connect is not None:
