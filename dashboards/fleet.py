@@ -47,6 +47,7 @@ from collections import Counter
 from pathlib import Path
 from typing import Any
 
+from fednav.dashboards import quiet_closed_stdout
 from fednav.service import keys
 from fednav.service.config import navigation_settings
 from fednav.service.transport.rerun_paths import GPS_EPOCH_UNIX_S, gps_minus_utc_s
@@ -815,6 +816,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
+@quiet_closed_stdout
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from fednav.service.transport.zenoh_io import endpoint_error

@@ -37,6 +37,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from fednav.dashboards import quiet_closed_stdout
 from fednav.service.transport import rerun_paths as paths
 
 _COMPONENTS = ("Scalars:scalars", "StateChange:state", "TextLog:text", "Points2D:positions")
@@ -1213,6 +1214,7 @@ def _render_real_run(p: dict[str, Any], t0: float) -> list[str]:
     return out
 
 
+@quiet_closed_stdout
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="fednav-inspect", description="Summarise a fednav Rerun recording (.rrd) without a viewer"

@@ -61,3 +61,25 @@ def test_inspect_summarises_a_fleet_recording(tmp_path, capsys):
     assert s["vehicles"]["Tr.k-A_000"]["positions"] == 6
     assert s["services"][A] == {"final_vehicles": 3, "max_vehicles": 3, "left": False}
     assert s["services"][B] == {"final_vehicles": 0, "max_vehicles": 2, "left": True}
+
+
+def test_a_reader_that_stops_reading_ends_inspect_quietly(tmp_path):
+    """``fednav-inspect FILE | head -1``: the reader closes the pipe before the report is written;
+    the command ends with 141 (as a shell tool killed by SIGPIPE) and no BrokenPipeError traceback."""
+    import subprocess
+    import sys
+
+    rrd = tmp_path / "fleet.rrd"
+    rec = FleetRecorder(rrd)
+    for k in range(3):
+        rec.log(_snap({"veh0": A, "veh1": B}, {}), {}, 1_796_000_000.0 + k)
+    rec.close()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "fednav.dashboards.inspect", str(rrd)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    p.stdout.close()  # before the report is written: the recording is read first
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
