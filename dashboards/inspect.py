@@ -27,7 +27,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
+import struct
 import sys
+import tempfile
+import warnings
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,12 +74,92 @@ def read_series(path: str | Path, timeline: str = paths.TIMELINE) -> tuple[dict[
     p = Path(path)
     if not p.is_file():
         raise InspectError(f"{p}: no such file")
+    truncated = None
     try:
-        reader = RrdReader(p)
-        recordings = reader.recordings()
-        blueprints = reader.blueprints()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            reader = RrdReader(p)
+            recordings = reader.recordings()
+            blueprints = reader.blueprints()
+        if any("no footer" in str(w.message) for w in caught):
+            truncated = {"read_bytes": p.stat().st_size, "lost_bytes": 0}  # not closed by its writer
+    except Exception as exc:
+        cut = whole_messages(p)
+        if cut is None:
+            raise InspectError(f"{p}: not a readable Rerun recording ({exc})") from exc
+        # a recording whose writer died mid-message (SIGKILL, power loss, a full disk): its whole
+        # messages are read from a copy, and the summary says what was lost
+        read_bytes, size = cut
+        with tempfile.NamedTemporaryFile(suffix=".rrd", delete=False) as f:
+            with open(p, "rb") as src:
+                shutil.copyfileobj(_limited(src, read_bytes), f)
+        copy = Path(f.name)
+        try:
+            lost = {"read_bytes": read_bytes, "lost_bytes": size - read_bytes}
+            return _read_series_of(copy, timeline, lost)
+        finally:
+            copy.unlink(missing_ok=True)
+    return _read_reader(p, reader, recordings, blueprints, timeline, truncated)
+
+
+#: the framing of an .rrd (rerun-sdk 0.41, ``re_log_encoding``): a 12-byte file header (``RRF2``,
+#: version, options), then messages of a little-endian u64 kind and u64 length and that many
+#: bytes; kind 0 ends the stream (its footer follows)
+_RRD_MAGIC = b"RRF2"
+_RRD_HEADER = 12
+_RRD_KIND_MAX = 64
+
+
+def whole_messages(path: Path) -> tuple[int, int] | None:
+    """(bytes of the file's whole messages, file size) when the file is an .rrd whose last message
+    runs past its end (the writer died mid-write), else None (not that kind of file, or a message
+    header that is not one: corruption this does not repair)."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        if f.read(4) != _RRD_MAGIC:
+            return None
+        pos = _RRD_HEADER
+        while pos + 16 <= size:
+            f.seek(pos)
+            kind, length = struct.unpack("<QQ", f.read(16))
+            if kind > _RRD_KIND_MAX:
+                return None
+            if kind == 0 or pos + 16 + length > size:
+                break
+            pos += 16 + length
+    return (pos, size) if pos < size and pos > _RRD_HEADER else None
+
+
+def _limited(src, n: int):
+    """A reader of the first ``n`` bytes of ``src``."""
+
+    class _Head:
+        left = n
+
+        def read(self, k: int = -1) -> bytes:
+            k = self.left if k < 0 else min(k, self.left)
+            data = src.read(k)
+            self.left -= len(data)
+            return data
+
+    return _Head()
+
+
+def _read_series_of(p: Path, timeline: str, truncated: dict | None):
+    from rerun.chunk import RrdReader
+
+    try:
+        with warnings.catch_warnings():  # "no footer": said by the summary (the copy has none)
+            warnings.simplefilter("ignore")
+            reader = RrdReader(p)
+            recordings = reader.recordings()
+            blueprints = reader.blueprints()
     except Exception as exc:
         raise InspectError(f"{p}: not a readable Rerun recording ({exc})") from exc
+    return _read_reader(p, reader, recordings, blueprints, timeline, truncated)
+
+
+def _read_reader(p: Path, reader, recordings, blueprints, timeline: str, truncated: dict | None):
     if not recordings:
         raise InspectError(f"{p}: the file holds no recording")
     store = recordings[0]
@@ -84,6 +168,7 @@ def read_series(path: str | Path, timeline: str = paths.TIMELINE) -> tuple[dict[
         "application_id": store.application_id,
         "blueprints": len(blueprints),
         "recordings": len(recordings),
+        "unfinished": truncated,
     }
 
     t_parts: dict[str, list[np.ndarray]] = defaultdict(list)
@@ -903,6 +988,7 @@ def summarize(info: dict[str, Any], data: dict[str, Series], file: str, config=N
         "recording_id": info["recording_id"],
         "application_id": info["application_id"],
         "has_blueprint": info["blueprints"] > 0,
+        "unfinished": info.get("unfinished"),
         "t_start": t_min / 1e9 if vehicles else None,
         "t_end": t_max / 1e9 if vehicles else None,
         "duration_s": (t_max - t_min) / 1e9 if vehicles else 0.0,
@@ -978,6 +1064,7 @@ def summarize_fleet(info: dict[str, Any], data: dict[str, Series], file: str) ->
         "recording_id": info["recording_id"],
         "application_id": info["application_id"],
         "has_blueprint": info["blueprints"] > 0,
+        "unfinished": info.get("unfinished"),
         "snapshots": len(times),
         "wall_start": times[0] / 1e9 if times else None,
         "wall_end": times[-1] / 1e9 if times else None,
@@ -995,6 +1082,7 @@ def render_fleet_text(s: dict[str, Any]) -> str:
         f"recording: {s['recording_id']} (application {s['application_id']}), "
         f"blueprint embedded: {'yes' if s['has_blueprint'] else 'no'}",
     ]
+    lines += _unfinished_lines(s)
     if not s["snapshots"]:
         lines.append("fleet recording (fednav-fleet record): no snapshot")
         return "\n".join(lines)
@@ -1036,12 +1124,26 @@ def _fmt(x: float | None, spec: str = ".4g") -> str:
     return "-" if x is None else format(x, spec)
 
 
+def _unfinished_lines(s: dict[str, Any]) -> list[str]:
+    u = s.get("unfinished")
+    if not u:
+        return []
+    if u.get("lost_bytes"):
+        return [
+            f"WARNING: the recording ends inside a message (its writer died mid-write: killed, power "
+            f"lost, disk full?): read its first {u['read_bytes']} bytes, the last {u['lost_bytes']} "
+            "are an unfinished message"
+        ]
+    return ["WARNING: the recording was not closed (no footer: its writer did not stop cleanly)"]
+
+
 def render_text(s: dict[str, Any]) -> str:
     lines = [
         f"file: {s['file']}",
         f"recording: {s['recording_id']} (application {s['application_id']}), "
         f"blueprint embedded: {'yes' if s['has_blueprint'] else 'no'}",
     ]
+    lines += _unfinished_lines(s)
     if s["t_start"] is None:
         lines.append("no data on the sensor_time timeline")
         return "\n".join(lines)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from fednav.dashboards import inspect
 from fednav.dashboards.fleet import FleetRecorder
 
@@ -83,3 +85,50 @@ def test_a_reader_that_stops_reading_ends_inspect_quietly(tmp_path):
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def _boundaries(path) -> list[int]:
+    """Where each whole message of an .rrd ends (its framing: ``inspect.whole_messages``)."""
+    import struct
+
+    b = path.read_bytes()
+    pos, ends = 12, []
+    while pos + 16 <= len(b):
+        kind, length = struct.unpack_from("<QQ", b, pos)
+        if kind == 0:
+            break
+        pos += 16 + length
+        ends.append(pos)
+    return ends
+
+
+def test_a_recording_whose_writer_died_is_read_up_to_its_last_whole_message(tmp_path):
+    """A recording cut inside a message (its writer SIGKILLed mid-write, a full disk) was "not a
+    readable Rerun recording" as a whole; cut between two messages, Rerun read it with a warning
+    about a missing footer. Both are read now, and the summary says what happened."""
+    rrd = tmp_path / "fleet.rrd"
+    rec = FleetRecorder(rrd)
+    for k in range(40):
+        rec.log(_snap({"veh0": A, "veh1": B}, {}), {}, 1_796_000_000.0 + k)
+    rec.close()
+    whole = inspect.inspect_rrd(rrd)
+    assert whole["snapshots"] == 40 and not whole["unfinished"], whole["unfinished"]
+    ends = _boundaries(rrd)
+    data = rrd.read_bytes()
+    mid = (ends[-3] + ends[-2]) // 2  # inside the second-to-last message
+    cut = tmp_path / "cut.rrd"
+    cut.write_bytes(data[:mid])
+    s = inspect.inspect_rrd(cut)
+    assert s["unfinished"] == {"read_bytes": ends[-3], "lost_bytes": mid - ends[-3]}, s["unfinished"]
+    assert 0 < s["snapshots"] <= 40, s["snapshots"]
+    assert "ends inside a message" in inspect.render_fleet_text(s)
+    closed_not = tmp_path / "boundary.rrd"
+    closed_not.write_bytes(data[: ends[-3]])
+    s2 = inspect.inspect_rrd(closed_not)
+    assert s2["unfinished"] == {"read_bytes": ends[-3], "lost_bytes": 0}, s2["unfinished"]
+    assert s2["snapshots"] == s["snapshots"]
+    assert "was not closed" in inspect.render_fleet_text(s2)
+    garbage = tmp_path / "garbage.rrd"
+    garbage.write_bytes(b"RRF2" + bytes(8) + b"\xff" * 64)
+    with pytest.raises(inspect.InspectError):
+        inspect.inspect_rrd(garbage)
