@@ -75,6 +75,9 @@ SKIP_HINTS = {
     "implausible": ": rates or specific forces beyond the wire limits (50 rad/s, 50 g): check gyro_unit "
     "(deg/s data declared rad/s?) and accel_unit",
     "no_velocity": ": no twist within 0.05 s of the fix (published as position-only fixes)",
+    "no_rates": ": Imu messages whose angular_velocity_covariance[0] or linear_acceleration_covariance[0] "
+    "is -1 (ROS's 'no estimate': an orientation-only driver) carry no rates: map the raw IMU topic "
+    "(e.g. /imu/data_raw)",
     "no_checksum": ": NMEA sentences without a '*hh' checksum are refused (it guards against corrupted "
     "lines): log them with checksums",
 }

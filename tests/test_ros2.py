@@ -279,6 +279,29 @@ def test_imu_rates_in_flu_become_increments_in_rfu_over_the_stamp_interval():
     np.testing.assert_allclose(s.dtheta_rad, np.array([-w1[1], w1[0], w1[2]]) * 0.01)
 
 
+def test_an_orientation_only_imu_is_refused_not_integrated_as_zero_rates():
+    """sensor_msgs/Imu says "element 0 of the covariance = -1: no estimate of this data element". A
+    driver publishing only orientation (an AHRS's filter output) sends zero rates so marked: they are
+    no measurement (integrated, they are an IMU in free fall at rest), so such a message is refused,
+    counted ``ros_no_rates``, and opens no interval."""
+    for part in ("angular_velocity", "linear_acceleration"):
+        rin = ros2.RosInput(cfg())
+        for k in range(3):
+            m = imu_msg(T0_UNIX + 0.01 * k, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            setattr(m, f"{part}_covariance", np.r_[-1.0, np.zeros(8)])
+            m.orientation_covariance = np.eye(3).ravel() * 1e-4
+            with pytest.raises(ros2.RosDecodeError) as e:
+                rin.decode(IMU_KEY, cdr(m))
+            assert e.value.reason == "ros_no_rates" and part in str(e.value)
+        # the raw topic's next sample opens the interval (no interval from a refused one)
+        assert rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.03, (0, 0, 0.01), (0, 0, 9.8)))) == []
+    # an unknown orientation (the usual raw IMU: orientation_covariance[0] = -1) is fine
+    rin = ros2.RosInput(cfg())
+    rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, (0, 0, 0.01), (0, 0, 9.8))))
+    [(_, _, s)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (0, 0, 0.01), (0, 0, 9.8))))
+    assert s.dvel_mps[2] == pytest.approx(0.098)
+
+
 def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
     rin = ros2.RosInput(cfg())
     fix = cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov_type=0))

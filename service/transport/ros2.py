@@ -751,6 +751,13 @@ class RosInput:
         a = np.array(
             [msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z], dtype=float
         )
+        missing = imu_without_rates(msg)
+        if missing:  # an orientation-only driver (e.g. an AHRS's filter output): no rates to integrate
+            raise RosDecodeError(
+                "ros_no_rates",
+                f"{inp.topic}: Imu without {missing} ({missing}_covariance[0] = -1, ROS's 'no estimate'): "
+                "fednav integrates the rates; publish the raw IMU topic (e.g. /imu/data_raw)",
+            )
         prev = self._imu.get(inp.sensor_id)
         if prev is not None and stamp_ns == prev.stamp_ns:
             raise RosDecodeError("duplicate", f"{inp.topic}: Imu stamp repeated")
@@ -850,6 +857,16 @@ class RosInput:
             return gnss_fix_from_ros(fix, twist)
         except ValidationError as err:
             raise RosDecodeError(*_why(err, f"gnss_fix/{sid}: ")) from None
+
+
+def imu_without_rates(msg) -> str | None:
+    """The part of a sensor_msgs/Imu its driver says it does not carry (``angular_velocity`` or
+    ``linear_acceleration``: element 0 of its covariance is -1, the message's own convention for
+    "no estimate of this data element"), or None. Such a message's zeros are no measurement."""
+    for name in ("angular_velocity", "linear_acceleration"):
+        if float(getattr(msg, f"{name}_covariance")[0]) == -1.0:
+            return name
+    return None
 
 
 def imu_sample_from_rates(
