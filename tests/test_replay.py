@@ -418,6 +418,31 @@ def test_an_orientation_only_imu_topic_is_named_not_integrated(tmp_path, drive):
     assert not any("accel_unit" in e for e in r.errors), r.text()  # (the message until then)
 
 
+def test_imu_stamps_left_unset_are_named_not_taken_for_boot_time(tmp_path, drive):
+    """A ROS driver that never fills header.stamp (every stamp 0): the check says so; until then it
+    said "seconds since the device booted: set time_base = 'boot' with boot_offset_s (or 'auto')",
+    which reads every sample as the same instant."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(tmp_path / "nostamp", version=9) as w:
+        conns = {}
+        for topic, typ, tu, msg in rf._ros_msgs(ts, drive, "FLU", ros1=False):
+            if typ == "sensor_msgs/msg/Imu":
+                msg.header.stamp.sec, msg.header.stamp.nanosec = 0, 0
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, typ, typestore=ts)
+            w.write(conns[topic], int(round(tu * 1e9)), ts.serialize_cdr(msg, typ))
+    p = tmp_path / "nostamp.toml"
+    p.write_text(files_mapping("nostamp"))
+    m, base = mapping.load_mapping(p)
+    r = checks.run_checks(m, base)
+    [err] = [e for e in r.errors if e.startswith("imu 'imu'")]
+    assert "unset, 0" in err and "header.stamp" in err, err
+    assert "boot" not in err, err
+
+
 def files_mapping(src: str) -> str:
     """The ROS mapping of ``rf.write_all`` on bag ``src``."""
     return f"""vehicle = "v1"

@@ -302,6 +302,22 @@ def test_an_orientation_only_imu_is_refused_not_integrated_as_zero_rates():
     assert s.dvel_mps[2] == pytest.approx(0.098)
 
 
+def test_an_unset_header_stamp_is_refused_in_ros_words():
+    """A driver that leaves header.stamp 0: refused with the service's reason (a time before GPS
+    time 0, out_of_range) and a text naming the stamp (until then: "imu/main: t: Input should be
+    greater than or equal to 0", from the second message on: the first opened an interval at 0)."""
+    rin = ros2.RosInput(cfg())
+    for key, m in (
+        (IMU_KEY, imu_msg(0.0, (0, 0, 0.01), (0, 0, 9.8))),
+        (FIX_KEY, navsat_msg(0.0, 40, 118, 5)),
+    ):
+        m.header.stamp.sec, m.header.stamp.nanosec = 0, 0
+        for _ in range(2):
+            with pytest.raises(ros2.RosDecodeError) as e:
+                rin.decode(key, cdr(m))
+            assert e.value.reason == "out_of_range" and "header.stamp is 0" in str(e.value)
+
+
 def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
     rin = ros2.RosInput(cfg())
     fix = cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov_type=0))

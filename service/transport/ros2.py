@@ -682,6 +682,8 @@ class RosInput:
             stamp_ns = _stamp_ns(msg.header)
         except Exception as exc:  # rosbags raises several types on truncated or garbled CDR
             raise RosDecodeError("bad_cdr", f"{inp.topic}: {type(exc).__name__}: {str(exc)[:80]}") from None
+        if stamp_ns == 0:  # the service's reason for a time before GPS time 0, said in ROS's words
+            raise RosDecodeError("out_of_range", f"{inp.topic}: header.stamp is 0: the driver does not stamp")
         try:
             if inp.type == "sensor_msgs/msg/Imu":
                 items = self._imu_in(inp, msg, stamp_ns)
