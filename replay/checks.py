@@ -75,6 +75,9 @@ SKIP_HINTS = {
     "implausible": ": rates or specific forces beyond the wire limits (50 rad/s, 50 g): check gyro_unit "
     "(deg/s data declared rad/s?) and accel_unit",
     "no_velocity": ": no twist within 0.05 s of the fix (published as position-only fixes)",
+    "no_rates": ": Imu messages whose angular_velocity_covariance[0] or linear_acceleration_covariance[0] "
+    "is -1 (ROS's 'no estimate': an orientation-only driver) carry no rates: map the raw IMU topic "
+    "(e.g. /imu/data_raw)",
     "no_checksum": ": NMEA sentences without a '*hh' checksum are refused (it guards against corrupted "
     "lines): log them with checksums",
 }
@@ -998,6 +1001,12 @@ def sigma_summary(stream: StreamMapping, fx: FixData, stats: dict) -> dict:
 def stamp_looks_like(raw: float, stream: StreamMapping) -> str:
     """What a raw stamp (as written in the source) looks like, for messages."""
     a = abs(raw)
+    if raw == 0.0:  # a stamp never set: no clock at all, no time base reads it
+        return (
+            "unset, 0 (a ROS driver that leaves header.stamp empty; the bag's receive "
+            "times carry the transport's delays, fednav does not take them for the sensor's time): "
+            "fix the driver's stamps, no time_base reads them"
+        )
     if a < 1.0e7:
         tow = (
             " (or GPS seconds of the week, 0-604800: set time_offset_s = the week's start, "

@@ -11,7 +11,9 @@ position-only fix, never with an invented velocity. Stamps are the message heade
 time), not the bag's receive time; an IMU stamped in ``boot`` time keeps (header stamp, receive
 time as GPS seconds) pairs in ``stats["_clock_pairs"]`` (every 10th message), from which the
 checks derive ``boot_offset_s = "auto"``. Where each fix's sigmas came from is counted in
-``stats`` (``sigma_pos:covariance|mapping|default``, ``sigma_vel:...``).
+``stats`` (``sigma_pos:covariance|mapping|default``, ``sigma_vel:...``). An Imu marked as carrying
+no angular velocity or no acceleration (element 0 of that covariance -1: an orientation-only
+driver) is skipped and counted ``no_rates``.
 """
 
 from __future__ import annotations
@@ -59,6 +61,15 @@ def _not_a_bag(path: Path) -> str | None:
     return f"{path}: not a ROS bag (a bag directory with metadata.yaml, or a .bag, .db3, .mcap file): {hint}"
 
 
+def no_rates(msg) -> bool:
+    """An Imu whose driver marks its rates or accelerations "no estimate" (element 0 of the
+    covariance -1, sensor_msgs/Imu's convention): an orientation-only message, its zeros no data."""
+    return (
+        float(msg.angular_velocity_covariance[0]) == -1.0
+        or float(msg.linear_acceleration_covariance[0]) == -1.0
+    )
+
+
 def _stamp(msg) -> float:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
@@ -95,6 +106,9 @@ def events(
         for k, (msgtype, m, t_bag_ns) in enumerate(_read(path, stream.topic)):
             if msgtype not in IMU_TYPES:
                 raise SourceError(f"{path} {stream.topic}: {msgtype} is not sensor_msgs/Imu")
+            if no_rates(m):  # orientation-only (covariance[0] = -1: no estimate): no measurement
+                count(stats, "no_rates")
+                continue
             w, a = m.angular_velocity, m.linear_acceleration
             if pairs is not None and k % 10 == 0:  # the bag's receive clock is POSIX (UTC)
                 pairs.append((_stamp(m), t_bag_ns * 1e-9 - GPS_EPOCH_UNIX_S + leap))

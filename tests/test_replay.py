@@ -386,6 +386,84 @@ def test_missing_topic_and_missing_file_are_named(files):
     assert any("no IMU" in e or "imu 'imu'" in e for e in r.errors)
 
 
+def test_an_orientation_only_imu_topic_is_named_not_integrated(tmp_path, drive):
+    """An Imu topic from an orientation-only driver (an AHRS's filter output: zero rates with
+    angular_velocity_covariance[0] = -1, sensor_msgs/Imu's "no estimate") carries no rates: its
+    messages are skipped (``no_rates``) and the check says to map the raw IMU topic, instead of
+    integrating zeros (until then the check blamed the accelerometer's unit)."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    msgs = rf._ros_msgs(ts, drive, "FLU", ros1=False)
+    V3 = ts.types["geometry_msgs/msg/Vector3"]
+    with Writer(tmp_path / "ahrs", version=9) as w:
+        conns = {}
+        for topic, typ, tu, msg in msgs:
+            if typ == "sensor_msgs/msg/Imu":  # the AHRS's message: orientation only
+                msg.angular_velocity = msg.linear_acceleration = V3(x=0.0, y=0.0, z=0.0)
+                msg.angular_velocity_covariance = np.r_[-1.0, np.zeros(8)]
+                msg.linear_acceleration_covariance = np.r_[-1.0, np.zeros(8)]
+                msg.orientation_covariance = np.eye(3).ravel() * 1e-4
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, typ, typestore=ts)
+            w.write(conns[topic], int(round(tu * 1e9)), ts.serialize_cdr(msg, typ))
+    p = tmp_path / "ahrs.toml"
+    p.write_text(files_mapping("ahrs"))
+    m, base = mapping.load_mapping(p)
+    r = checks.run_checks(m, base)
+    imu = next(s for s in r.streams if s.kind == "imu")
+    assert imu.count == 0 and imu.skipped == {"no_rates": len(drive.imu)}
+    assert any("no rates" in e and "/imu/data_raw" in e for e in r.errors), r.text()
+    assert not any("accel_unit" in e for e in r.errors), r.text()  # (the message until then)
+
+
+def test_imu_stamps_left_unset_are_named_not_taken_for_boot_time(tmp_path, drive):
+    """A ROS driver that never fills header.stamp (every stamp 0): the check says so; until then it
+    said "seconds since the device booted: set time_base = 'boot' with boot_offset_s (or 'auto')",
+    which reads every sample as the same instant."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    with Writer(tmp_path / "nostamp", version=9) as w:
+        conns = {}
+        for topic, typ, tu, msg in rf._ros_msgs(ts, drive, "FLU", ros1=False):
+            if typ == "sensor_msgs/msg/Imu":
+                msg.header.stamp.sec, msg.header.stamp.nanosec = 0, 0
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, typ, typestore=ts)
+            w.write(conns[topic], int(round(tu * 1e9)), ts.serialize_cdr(msg, typ))
+    p = tmp_path / "nostamp.toml"
+    p.write_text(files_mapping("nostamp"))
+    m, base = mapping.load_mapping(p)
+    r = checks.run_checks(m, base)
+    [err] = [e for e in r.errors if e.startswith("imu 'imu'")]
+    assert "unset, 0" in err and "header.stamp" in err, err
+    assert "boot" not in err, err
+
+
+def files_mapping(src: str) -> str:
+    """The ROS mapping of ``rf.write_all`` on bag ``src``."""
+    return f"""vehicle = "v1"
+[[streams]]
+source = "{src}"
+kind = "imu"
+sensor_id = "imu"
+topic = "/imu/data"
+axes = "FLU"
+time_base = "unix"
+
+[[streams]]
+source = "{src}"
+kind = "gnss_fix"
+sensor_id = "rx"
+topic = "/gnss/fix"
+twist_topic = "/gnss/vel"
+time_base = "unix"
+"""
+
+
 def test_cli_check_only_publishes_nothing_and_reports_json(files, capsys):
     assert replay_main([str(files["ubx"]), "--check", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)

@@ -279,6 +279,45 @@ def test_imu_rates_in_flu_become_increments_in_rfu_over_the_stamp_interval():
     np.testing.assert_allclose(s.dtheta_rad, np.array([-w1[1], w1[0], w1[2]]) * 0.01)
 
 
+def test_an_orientation_only_imu_is_refused_not_integrated_as_zero_rates():
+    """sensor_msgs/Imu says "element 0 of the covariance = -1: no estimate of this data element". A
+    driver publishing only orientation (an AHRS's filter output) sends zero rates so marked: they are
+    no measurement (integrated, they are an IMU in free fall at rest), so such a message is refused,
+    counted ``ros_no_rates``, and opens no interval."""
+    for part in ("angular_velocity", "linear_acceleration"):
+        rin = ros2.RosInput(cfg())
+        for k in range(3):
+            m = imu_msg(T0_UNIX + 0.01 * k, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+            setattr(m, f"{part}_covariance", np.r_[-1.0, np.zeros(8)])
+            m.orientation_covariance = np.eye(3).ravel() * 1e-4
+            with pytest.raises(ros2.RosDecodeError) as e:
+                rin.decode(IMU_KEY, cdr(m))
+            assert e.value.reason == "ros_no_rates" and part in str(e.value)
+        # the raw topic's next sample opens the interval (no interval from a refused one)
+        assert rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.03, (0, 0, 0.01), (0, 0, 9.8)))) == []
+    # an unknown orientation (the usual raw IMU: orientation_covariance[0] = -1) is fine
+    rin = ros2.RosInput(cfg())
+    rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX, (0, 0, 0.01), (0, 0, 9.8))))
+    [(_, _, s)] = rin.decode(IMU_KEY, cdr(imu_msg(T0_UNIX + 0.01, (0, 0, 0.01), (0, 0, 9.8))))
+    assert s.dvel_mps[2] == pytest.approx(0.098)
+
+
+def test_an_unset_header_stamp_is_refused_in_ros_words():
+    """A driver that leaves header.stamp 0: refused with the service's reason (a time before GPS
+    time 0, out_of_range) and a text naming the stamp (until then: "imu/main: t: Input should be
+    greater than or equal to 0", from the second message on: the first opened an interval at 0)."""
+    rin = ros2.RosInput(cfg())
+    for key, m in (
+        (IMU_KEY, imu_msg(0.0, (0, 0, 0.01), (0, 0, 9.8))),
+        (FIX_KEY, navsat_msg(0.0, 40, 118, 5)),
+    ):
+        m.header.stamp.sec, m.header.stamp.nanosec = 0, 0
+        for _ in range(2):
+            with pytest.raises(ros2.RosDecodeError) as e:
+                rin.decode(key, cdr(m))
+            assert e.value.reason == "out_of_range" and "header.stamp is 0" in str(e.value)
+
+
 def test_fix_and_twist_pair_in_either_order_and_only_within_the_tolerance():
     rin = ros2.RosInput(cfg())
     fix = cdr(navsat_msg(T0_UNIX + 1.0, 40.0, 118.0, 50.0, cov_type=0))

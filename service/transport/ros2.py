@@ -682,6 +682,8 @@ class RosInput:
             stamp_ns = _stamp_ns(msg.header)
         except Exception as exc:  # rosbags raises several types on truncated or garbled CDR
             raise RosDecodeError("bad_cdr", f"{inp.topic}: {type(exc).__name__}: {str(exc)[:80]}") from None
+        if stamp_ns == 0:  # the service's reason for a time before GPS time 0, said in ROS's words
+            raise RosDecodeError("out_of_range", f"{inp.topic}: header.stamp is 0: the driver does not stamp")
         try:
             if inp.type == "sensor_msgs/msg/Imu":
                 items = self._imu_in(inp, msg, stamp_ns)
@@ -751,6 +753,13 @@ class RosInput:
         a = np.array(
             [msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z], dtype=float
         )
+        missing = imu_without_rates(msg)
+        if missing:  # an orientation-only driver (e.g. an AHRS's filter output): no rates to integrate
+            raise RosDecodeError(
+                "ros_no_rates",
+                f"{inp.topic}: Imu without {missing} ({missing}_covariance[0] = -1, ROS's 'no estimate'): "
+                "fednav integrates the rates; publish the raw IMU topic (e.g. /imu/data_raw)",
+            )
         prev = self._imu.get(inp.sensor_id)
         if prev is not None and stamp_ns == prev.stamp_ns:
             raise RosDecodeError("duplicate", f"{inp.topic}: Imu stamp repeated")
@@ -850,6 +859,16 @@ class RosInput:
             return gnss_fix_from_ros(fix, twist)
         except ValidationError as err:
             raise RosDecodeError(*_why(err, f"gnss_fix/{sid}: ")) from None
+
+
+def imu_without_rates(msg) -> str | None:
+    """The part of a sensor_msgs/Imu its driver says it does not carry (``angular_velocity`` or
+    ``linear_acceleration``: element 0 of its covariance is -1, the message's own convention for
+    "no estimate of this data element"), or None. Such a message's zeros are no measurement."""
+    for name in ("angular_velocity", "linear_acceleration"):
+        if float(getattr(msg, f"{name}_covariance")[0]) == -1.0:
+            return name
+    return None
 
 
 def imu_sample_from_rates(
