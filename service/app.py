@@ -1001,6 +1001,9 @@ class Service:
             items = self.ros_in.decode(key, payload)
         except RosDecodeError as exc:
             return w.submit_rejection(wall, exc.reason, str(exc))
+        finally:
+            for text in self.ros_in.newly_silent():
+                log.warning("%s", text)
         for kind, sensor_id, data in items:
             w.submit(wall, kind, sensor_id, data)
 
@@ -1014,7 +1017,9 @@ class Service:
                     w = VehicleWorker(vehicle, self.config, self.sink, self.pubs, self.rr, pw)
                     pw.vehicles.append(w)
                     if self.ros_in is not None and vehicle == self.config.ros2.vehicle:
-                        w.notes = lambda: dict(self.ros_in.counters)
+                        w.notes = lambda: dict(self.ros_in.counters) | {
+                            f"silent_topic:{t}": 1 for t in self.ros_in.silent_topics()
+                        }
                     if self.fleet_view is not None:
                         w.on_retired = self._retired
                         w.fleet_states_of = functools.partial(self.fleet_states.get, vehicle)

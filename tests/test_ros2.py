@@ -767,3 +767,28 @@ def test_example_config_loads_and_missing_rosbags_is_one_line(monkeypatch, capsy
     assert service_main.main(["--config", str(example), "--no-record"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "install fednav[ros]" in err[0]
+
+
+def test_a_configured_topic_that_never_comes_is_named_once():
+    """A typo in an input topic (``/imu/dta``) showed as nothing but every fix refused
+    ``not_initialised``: the bridge names a configured topic without a sample once the others' stamps
+    span ``SILENT_AFTER_S``, once, and Health notes it while it stays silent."""
+    c = cfg(
+        inputs=[
+            {"topic": "/imu/dta", "type": "sensor_msgs/msg/Imu", "sensor_id": "main"},
+            {"topic": "/gnss/fix", "type": "sensor_msgs/msg/NavSatFix", "sensor_id": "rx"},
+        ]
+    )
+    rin = ros2.RosInput(c)
+    fix_key = ros2.topic_key(c, "/gnss/fix", "sensor_msgs/msg/NavSatFix", any_hash=False)
+    said = []
+    for k in range(60):  # 10 Hz fixes for 6 s of stamps, no IMU sample
+        rin.decode(fix_key, cdr(navsat_msg(T0_UNIX + 0.1 * k, 40.0, 118.0, 50.0)))
+        said += rin.newly_silent()
+        if k < 49:
+            assert not said, (k, said)  # not before 5 s of the robot's time
+    assert len(said) == 1 and "/imu/dta" in said[0] and "/gnss/fix" not in said[0], said
+    assert rin.silent_topics() == ["/imu/dta"]
+    imu_key = ros2.topic_key(c, "/imu/dta", "sensor_msgs/msg/Imu", any_hash=False)
+    rin.decode(imu_key, cdr(imu_msg(T0_UNIX + 6.0, (0, 0, 0), (0, 0, 9.8))))
+    assert rin.silent_topics() == [] and rin.newly_silent() == []

@@ -54,6 +54,8 @@ inputs = [
   { topic = "/imu/data", type = "sensor_msgs/msg/Imu", sensor_id = "main" },
   { topic = "/gnss/fix", type = "sensor_msgs/msg/NavSatFix", sensor_id = "main" },
   { topic = "/gnss/vel", type = "geometry_msgs/msg/TwistWithCovarianceStamped", sensor_id = "main" },
+  # a topic the robot does not publish (a typo, a sensor not fitted): named once, noted in Health
+  { topic = "/baro/pressur", type = "sensor_msgs/msg/FluidPressure", sensor_id = "main" },
 ]
 [ros2.outputs]
 tf = true
@@ -258,8 +260,8 @@ def test_rmw_zenoh_graph_tokens_declared(ros_run):
     # rmw_zenoh's QoS chunk: reliable, volatile, keep last 10 (depth 42, rmw_zenoh's default, is empty)
     assert all(t.endswith("/::,10:,:,:,,") for t in toks if t.split("/")[5] != "NN"), toks
     kinds = sorted(t.split("/")[5] for t in toks)
-    # one node; publishers: odometry, fix, tf, diagnostics; subscriptions: the three inputs
-    assert kinds == ["MP"] * 4 + ["MS"] * 3 + ["NN"], toks
+    # one node; publishers: odometry, fix, tf, diagnostics; subscriptions: the four inputs
+    assert kinds == ["MP"] * 4 + ["MS"] * 4 + ["NN"], toks
     topics = {t.split("/")[9] for t in toks if t.split("/")[5] != "NN"}
     assert topics == {
         "%fednav%lc%odometry",
@@ -269,4 +271,14 @@ def test_rmw_zenoh_graph_tokens_declared(ros_run):
         "%imu%data",
         "%gnss%fix",
         "%gnss%vel",
+        "%baro%pressur",
     }
+
+
+def test_a_configured_topic_without_samples_is_named_in_the_log_and_health(ros_run):
+    out = ros_run["out"]
+    assert out.count("no sample on /baro/pressur") == 1, out[-3000:]
+    notes = ros_run["status"]["health"]["notes"]
+    assert notes.get("silent_topic:/baro/pressur") == 1, notes
+    silent = [k for k in notes if k.startswith("silent_topic:")]
+    assert silent == ["silent_topic:/baro/pressur"], notes

@@ -646,6 +646,14 @@ class RosInput:
     _twist: dict[str, list[_WaitingTwist]] = field(default_factory=dict)  # waiting for their NavSatFix
     _ready: list = field(default_factory=list)  # position-only fixes given up on, for the next decode
     _clock_ns: int | None = None  # the bridge's stamp time: the newest header.stamp decoded
+    #: samples received per configured topic (decoded or not), and the first stamp decoded
+    received: Counter = field(default_factory=Counter)
+    _first_ns: int | None = None
+    _silent_said: set = field(default_factory=set)
+
+    #: a configured topic without a single sample while the others have run this long (stamp time)
+    #: is named once (:meth:`newly_silent`): a typo in a topic or a type shows as nothing else
+    SILENT_AFTER_S = 5.0
 
     def __post_init__(self):
         self.store = typestore(self.cfg.distro)
@@ -677,6 +685,7 @@ class RosInput:
         inp = self.input_of(key)
         if inp is None:
             raise RosDecodeError("unknown_key", f"no [ros2] input for {key[:120]}")
+        self.received[inp.topic] += 1
         try:
             msg = self.store.deserialize_cdr(payload, inp.type)
             stamp_ns = _stamp_ns(msg.header)
@@ -701,6 +710,32 @@ class RosInput:
             self._advance(stamp_ns)
         out, self._ready = self._ready + items, []
         return out
+
+    def newly_silent(self) -> list[str]:
+        """Texts naming each configured topic that has had no sample while the others' stamps span
+        :data:`SILENT_AFTER_S`, once per topic (a topic that starts later is not named again)."""
+        if self._first_ns is None or self._clock_ns is None:
+            return []
+        if self._clock_ns - self._first_ns < self.SILENT_AFTER_S * _NS:
+            return []
+        out = []
+        others = sum(self.received.values())
+        for i in self.cfg.inputs:
+            if self.received[i.topic] or i.topic in self._silent_said:
+                continue
+            self._silent_said.add(i.topic)
+            out.append(
+                f"ROS 2 bridge: no sample on {i.topic} ({i.type}, key "
+                f"{topic_key(self.cfg, i.topic, i.type, any_hash=True)}) in {self.SILENT_AFTER_S:g} s of "
+                f"the robot's time, while {others} arrived on the other topics: check the topic's name and "
+                "type against the robot's (ros2 topic list -t, or a Zenoh subscriber on its keys), or "
+                "take it out of [ros2] inputs"
+            )
+        return out
+
+    def silent_topics(self) -> list[str]:
+        """The configured topics named by :meth:`newly_silent` that still have no sample."""
+        return sorted(t for t in self._silent_said if not self.received[t])
 
     def _registry_in(self, inp, msg, stamp_ns: int) -> list[tuple[str, str, WireModel]]:
         """A message of a type a sensor registry entry decodes, straight into its wire model."""
@@ -728,6 +763,8 @@ class RosInput:
 
     # waiting fixes and twists against the stamp time
     def _advance(self, stamp_ns: int) -> None:
+        if self._first_ns is None:
+            self._first_ns = stamp_ns
         if self._clock_ns is None or stamp_ns > self._clock_ns:
             self._clock_ns = stamp_ns
         now = self._clock_ns
