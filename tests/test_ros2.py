@@ -389,7 +389,10 @@ def test_bad_cdr_and_no_fix_are_counted_rejections_not_exceptions():
         assert e.value.reason == "bad_cdr"
     with pytest.raises(ros2.RosDecodeError) as e:
         rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX, 40.0, 118.0, 50.0, status=-1)))
-    assert e.value.reason == "ros_no_fix"
+    assert e.value.reason == "ros_no_fix" and "NO_FIX" in str(e.value)
+    with pytest.raises(ros2.RosDecodeError) as e:  # Jazzy's STATUS_UNKNOWN, named as such
+        rin.decode(FIX_KEY, cdr(navsat_msg(T0_UNIX, 40.0, 118.0, 50.0, status=-2)))
+    assert e.value.reason == "ros_no_fix" and "STATUS_UNKNOWN" in str(e.value)
     with pytest.raises(ros2.RosDecodeError) as e:
         rin.decode("0/other/x::msg::dds_::Y_/h", good)
     assert e.value.reason == "unknown_key"

@@ -822,8 +822,9 @@ class RosInput:
 
     def _fix_in(self, inp: Ros2Input, msg, stamp_ns: int) -> list[tuple[str, str, WireModel]]:
         sid = inp.sensor_id
-        if msg.status.status < 0:
-            raise RosDecodeError("ros_no_fix", f"{inp.topic}: NavSatFix status NO_FIX")
+        if msg.status.status < 0:  # NO_FIX (-1), or STATUS_UNKNOWN (-2, since Jazzy)
+            name = {-1: "NO_FIX", -2: "STATUS_UNKNOWN"}.get(msg.status.status, str(msg.status.status))
+            raise RosDecodeError("ros_no_fix", f"{inp.topic}: NavSatFix status {name}: no fix to use")
         cov_known = msg.position_covariance_type != 0
         std = (
             _diag_std(msg.position_covariance, (0, 4, 8), self.cfg.fix_std_m)
