@@ -721,12 +721,12 @@ def record(fleet: Fleet, out: Path, duration_s: float | None, rate_hz: float, st
     recorder = FleetRecorder(out)
     period = 1.0 / rate_hz
     t0 = time.monotonic()
-    problems: set[str] = set()
+    runs = ProblemRuns()
     try:
         k = 0
         while not stop.is_set():
             snap = fleet.snapshot()
-            problems.update(snap["problems"])
+            runs.see(snap["problems"], time.monotonic())
             now = time.monotonic()
             with lock:
                 sh = {z: d for z, (t, d) in health.items() if now - t <= HEALTH_STALE_S}
@@ -744,8 +744,39 @@ def record(fleet: Fleet, out: Path, duration_s: float | None, rate_hz: float, st
         "snapshots": recorder.ticks,
         "vehicles": sorted(recorder.vehicles_seen),
         "services": sorted(recorder.services_seen),
-        "problems": sorted(problems),
+        "problems": runs.lasting(),
+        "transient": runs.transient(),
     }
+
+
+#: a problem ``fednav-fleet record`` saw for less than this (its longest run of consecutive
+#: snapshots) is a transient one, not an exit 1: a vehicle "published but not served" in the
+#: snapshot taken while its killed service's heir takes it over (a failover: ~0.1-1 s)
+TRANSIENT_PROBLEM_S = 3.0
+
+
+class ProblemRuns:
+    """The problems of successive snapshots and how long each lasted (its longest run)."""
+
+    def __init__(self) -> None:
+        self._since: dict[str, float] = {}  # problem -> start of its current run
+        self._last: dict[str, float] = {}  # problem -> last time seen in the current run
+        self.longest: dict[str, float] = {}
+
+    def see(self, problems, now: float) -> None:
+        for p in list(self._since):
+            if p not in problems:  # its run ended at the snapshot before this one
+                del self._since[p]
+        for p in problems:
+            start = self._since.setdefault(p, now)
+            self._last[p] = now
+            self.longest[p] = max(self.longest.get(p, 0.0), now - start)
+
+    def lasting(self) -> list[str]:
+        return sorted(p for p, d in self.longest.items() if d >= TRANSIENT_PROBLEM_S or p in self._since)
+
+    def transient(self) -> list[str]:
+        return sorted(set(self.longest) - set(self.lasting()))
 
 
 def _compact(out: Path, optimize: bool) -> str:
@@ -869,6 +900,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         for p in res["problems"]:
             print(f"  problem seen: {p}", flush=True)
+        for p in res["transient"]:  # e.g. the snapshot taken during a failover
+            print(f"  transient (under {TRANSIENT_PROBLEM_S:g} s, not an error): {p}", flush=True)
         return 1 if res["problems"] else 0
     finally:
         session.close()
