@@ -263,4 +263,7 @@ class InsFilterBank:
 
     def context(self, dt_late_s: float = 0.0) -> ModelContext:
         """Where a measurement model's rows go in this bank (the hook's context)."""
+        if dt_late_s > 0.0:  # late aiding: the INS's acceleration takes its velocity back
+            acc = self.ins.last_acc_enu_mps2
+            return ModelContext(self.n, dt_late_s, self.columns, self.reference, self.ins.last_wib_b_rps, acc)
         return ModelContext(self.n, dt_late_s, self.columns, self.reference, self.ins.last_wib_b_rps)

@@ -81,6 +81,8 @@ class ModelContext:
 
     dt_late_s > 0: the message is older than the INS time (late aiding inside the tolerance).
     wib_b_rps: the INS's last body angular rate (lever-arm velocities, e.g. a DVL's).
+    acc_enu_mps2: with late aiding, the INS's acceleration (ENU, dv/dt over its last major
+    interval): what takes its velocity back to the message's time (None when not late).
     """
 
     n_states: int = em.N_STATES
@@ -88,6 +90,7 @@ class ModelContext:
     columns: Mapping[str, slice] = field(default_factory=dict)
     reference: Mapping[str, np.ndarray] = field(default_factory=dict)
     wib_b_rps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    acc_enu_mps2: np.ndarray | None = None
 
 
 class MeasurementModel(Protocol):

@@ -43,8 +43,13 @@ error that does not; w x l is non-zero only while turning); the vertical one onl
 roll/pitch (on a level road it stays near its prior, indistinguishable from a height error).
 
 Sigmas: each at least ``MIN_POS_STD_M`` / ``MIN_VEL_STD_MPS`` (below any receiver's real
-precision). Late aiding (``ctx.dt_late_s`` > 0): the fix position is carried forward with its
-own velocity (none for a position-only fix).
+precision). Late aiding (``ctx.dt_late_s`` = dt > 0, the fix older than the INS): the fix
+position is carried forward to the INS time with its own velocity and the INS's acceleration a
+(``ctx.acc_enu_mps2``), ``p_fix + v_fix dt + a dt^2 / 2``, a position-only fix's with the INS's
+velocity, ``p_fix + v_ins dt - a dt^2 / 2``; and its velocity is compared with the INS's taken
+back to the fix's time, ``v_ins - a dt``. (Until 2026-12-01 a position-only fix was not carried,
+and a fix's velocity was compared with the INS's at the later time: fixes 40 ms late, as a
+robot's receiver delivers them, took a drive's horizontal error from 0.09 to 0.29 m RMS.)
 """
 
 from __future__ import annotations
@@ -74,6 +79,21 @@ SPEED_COURSE_LABELS = ("vel_along", "vel_cross")
 #: another, from its Dopplers: a fault large enough to fail one row of a solution is in its
 #: other rows too, only smaller (measurements.base.refused_with_source)
 FIX_GROUPS = ("position", "velocity")
+
+
+def _late_carry(nav: NavState, vel_fix, dt: float, acc) -> tuple[tuple[float, float, float], tuple]:
+    """A fix ``dt`` s older than the INS (module docstring): (what carries its position to the INS
+    time, what takes the INS velocity back to the fix's time), ENU. ``acc``: the INS's acceleration
+    (None: taken as zero)."""
+    a0, a1, a2 = (0.0, 0.0, 0.0) if acc is None else (float(x) for x in acc)
+    h = 0.5 * dt * dt
+    if vel_fix is None:  # a position-only fix: the INS's velocity, now, carries it
+        v0, v1, v2 = nav.vel_enu_mps.tolist()
+        carry = (v0 * dt - a0 * h, v1 * dt - a1 * h, v2 * dt - a2 * h)
+    else:
+        v0, v1, v2 = (float(x) for x in vel_fix)
+        carry = (v0 * dt + a0 * h, v1 * dt + a1 * h, v2 * dt + a2 * h)
+    return carry, (a0 * dt, a1 * dt, a2 * dt)
 
 
 @lru_cache(maxsize=8)
@@ -234,7 +254,13 @@ class GnssFixModel:
         r_m, r_n = earth.radii(nav.lat_rad)
         dl_pos, dl_vel = self.antenna_offsets(nav, ctx.wib_b_rps, self.lever_arm(ctx))
         vel_fix = msg.velocity()
-        carry = np.zeros(3) if vel_fix is None else np.asarray(vel_fix, dtype=float) * ctx.dt_late_s
+        dt = ctx.dt_late_s
+        if dt > 0.0:
+            carry, back = _late_carry(nav, vel_fix, dt, ctx.acc_enu_mps2)
+            carry = np.array(carry)
+        else:
+            carry = np.zeros(3) if vel_fix is None else np.asarray(vel_fix, dtype=float) * dt
+            back = None
         dp = (
             np.array(
                 [
@@ -260,6 +286,8 @@ class GnssFixModel:
                 self._warn_below_gm(pos_std)
             pos_std = white_std(pos_std, self.gm_sigma)
         v_a = np.asarray(nav.vel_enu_mps, dtype=float) + dl_vel
+        if back is not None:  # late: the INS velocity at the fix's time
+            v_a = v_a - np.array(back)
         H_vel = np.zeros((3, ctx.n_states))
         H_vel[:, em.VEL] = np.eye(3)
         H_vel[:, em.ATT] = earth.skew(dl_vel)
@@ -312,7 +340,11 @@ class GnssFixModel:
         h = nav.h_m
         vel_fix = msg.vel_enu_mps
         dt = ctx.dt_late_s
-        c0, c1, c2 = (0.0, 0.0, 0.0) if vel_fix is None else (v * dt for v in vel_fix)
+        back = None
+        if dt > 0.0:
+            (c0, c1, c2), back = _late_carry(nav, vel_fix, dt, ctx.acc_enu_mps2)
+        else:
+            c0, c1, c2 = (0.0, 0.0, 0.0) if vel_fix is None else (v * dt for v in vel_fix)
         z = [
             (earth.wrap_pi_f(nav.lon_rad - lon) * (r_n + h) * math.cos(nav.lat_rad) + 0.0) - c0,
             ((nav.lat_rad - lat) * (r_m + h) + 0.0) - c1,
@@ -321,6 +353,8 @@ class GnssFixModel:
         std = msg.pos_std()
         if vel_fix is not None:
             ve, vn, vu = nav.vel_enu_mps.tolist()
+            if back is not None:  # late: the INS velocity at the fix's time
+                ve, vn, vu = ve - back[0], vn - back[1], vu - back[2]
             fe, fn, fu = vel_fix
             z += [(ve + 0.0) - fe, (vn + 0.0) - fn, (vu + 0.0) - fu]
             std = (*std, *msg.vel_std())

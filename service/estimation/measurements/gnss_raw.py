@@ -44,7 +44,8 @@ enters with +1. Range rate: ``d rho_dot / d v_r = -f u`` (f the Doppler factor) 
 the INS position error (~|v| |dp| / R) are neglected, as in seed 001 and the standard form.
 
 Late aiding (``dt_late_s`` > 0, INS ahead of the measurement): the receiver position and clock
-bias are carried back to the measurement time with the INS velocity and the clock drift.
+bias are carried back to the measurement time with the INS velocity and the clock drift, and the
+velocity (and the position, to second order) with the INS's acceleration (``ctx.acc_enu_mps2``).
 """
 
 from __future__ import annotations
@@ -229,13 +230,22 @@ class Receiver:
     clock_drift_mps: float
 
 
-def receiver_from_nav(nav, clock_bias_m: float, clock_drift_mps: float, dt_late_s: float = 0.0) -> Receiver:
-    """Receiver at the measurement time ``nav.t - dt_late_s`` from an INS NavState."""
+def receiver_from_nav(
+    nav, clock_bias_m: float, clock_drift_mps: float, dt_late_s: float = 0.0, acc_enu_mps2=None
+) -> Receiver:
+    """Receiver at the measurement time ``nav.t - dt_late_s`` from an INS NavState; with the INS's
+    acceleration (``acc_enu_mps2``, ENU) its velocity is taken back to that time too and its
+    position to second order (until 2026-12-01 the range rates of a late epoch were predicted
+    from the velocity at the INS time: acceleration x lateness on every row)."""
     c_en = earth.mat_en(nav.lat_rad, nav.lon_rad)
     pos = earth.llh_to_ecef(np.array([nav.lat_rad, nav.lon_rad, nav.h_m]))
     vel = c_en @ np.asarray(nav.vel_enu_mps, dtype=float)
     if dt_late_s:
         pos = pos - vel * dt_late_s
+        if acc_enu_mps2 is not None:
+            acc = c_en @ np.asarray(acc_enu_mps2, dtype=float)
+            pos = pos + acc * (0.5 * dt_late_s * dt_late_s)
+            vel = vel - acc * dt_late_s
         clock_bias_m = clock_bias_m - clock_drift_mps * dt_late_s
     return Receiver(pos, vel, c_en, float(clock_bias_m), float(clock_drift_mps))
 
@@ -534,7 +544,7 @@ class GnssRawModel:
         is still an integrity epoch)."""
         sats = sat_arrays(msg)
         ref = ctx.reference["clock"]
-        rx = receiver_from_nav(nav, ref[0], ref[1], ctx.dt_late_s)
+        rx = receiver_from_nav(nav, ref[0], ref[1], ctx.dt_late_s, ctx.acc_enu_mps2)
         isb_ref = ctx.reference["isb"] if self.isb_constellations else None
         pred = self._predict(nav, rx, sats, msg, isb_ref)
         visible = elevation_mask(pred, self.elevation_mask_deg)
