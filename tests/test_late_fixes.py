@@ -177,3 +177,32 @@ def test_late_raw_epochs_through_the_engine_cost_no_accuracy():
     late = run(0.1)
     assert on_time < 2.0, on_time
     assert late < 1.2 * on_time, (late, on_time)
+
+
+def test_a_late_star_attitude_is_compared_with_the_ins_attitude_of_its_time():
+    """The INS turns (body rates about every axis) and flies for 0.1 s after the tracker's instant;
+    the tracker's attitude of that instant, applied late, has (nearly) no residual. Before: the
+    attitude change over 0.1 s (here ~0.3 deg) was the residual."""
+    from fednav.service.estimation.measurements.star import StarAttitudeModel
+    from fednav.service.ins.mechanisation import Ins
+    from fednav.service.messages import StarAttitude
+
+    nav0 = nav_now()
+    c_m = nav0.mat_nb
+    star = StarAttitude(
+        t=nav0.t, rpy_deg=tuple(earth.rpy_msg_deg(earth.mat_nb_to_rpy(c_m))), rpy_std_deg=(1e-4,) * 3
+    )
+    ins = Ins(nav0, 0.1)
+    w_b = np.radians([1.0, -2.0, 3.0])  # rad/s
+    g = earth.gravity_normal(LAT, H)
+    f_b = c_m.T @ np.array([0.0, 0.0, g])  # about level flight's specific force
+    for k in range(10):
+        ins.push(tuple((w_b * 0.01).tolist()), tuple((f_b * 0.01).tolist()), 0.01, nav0.t + 0.01 * (k + 1))
+    nav = ins.state
+    assert abs(nav.t - nav0.t - 0.1) < 1e-9
+    model = StarAttitudeModel()
+    late = model(nav, star, ModelContext(dt_late_s=0.1, wib_b_rps=ins.last_wib_b_rps))
+    as_now = model(nav, star, ModelContext())
+    arcsec = math.radians(1.0 / 3600.0)
+    assert np.max(np.abs(late.z)) < 0.05 * arcsec, late.z / arcsec
+    assert np.max(np.abs(as_now.z)) > 100 * arcsec, as_now.z / arcsec
