@@ -68,21 +68,51 @@ def test_a_late_fix_of_the_true_trajectory_has_no_residual(with_velocity, genera
     assert np.max(np.abs(on_time.z)) < 2e-3, on_time.z
 
 
-def test_late_fixes_through_the_engine_cost_no_accuracy():
-    """The demo aircraft (120 m/s) with 10 Hz position-only fixes of 1 m: each fix delivered after
-    the IMU samples of the next 0.1 s gives the accuracy of fixes on time (before: 47 m)."""
+def _hb():
+    """benchmarks/hardening.py (its scenarios and StatusSink)."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import hardening as hb
 
+    return hb
+
+
+def _errors_when_late(sc, kind: str, late: float, until_s: float, pipeline: str):
+    """The scenario's messages through one engine, each ``kind`` message delivered after the IMU
+    samples up to its time + ``late``; (errors, sigmas) of ``pipeline`` after 30 s."""
     from fednav.service import keys
     from fednav.service.engine import VehicleEngine
     from fednav.simulators.evaluate import service_config
-    from fednav.simulators.scenario import parse_scenario
     from fednav.simulators.stream import Simulation
 
+    hb = _hb()
+    sink = hb.StatusSink()
+    eng = VehicleEngine("v1", service_config(sc), sink)
+    held: list = []
+    for key, msg in Simulation(sc, seed=3):
+        pk = keys.parse_input(key)
+        if late and pk.kind == kind:
+            held.append((msg.t + late, pk, msg))
+            continue
+        while held and held[0][0] <= msg.t:
+            _, hk, hm = held.pop(0)
+            eng.handle(hk.kind, hk.sensor_id, hm)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+        if msg.t - sc.t0_gps_s > until_s:
+            break
+    t, err, sd, _ = sink.rec[pipeline]
+    keep = np.array(t) - sc.t0_gps_s > 30.0
+    return np.array(err)[keep], np.array(sd)[keep]
+
+
+def test_late_fixes_through_the_engine_cost_no_accuracy():
+    """The demo aircraft (120 m/s) with 10 Hz position-only fixes of 1 m: each fix delivered after
+    the IMU samples of the next 0.1 s gives the accuracy of fixes on time (before: 47 m)."""
+    from fednav.simulators.scenario import parse_scenario
+
+    hb = _hb()
     d = hb._toml("demo_aircraft")
     d["gnss"].update({"variant": "position", "rate_hz": 10.0, "pos_std_enu_m": [1.0, 1.0, 1.0]})
     d["service"]["pipelines"] = [{"name": "lc", "kind": "loosely_coupled"}]
@@ -90,23 +120,7 @@ def test_late_fixes_through_the_engine_cost_no_accuracy():
     sc = parse_scenario(d, "late fixes")
 
     def run(late: float) -> tuple[float, float]:
-        sink = hb.StatusSink()
-        eng = VehicleEngine("v1", service_config(sc), sink)
-        held: list = []
-        for key, msg in Simulation(sc, seed=3):
-            pk = keys.parse_input(key)
-            if late and pk.kind == "gnss_fix":
-                held.append((msg.t + late, pk, msg))
-                continue
-            while held and held[0][0] <= msg.t:
-                _, hk, hm = held.pop(0)
-                eng.handle(hk.kind, hk.sensor_id, hm)
-            eng.handle(pk.kind, pk.sensor_id, msg)
-            if msg.t - sc.t0_gps_s > 90.0:
-                break
-        t, err, sd, _ = sink.rec["lc"]
-        keep = np.array(t) - sc.t0_gps_s > 30.0
-        err, sd = np.array(err)[keep], np.array(sd)[keep]
+        err, sd = _errors_when_late(sc, "gnss_fix", late, 90.0, "lc")
         h, hs = np.hypot(err[:, 0], err[:, 1]), np.hypot(sd[:, 0], sd[:, 1])
         return float(np.sqrt(np.mean(h**2))), float(np.mean((h / hs) ** 2))
 
@@ -138,39 +152,14 @@ def test_a_late_raw_epoch_predicts_its_range_rates_with_the_velocity_of_its_time
 def test_late_raw_epochs_through_the_engine_cost_no_accuracy():
     """The tightly coupled pipeline on the demo aircraft's raw epochs, each delivered after the IMU
     of the next 0.1 s: the accuracy of epochs on time (before: 839 m RMS over 300 s, diverged; 100 s here)."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    import hardening as hb
-
-    from fednav.service import keys
-    from fednav.service.engine import VehicleEngine
-    from fednav.simulators.evaluate import service_config
-    from fednav.simulators.stream import Simulation
-
+    hb = _hb()
     sc = hb.gnss_scenario(300.0)
     svc = dict(sc.service)
     svc["pipelines"] = [p for p in svc["pipelines"] if p["name"] == "tc"]
     sc = sc.model_copy(update={"service": svc})
 
     def run(late: float) -> float:
-        sink = hb.StatusSink()
-        eng = VehicleEngine("v1", service_config(sc), sink)
-        held: list = []
-        for key, msg in Simulation(sc, seed=3):
-            pk = keys.parse_input(key)
-            if late and pk.kind == "gnss_raw":
-                held.append((msg.t + late, pk, msg))
-                continue
-            while held and held[0][0] <= msg.t:
-                _, hk, hm = held.pop(0)
-                eng.handle(hk.kind, hk.sensor_id, hm)
-            eng.handle(pk.kind, pk.sensor_id, msg)
-            if msg.t - sc.t0_gps_s > 100.0:
-                break
-        t, err, _, _ = sink.rec["tc"]
-        err = np.array(err)[np.array(t) - sc.t0_gps_s > 30.0]
+        err, _ = _errors_when_late(sc, "gnss_raw", late, 100.0, "tc")
         return float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2)))
 
     on_time = run(0.0)
