@@ -82,6 +82,17 @@ def llh_to_ecef(llh: np.ndarray) -> np.ndarray:
     )
 
 
+def llh_to_ecef_f(lat_rad: float, lon_rad: float, h_m: float) -> np.ndarray:
+    """:func:`llh_to_ecef` of one point given as floats: the same expressions in the same order
+    on Python floats (``math``'s sine and cosine give numpy's values), without the arrays of a
+    batch (a tightly coupled filter needs its receiver's position at every GNSS epoch)."""
+    sl, cl = math.sin(lat_rad), math.cos(lat_rad)
+    r_n = A_M / math.sqrt(1.0 - E2 * sl * sl)
+    x = (r_n + h_m) * cl * math.cos(lon_rad)
+    y = (r_n + h_m) * cl * math.sin(lon_rad)
+    return np.array([x, y, (r_n * (1.0 - E2) + h_m) * sl])
+
+
 def ecef_to_llh(xyz: np.ndarray) -> np.ndarray:
     """ECEF metres -> geodetic (lat_rad, lon_rad, h_m), iterative (converges to < 1e-12 rad)."""
     xyz = np.asarray(xyz, dtype=float)

@@ -367,19 +367,27 @@ class Pipeline(ABC):
         self._recovered_at[kind] = t
         return "aiding_still_refused" if again else "aiding_refused"
 
-    def epoch_refusal(self, meas, x: np.ndarray, P: np.ndarray) -> tuple[bool, float]:
+    @staticmethod
+    def prior_rows(meas, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(innovations z - H x, diagonal of S = H P H' + R) of an epoch's rows against the prior
+        (x, P): what :meth:`epoch_refusal` tests and :meth:`record_rows` records, computed once
+        by a pipeline that does both on the same prior."""
+        return meas.z - meas.H @ x, np.einsum("ij,jk,ik->i", meas.H, P, meas.H) + np.diagonal(meas.R)
+
+    def epoch_refusal(self, meas, x: np.ndarray, P: np.ndarray, prior=None) -> tuple[bool, float]:
         """(whether the prior (x, P) refuses an epoch's rows as a whole, the typical source's
         disagreement). Refused: the NIS of the rows without the worst source (``meas.groups``,
         e.g. a satellite; else the worst row) above its chi-square quantile at ``REFUSED_P_FA``.
         One failing source never makes it true; a state that disagrees with most sources does (a
         jump it took, a corrupted INS). The disagreement: the median over the sources but the
-        worst of each one's RMS standardised innovation, in sigmas (0 when not refused)."""
+        worst of each one's RMS standardised innovation, in sigmas (0 when not refused).
+        ``prior``: :meth:`prior_rows` of (meas, x, P) when the caller has them."""
         z, H = meas.z, meas.H
         m = len(z)
-        if m < 3 or not (np.all(np.isfinite(z)) and np.all(np.isfinite(H))):
+        if m < 3 or not (np.isfinite(z).all() and np.isfinite(H).all()):
             return False, 0.0
-        s = np.einsum("ij,jk,ik->i", H, P, H) + meas.r_var
-        q = np.square(z - H @ x) / np.maximum(s, 1e-30)
+        r, s = self.prior_rows(meas, x, P) if prior is None else prior
+        q = np.square(r) / np.maximum(s, 1e-30)
         if meas.groups is not None and len(meas.groups) == m:
             per = np.bincount(meas.groups, weights=q)
             worst = int(np.argmax(per))
@@ -403,7 +411,7 @@ class Pipeline(ABC):
     #: which the update is there to correct
     GROSS_REFUSAL_SIGMA = 5.0
 
-    def refused_wholesale(self, t: float, meas, x: np.ndarray, P: np.ndarray) -> bool:
+    def refused_wholesale(self, t: float, meas, x: np.ndarray, P: np.ndarray, prior=None) -> bool:
         """Note whether the prior (x, P) refuses this epoch's rows as a whole (:meth:`note_refusal`:
         for ``refused_after_s`` the lifecycle checks the state, then resets it), and whether the
         refusal is gross (the typical source beyond ``GROSS_REFUSAL_SIGMA``): then the epoch takes
@@ -412,7 +420,7 @@ class Pipeline(ABC):
         the biases and the receiver clock along with a corrupted position, and let the MHSS monitor
         exclude good satellites against it, which the reset kept (docs/hardening.md, "A silent
         corruption of the state")."""
-        refused, typical = self.epoch_refusal(meas, x, P)
+        refused, typical = self.epoch_refusal(meas, x, P, prior)
         self.note_refusal(t, refused)
         if refused and typical > self.GROSS_REFUSAL_SIGMA:
             self.mark_screened(t, "epoch_refused", len(meas.z))
@@ -539,8 +547,7 @@ class Pipeline(ABC):
         self, key: str, meas, claimed, x: np.ndarray, P: np.ndarray, used=None, taken=None
     ) -> None:
         """:meth:`record_rows` from the prior (x, P) the rows were tested against."""
-        r = meas.z - meas.H @ x
-        S = np.einsum("ij,jk,ik->i", meas.H, P, meas.H) + np.diagonal(meas.R)
+        r, S = self.prior_rows(meas, x, P)
         self.record_rows(key, meas, claimed, r, S, used, taken)
 
     #: a stream that fed no update for this long (and for RETURN_GAP_PERIODS of its own

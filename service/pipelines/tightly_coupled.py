@@ -39,7 +39,7 @@ from fednav.service.estimation.kalman import NotPositiveDefinite
 from fednav.service.estimation.measurements.gnss_raw import GnssRawModel
 from fednav.service.ins import error_model as em
 from fednav.service.ins.mechanisation import NavState
-from fednav.service.messages import GnssRaw, Integrity, SatelliteTest, WireModel
+from fednav.service.messages import GnssRaw, Integrity, WireModel
 from fednav.service.pipelines.base import Estimate, InitStd, Pipeline, initial_covariance
 
 
@@ -143,7 +143,8 @@ class TightlyCoupled(Pipeline):
         if meas.floored:
             self.screened["sigma_floor"] += meas.floored
         x0, P0 = bank.x[0].copy(), bank.P[0].copy()
-        if self.refused_wholesale(nav.t, meas, x0, P0):  # no update; integrity: an alarm
+        prior = self.prior_rows(meas, x0, P0)  # (tested here, recorded after the update)
+        if self.refused_wholesale(nav.t, meas, x0, P0, prior):  # no update; integrity: an alarm
             res = self.last = self.monitor.refused_epoch(bank, msg.t)
             return [] if res.tests is None else [self.integrity_message(res)]
         try:
@@ -158,7 +159,7 @@ class TightlyCoupled(Pipeline):
             return []
         if res.update is not None:
             self.mark_aided(nav.t)
-            self.record_prior_rows(key, meas, claimed, x0, P0)
+            self.record_rows(key, meas, claimed, *prior)
         if res.excluded:
             self.mark_screened(nav.t, "excluded_satellite", len(res.excluded))
         if res.tests is None:
@@ -166,34 +167,50 @@ class TightlyCoupled(Pipeline):
         return [self.integrity_message(res)]
 
     def integrity_message(self, res: EpochResult) -> Integrity:
+        """The epoch's Integrity message, validated in one call (pydantic builds the nested
+        SatelliteTests from their fields: the same message as constructing each, without a
+        Python-level model construction per satellite at every epoch)."""
         tests, lim = res.tests, self.monitor.limits
-        sat_tests = [
-            SatelliteTest(
-                id=sid,
-                statistic_m=float(tests.d_h[j]),
-                threshold_m=float(tests.T_h[j]),
-                vertical_statistic_m=float(tests.d_v[j]),
-                vertical_threshold_m=float(tests.T_v[j]),
-                residual_statistic_m=res.residual_by_sat.get(sid, (0.0, 0.0))[0],
-                residual_threshold_m=res.residual_by_sat.get(sid, (0.0, 0.0))[1],
-            )
-            for j, sid in enumerate(res.used)
+        by_sat = res.residual_by_sat
+        sat_tests = (
+            [
+                {
+                    "id": sid,
+                    "statistic_m": dh,
+                    "threshold_m": th,
+                    "vertical_statistic_m": dv,
+                    "vertical_threshold_m": tv,
+                    "residual_statistic_m": by_sat.get(sid, (0.0, 0.0))[0],
+                    "residual_threshold_m": by_sat.get(sid, (0.0, 0.0))[1],
+                }
+                for sid, dh, th, dv, tv in zip(
+                    res.used,
+                    tests.d_h.tolist(),
+                    tests.T_h.tolist(),
+                    tests.d_v.tolist(),
+                    tests.T_v.tolist(),
+                    strict=False,
+                )
+            ]
             if len(tests.d_h)
-        ]
-        return Integrity(
-            t=res.t,
-            pipeline=self.name,
-            phase=self.cfg.phase,
-            hpl_m=float(tests.hpl),
-            vpl_m=float(tests.vpl),
-            hal_m=lim.hal_m,
-            val_m=lim.val_m,
-            alarm=res.assessment.alarm,
-            available=res.assessment.available,
-            detected=res.detected,
-            excluded=list(res.excluded),
-            satellites=sat_tests,
-            detected_by=res.detected_by,
+            else []
+        )
+        return Integrity.model_validate(
+            {
+                "t": res.t,
+                "pipeline": self.name,
+                "phase": self.cfg.phase,
+                "hpl_m": float(tests.hpl),
+                "vpl_m": float(tests.vpl),
+                "hal_m": lim.hal_m,
+                "val_m": lim.val_m,
+                "alarm": res.assessment.alarm,
+                "available": res.assessment.available,
+                "detected": res.detected,
+                "excluded": list(res.excluded),
+                "satellites": sat_tests,
+                "detected_by": res.detected_by,
+            }
         )
 
 

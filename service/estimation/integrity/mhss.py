@@ -302,9 +302,11 @@ def _masked_gain(
     positive definite).
     """
     B, n = x.shape
-    sel = np.flatnonzero(np.any(H, axis=0))
+    # (array methods: the values of np.any / np.all / np.take / np.swapaxes without their Python
+    # wrappers; the bank's update runs at every GNSS epoch)
+    sel = np.flatnonzero(H.any(axis=0))
     s = len(sel)
-    if s == 0 or not np.all(r_var > 0.0):
+    if s == 0 or not (r_var > 0.0).all():
         return None
     kf = keep.astype(float)
     r = (z - x @ H.T) * kf  # innovations, zero on masked rows
@@ -380,25 +382,36 @@ def solution_separation(
     (``k_fa_horizontal``).
     """
     kh = kfa if kfa_h is None else kfa_h
-    h = np.asarray(h_idx)
-    dx = x_ref[None, :] - x_sub
     # only the horizontal and vertical rows/columns of the covariances enter the tests
-    hv = np.append(h, v_idx)
-    ix = (slice(None), hv[:, None], hv[None, :])
+    h, hh, ix = _separation_index(tuple(h_idx), v_idx)
+    dx = x_ref[None, :] - x_sub
     Pc, Ps = P_cross[ix], P_sub[ix]
-    dP = P_ref[ix[1:]][None] - Pc - np.swapaxes(Pc, 1, 2) + Ps  # eq 27, (N, 3, 3)
-    d_h = np.linalg.norm(dx[:, h], axis=1)  # eq 28
+    dP = P_ref[ix[1:]][None] - Pc - Pc.swapaxes(1, 2) + Ps  # eq 27, (N, 3, 3)
+    dxh = dx[:, h]
+    d_h = np.sqrt(np.add.reduce(dxh * dxh, axis=1))  # eq 28 (np.linalg.norm's values, without its checks)
     T_h = kh * np.sqrt(np.maximum(lambda_max_2x2(dP[:, :2, :2]), 0.0))  # eq 29
     a_h = kmd * np.sqrt(np.maximum(lambda_max_2x2(Ps[:, :2, :2]), 0.0))  # eq 31
     d_v = np.abs(dx[:, v_idx])
     T_v = kfa * np.sqrt(np.maximum(dP[:, 2, 2], 0.0))
     a_v = kmd * np.sqrt(np.maximum(Ps[:, 2, 2], 0.0))
     # fault-free term (binds only when N = 0 or a child is better than the reference)
-    hpl0 = kmd * math.sqrt(max(float(lambda_max_2x2(P_ref[h[:, None], h[None, :]])), 0.0))
+    hpl0 = kmd * math.sqrt(max(float(lambda_max_2x2(P_ref[hh])), 0.0))
     vpl0 = kmd * math.sqrt(max(float(P_ref[v_idx, v_idx]), 0.0))
-    hpl = max(hpl0, float(np.max(T_h + a_h))) if len(T_h) else hpl0  # eq 32
-    vpl = max(vpl0, float(np.max(T_v + a_v))) if len(T_v) else vpl0
+    # np.maximum.reduce: np.max's values (NaN included) without its wrappers
+    hpl = max(hpl0, float(np.maximum.reduce(T_h + a_h))) if len(T_h) else hpl0  # eq 32
+    vpl = max(vpl0, float(np.maximum.reduce(T_v + a_v))) if len(T_v) else vpl0
     return SeparationTests(d_h, T_h, a_h, d_v, T_v, a_v, hpl, vpl, kfa, kmd)
+
+
+@functools.lru_cache(maxsize=16)
+def _separation_index(h_idx: tuple[int, ...], v_idx: int):
+    """(the horizontal indices, their (2, 2) block's index, the (N, 3, 3) horizontal + vertical
+    block's index) of :func:`solution_separation`, read-only."""
+    h = np.asarray(h_idx)
+    hv = np.append(h, v_idx)
+    for a in (h, hv):
+        a.setflags(write=False)
+    return h, (h[:, None], h[None, :]), (slice(None), hv[:, None], hv[None, :])
 
 
 # --- the bank ---------------------------------------------------------------------------------------------
@@ -637,7 +650,7 @@ class MhssBank:
         """P <- (P + P') / 2 in place for the member covariances (the first B blocks)."""
         P = blocks[: self.B]
         t = self._work.get("sym", P.shape)
-        np.add(P, np.swapaxes(P, 1, 2), out=t)
+        np.add(P, P.swapaxes(1, 2), out=t)
         np.multiply(t, 0.5, out=P)
 
     def update(self, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, row_sat: np.ndarray) -> BankUpdate:
@@ -684,8 +697,8 @@ class MhssBank:
         sel, blocks = g.sel, self._blocks[:nb]
         s = len(sel)
         LJ = g.L @ g.J  # K H on the observed columns (B, n, s)
-        Wb = g.J @ np.swapaxes(g.L, 1, 2)  # (B, s, n)
-        Ps = np.take(blocks, sel, axis=1, out=Wk.get("p_s", (nb, s, n)), mode="clip")  # E P
+        Wb = g.J @ g.L.swapaxes(1, 2)  # (B, s, n)
+        Ps = blocks.take(sel, axis=1, out=Wk.get("p_s", (nb, s, n)), mode="clip")  # E P
         T = Wk.get("t", blocks.shape)
         X = Wk.get("x", (nb, n, s))
         out = self._next_blocks()
@@ -694,12 +707,12 @@ class MhssBank:
             LJa, La, Wbb = LJ, g.L, Wb
         else:
             pa, pb = self.pa, self.pb
-            LJa = np.take(LJ, pa, axis=0, out=Wk.get("lj_a", (nb, n, s)), mode="clip")
-            La = np.take(g.L, pa, axis=0, out=Wk.get("l_a", (nb, n, s)), mode="clip")
-            Wbb = np.take(Wb, pb, axis=0, out=Wk.get("w_b", (nb, s, n)), mode="clip")
+            LJa = LJ.take(pa, axis=0, out=Wk.get("lj_a", (nb, n, s)), mode="clip")
+            La = g.L.take(pa, axis=0, out=Wk.get("l_a", (nb, n, s)), mode="clip")
+            Wbb = Wb.take(pb, axis=0, out=Wk.get("w_b", (nb, s, n)), mode="clip")
         np.matmul(LJa, Ps, out=T)
         np.subtract(blocks, T, out=T)
-        np.take(T, sel, axis=-1, out=X, mode="clip")
+        T.take(sel, axis=-1, out=X, mode="clip")
         np.subtract(La, X, out=X)
         np.matmul(X, Wbb, out=out[:nb])
         out[:nb] += T

@@ -55,6 +55,7 @@ restarts the clock. Re-admitted satellites enter the bank like rising satellites
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -205,14 +206,14 @@ class ResidualTests:
         """(N,) any window of the satellite above its threshold."""
         if self.statistic.size == 0:
             return np.zeros(len(self.sats), dtype=bool)
-        return np.any(self.statistic > self.threshold, axis=1)
+        return (self.statistic > self.threshold).any(axis=1)
 
     @property
     def normalised(self) -> np.ndarray:
         """(N,) largest statistic / threshold over the windows."""
         if self.statistic.size == 0:
             return np.zeros(len(self.sats))
-        return np.max(self.statistic / np.maximum(self.threshold, 1e-300), axis=1)
+        return np.maximum.reduce(self.statistic / np.maximum(self.threshold, 1e-300), axis=1)
 
 
 class ResidualWindows:
@@ -298,6 +299,15 @@ class ResidualWindows:
                 thr[j, i] = k * np.sqrt((sums[1] / n) ** 2 + sums[2] / (n * n))
                 cnt[j, i] = n
         return ResidualTests(tuple(sats), self.windows, stat, thr, cnt)
+
+
+@functools.lru_cache(maxsize=256)
+def _pseudorange_rows(labels: tuple[str, ...]) -> np.ndarray:
+    """Which rows are pseudoranges (``<id>.pr``), read-only: a receiver's labels repeat from epoch
+    to epoch."""
+    out = np.array([lab.endswith(".pr") for lab in labels], dtype=bool)
+    out.setflags(write=False)
+    return out
 
 
 def _positive_definite(P: np.ndarray) -> bool:
@@ -473,11 +483,11 @@ class MhssMonitor:
                 raise NotPositiveDefinite("main filter covariance after the MHSS update")
             if mh.depth >= 1 and self.residual.windows:
                 # the pseudorange row of each bank column (one per used satellite)
-                is_pr = np.array([lab.endswith(".pr") for lab in meas.labels], dtype=bool)[sel]
+                is_pr = _pseudorange_rows(tuple(meas.labels))[sel]
                 pr_idx = np.flatnonzero(is_pr)
                 pr_row = np.full(mh.N, -1)
                 pr_row[rcol[pr_idx]] = pr_idx
-                if np.all(pr_row >= 0):
+                if (pr_row >= 0).all():
                     self.residual.push(mh.sats, *mh.excluded_residuals(z, H, rv, pr_row))
             bank.feedback(mh.x[0].copy())
         if mh.depth == 0:
@@ -487,8 +497,8 @@ class MhssMonitor:
         kfa = k_fa(p_fa, mh.N * nf)
         tests = mh.main_tests(kfa, self.kmd, k_fa_horizontal(p_fa, mh.N * nf, hmode))
         res = self.residual.tests(mh.sats, kfa)
-        ss_detected = bool(np.any(tests.flagged(usev)))
-        res_detected = bool(np.any(res.flagged))
+        ss_detected = bool(tests.flagged(usev).any())
+        res_detected = bool(res.flagged.any())
         detected = ss_detected or res_detected
         resolved, excluded_now = not detected, None
         if detected and cfg.exclusion and may_exclude:

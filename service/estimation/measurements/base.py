@@ -241,15 +241,30 @@ class SigmaFloors:
     pipeline calls :meth:`apply` before an update and :meth:`record` after an update that used
     the rows (refused rows teach nothing)."""
 
+    #: label tuples remembered per stream (:meth:`_histories`) before the memo starts afresh
+    MEMO_SIZE = 64
+
     def __init__(self) -> None:
         self._rows: dict[tuple[str, str], _RowHistory] = {}
+        # (key, labels) -> the rows' histories in label order: a stream's messages repeat their
+        # labels (a receiver's satellites change every few minutes), so each epoch looks them up
+        # once instead of once per row
+        self._memo: dict[tuple[str, tuple[str, ...]], list[_RowHistory]] = {}
+
+    def _histories(self, key: str, labels: tuple[str, ...]) -> list[_RowHistory]:
+        k = (key, labels)
+        hs = self._memo.get(k)
+        if hs is None:
+            if len(self._memo) >= self.MEMO_SIZE:
+                self._memo.clear()
+            hs = self._memo[k] = [self._row(key, lab) for lab in labels]
+        return hs
 
     def apply(self, key: str, meas: Measurement) -> tuple[Measurement, np.ndarray]:
         """(meas with its R raised where the history says so, the claimed sigmas before)."""
         # np.maximum is what np.clip(d, 0.0, None) calls, without its Python wrappers (~20 us a call)
         sd = np.sqrt(np.maximum(np.asanyarray(meas.R).diagonal(), 0.0))
-        rows = self._rows
-        floors = [(rows.get((key, lab)) or self._row(key, lab)).floor for lab in meas.labels]
+        floors = [h.floor for h in self._histories(key, tuple(meas.labels))]
         if not any(f > 0.0 for f in floors) or all(a >= f for a, f in zip(sd.tolist(), floors, strict=True)):
             return meas, sd  # (the usual epoch: no history floor, or every claim above it)
         floor = np.array(floors)
@@ -271,10 +286,9 @@ class SigmaFloors:
     def record_floats(self, key: str, labels, claimed: list, innovation: list, hph: list, used) -> None:
         """:meth:`record` of rows given as lists of Python floats (``used``: a list of bools or
         None), as the pipelines' :meth:`~service.pipelines.base.Pipeline.record_rows` has them."""
-        for j, lab in enumerate(labels):
+        for j, h in enumerate(self._histories(key, tuple(labels))):
             if used is not None and not used[j]:
                 continue
-            h = self._row(key, lab)
             h.claimed.append(claimed[j])
             h.r2.append(innovation[j] ** 2)
             h.hph.append(hph[j])

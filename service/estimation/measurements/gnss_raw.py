@@ -50,6 +50,7 @@ velocity (and the position, to second order) with the INS's acceleration (``ctx.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -131,10 +132,11 @@ def range_geometry(
     """
     r_rx = np.asarray(rx_pos_ecef_m, dtype=float).reshape(3)
     r_s = np.atleast_2d(np.asarray(sat_pos_ecef_m, dtype=float))
-    rho = _row_norms(r_s - r_rx)
-    c, s = np.ones(len(r_s)), np.zeros(len(r_s))  # R3 of the earth rotation angle: cos, sin
-    r_rot = r_s
     d = r_s - r_rx
+    rho = _row_norms(d)
+    r_rot = r_s
+    if not RANGE_ITERATIONS:
+        c, s = np.ones(len(r_s)), np.zeros(len(r_s))  # R3 of the earth rotation angle: cos, sin
     for _ in range(RANGE_ITERATIONS):
         angle = earth.OMEGA_IE_RPS * rho / earth.C_MPS
         c, s = np.cos(angle), np.sin(angle)
@@ -152,8 +154,9 @@ def range_geometry(
         v_in = v_s + earth.OMEGA_IE_RPS * w
         v_rot = _rotate(c, s, v_s)
         v_in_rot = _rotate(c, s, v_in)
-        factor = 1.0 / (1.0 + np.sum(los * v_in_rot, axis=1) / earth.C_MPS)
-        rate = np.sum(los * (v_rot - v_rx), axis=1) * factor
+        # np.add.reduce: what np.sum calls, without its Python wrappers
+        factor = 1.0 / (1.0 + np.add.reduce(los * v_in_rot, axis=1) / earth.C_MPS)
+        rate = np.add.reduce(los * (v_rot - v_rx), axis=1) * factor
     return RangeGeometry(rho, los, r_rot, rho / earth.C_MPS, rate, factor)
 
 
@@ -238,7 +241,7 @@ def receiver_from_nav(
     position to second order (until 2026-12-01 the range rates of a late epoch were predicted
     from the velocity at the INS time: acceleration x lateness on every row)."""
     c_en = earth.mat_en(nav.lat_rad, nav.lon_rad)
-    pos = earth.llh_to_ecef(np.array([nav.lat_rad, nav.lon_rad, nav.h_m]))
+    pos = earth.llh_to_ecef_f(float(nav.lat_rad), float(nav.lon_rad), float(nav.h_m))
     vel = c_en @ np.asarray(nav.vel_enu_mps, dtype=float)
     if dt_late_s:
         pos = pos - vel * dt_late_s
@@ -266,7 +269,7 @@ def predict(rx: Receiver, sats: SatArrays) -> Predicted:
     los_enu = g.los_ecef @ rx.mat_en  # C_ne u  (rows)
     pr = g.range_m + rx.clock_bias_m - sats.sat_clock_m
     rr = g.range_rate_mps + rx.clock_drift_mps - sats.sat_clock_drift_mps
-    el = np.arcsin(np.clip(los_enu[:, 2], -1.0, 1.0))
+    el = np.arcsin(np.minimum(np.maximum(los_enu[:, 2], -1.0), 1.0))  # np.clip's values, without its wrappers
     return Predicted(pr, rr, los_enu, g.doppler_factor, el)
 
 
@@ -304,7 +307,7 @@ def raw_rows(
     H = [H_pr]
     r = [np.square(sats.pseudorange_sigma_m)]
     row_sat = [np.arange(n)]
-    labels = [f"{s}.pr" for s in sats.ids]
+    labels = _row_labels(sats.ids, use_range_rate)
     if use_range_rate:
         H_rr = np.zeros((n, n_states))
         H_rr[:, em.VEL] = -pred.doppler_factor[:, None] * pred.los_enu
@@ -313,15 +316,20 @@ def raw_rows(
         H.append(H_rr)
         r.append(np.square(sats.range_rate_sigma_mps))
         row_sat.append(np.arange(n))
-        labels += [f"{s}.rr" for s in sats.ids]
     return RawRows(
         np.concatenate(z),
         np.concatenate(H),
         np.concatenate(r),
         np.concatenate(row_sat),
-        tuple(labels),
+        labels,
         sats.ids,
     )
+
+
+@functools.lru_cache(maxsize=256)
+def _row_labels(ids: tuple[str, ...], range_rate: bool) -> tuple[str, ...]:
+    """The rows' labels of satellites ``ids`` (a receiver's set repeats from epoch to epoch)."""
+    return tuple(f"{s}.pr" for s in ids) + (tuple(f"{s}.rr" for s in ids) if range_rate else ())
 
 
 CONSTELLATION_OF_PREFIX = {"G": "GPS", "C": "BDS", "E": "GAL", "R": "GLO", "J": "QZS"}
@@ -486,7 +494,7 @@ class GnssRawModel:
         if isb_m is not None and len(sats.ids):
             j = self._isb_index(sats)
             extra = extra + np.where(j >= 0, np.asarray(isb_m)[np.maximum(j, 0)], 0.0)
-        if not np.any(extra):
+        if not extra.any():
             return pred
         return Predicted(
             pred.pseudorange_m + extra,
@@ -564,6 +572,10 @@ class GnssRawModel:
         usable = [i for i, sid in enumerate(sats.ids) if visible[i] and first[sid] == i]
         col = np.full(len(sats.ids), -1)
         col[usable] = np.arange(len(usable))
+        if len(usable) == len(sats.ids):  # every satellite usable (the usual epoch): every row
+            return Measurement(
+                rows.z, rows.H, np.diag(rows.r_var), rows.labels, col[rows.row_sat], tuple(sats.ids)
+            )
         sel = col[rows.row_sat] >= 0
         return Measurement(
             rows.z[sel],
