@@ -16,7 +16,7 @@ subscriber of every Solution in this process. Printed per case:
 
 Usage: .venv/bin/python benchmarks/fleet_load.py [--vehicles 50 100 200] [--duration 30] [--option LINE]
            [--intake-option LINE]
-           [--modes batch json] [--record off on] [--workers 2] [--shards 1] [--json]
+           [--modes batch json] [--imu-batch 10] [--record off on] [--workers 2] [--shards 1] [--json]
 """
 
 from __future__ import annotations
@@ -92,6 +92,7 @@ def run_case(
     tmp: Path,
     options: str = "",
     intake_options: str = "",
+    imu_batch: int = 10,
 ) -> dict:
     import zenoh
 
@@ -123,7 +124,7 @@ def run_case(
 
     sub = s.declare_subscriber("fednav/*/nav/lc/solution", on_sol)
     log = tmp / "fleet_log.npy"
-    batch = 10 if mode == "batch" else 1
+    batch = imu_batch if mode == "batch" else 1
     gen = Proc(
         [
             sys.executable,
@@ -169,6 +170,7 @@ def run_case(
     out = {
         "vehicles": n,
         "mode": mode,
+        "imu_batch": batch,
         "record": record,
         "workers": workers,
         "shards": shards,
@@ -256,8 +258,17 @@ def main() -> int:
         default=[],
         help="a line of the service's [intake] table, repeatable (e.g. 'subscribe = \"all\"')",
     )
+    ap.add_argument(
+        "--imu-batch",
+        type=int,
+        default=10,
+        help="samples per ImuBatch in the batch mode (default 10: 20 messages a second at 200 Hz; "
+        "20: one per 10 Hz solution epoch)",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    if args.imu_batch < 2:
+        ap.error("--imu-batch: at least 2 (one sample per message is the json mode)")
     results = []
     with tempfile.TemporaryDirectory() as d:
         for mode in args.modes:
@@ -273,6 +284,7 @@ def main() -> int:
                         Path(d),
                         "".join(o + "\n" for o in args.option),
                         "".join(o + "\n" for o in args.intake_option),
+                        args.imu_batch,
                     )
                     results.append(r)
                     if not args.json:

@@ -294,7 +294,7 @@ class ResidualWindows:
             h = self._hist[:, rows]  # (3, len(rows), depth)
             for i, w in enumerate(self.windows):
                 n = np.minimum(self._count[rows], w).astype(float)
-                sums = h[:, :, self._depth - w :].sum(axis=2)  # zeros before the first sample
+                sums = np.add.reduce(h[:, :, self._depth - w :], axis=2)  # zeros before the first sample
                 stat[j, i] = np.abs(sums[0]) / n
                 thr[j, i] = k * np.sqrt((sums[1] / n) ** 2 + sums[2] / (n * n))
                 cnt[j, i] = n

@@ -109,8 +109,9 @@ def _rotate(c: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
     ``einsum("nij,nj->ni", earth_rotation_matrices(angle), v)`` gives, bit for bit, without the
     3x3 matrices."""
     out = np.empty_like(v)
-    out[:, 0] = c * v[:, 0] + s * v[:, 1]
-    out[:, 1] = (-s) * v[:, 0] + c * v[:, 1]
+    v0, v1 = v[:, 0], v[:, 1]
+    np.add(c * v0, s * v1, out=out[:, 0])
+    np.add((-s) * v0, c * v1, out=out[:, 1])
     out[:, 2] = v[:, 2]
     return out
 
@@ -209,16 +210,17 @@ def sat_arrays(msg: GnssRaw) -> SatArrays:
         ],
         dtype=float,
     ).reshape(-1, 12)
+    c = a.T.copy()  # one copy: each scalar column a contiguous row of its own
     return SatArrays(
         tuple(o.id for o in s),
-        a[:, 0].copy(),
-        a[:, 1].copy(),
-        a[:, 2].copy(),
-        a[:, 3].copy(),
+        c[0],
+        c[1],
+        c[2],
+        c[3],
         a[:, 6:9].copy(),
         a[:, 9:12].copy(),
-        a[:, 4].copy(),
-        a[:, 5].copy(),
+        c[4],
+        c[5],
     )
 
 
