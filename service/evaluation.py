@@ -198,16 +198,23 @@ def integrity_metrics(
     undetected) (per fault epoch). detection_latency_s: first epoch flagged (detected, alarm or an
     exclusion listed) at or after the first fault's onset, minus that onset; with several runs the
     worst run (per-run values in ``detection_latency_runs_s``). ``excluded_satellites``: every
-    satellite excluded at some epoch. Epochs without truth are counted in ``epochs_without_truth``
-    and classified without the error criteria (never hazardous, never HMI).
+    satellite excluded at some epoch. ``healthy_exclusions``: exclusions of a satellite that no
+    fault touched at the time (its first epoch in ``excluded`` outside every window of a fault on
+    it, and more than TTA after the end of the last one), each as {run, t_s, satellite}, and
+    ``healthy_exclusion_count`` -- the
+    classes do not show them (an epoch with the faulty satellite excluded is ``detected`` whatever
+    else is excluded), and each costs the solution a good satellite until it is re-admitted.
+    Epochs without truth are counted in ``epochs_without_truth`` and classified without the error
+    criteria (never hazardous, never HMI).
     """
     rate, t0 = rate_hz, t0_s
     counts = dict.fromkeys(INTEGRITY_CLASSES, 0)
     hpl, vpl, latencies = [], [], []
     hmi = alarms = no_truth = n_ep = 0
     excluded: set[str] = set()
+    healthy: list[dict] = []
     fault_latency: list[float | None] = []
-    for pairs in runs:
+    for run, pairs in enumerate(runs):
         t_rel = [round((m.t - t0) * rate) / rate for m, _ in pairs]
         # first flagged epoch of each fault inside its window
         first_flag: list[float | None] = []
@@ -232,9 +239,15 @@ def integrity_metrics(
                 None,
             )
             latencies.append(None if det is None else det - on)
+        before: set[str] = set()
         for t, (m, e) in zip(t_rel, pairs, strict=True):
             n_ep += 1
             tta = limits(m.phase).tta_s
+            now = set(m.excluded)
+            for sat in sorted(now - before):
+                if not any(sat in w.satellites and w.start_s <= t < w.end_s + tta for w in faults):
+                    healthy.append({"run": run, "t_s": t, "satellite": sat})
+            before = now
             hpl.append(m.hpl_m)
             vpl.append(m.vpl_m)
             alarms += bool(m.alarm)
@@ -284,6 +297,8 @@ def integrity_metrics(
         "faults_detected_in_time": sum(1 for x in fault_latency if x is not None and x <= _tta(runs) + 1e-9),
         "fault_latency_s": stats([x for x in fault_latency if x is not None]),
         "excluded_satellites": sorted(excluded),
+        "healthy_exclusion_count": len(healthy),
+        "healthy_exclusions": healthy,
         "epochs_without_truth": no_truth,
     }
 

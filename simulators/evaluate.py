@@ -388,6 +388,14 @@ def format_integrity(result: dict) -> list[str]:
             f"{name}: integrity over {g['epochs']} epochs: HPL median {g['hpl_m']['median']:.1f} m "
             f"max {g['hpl_m']['max']:.1f} m, VPL median {g['vpl_m']['median']:.1f} m, alarms {g['alarms']}, "
             f"HMI epochs {g['hmi_epochs']}, excluded {g['excluded_satellites']}"
+            + (
+                f" (healthy satellites excluded {g['healthy_exclusion_count']}: "
+                + ", ".join(f"{e['satellite']} at {e['t_s']:.1f} s" for e in g["healthy_exclusions"][:5])
+                + (", ..." if len(g["healthy_exclusions"]) > 5 else "")
+                + ")"
+                if g.get("healthy_exclusions")
+                else ""
+            )
         )
         lines.append(
             f"  first detection {'never' if lat is None else f'{lat:.2f} s'} after the first fault onset; "
@@ -417,6 +425,11 @@ def format_integrity(result: dict) -> list[str]:
     return lines
 
 
+#: lists of events in a result, not figures: left out of the statistics across seed sets (their
+#: counts are figures of their own)
+EVENT_LISTS = ("healthy_exclusions",)
+
+
 def across_seed_sets(sets: list[dict]) -> dict:
     """Every numeric figure of several evaluations (one per seed set, the same scenario and runs):
     its mean over the sets, min, max and the values, by the same path (``pipelines.tc.pos_rms_m``).
@@ -426,7 +439,7 @@ def across_seed_sets(sets: list[dict]) -> dict:
     def walk(node, path: str) -> None:
         if isinstance(node, dict):
             for k, v in node.items():
-                if path == "" and k in ("timing", "seed", "runs"):
+                if (path == "" and k in ("timing", "seed", "runs")) or k in EVENT_LISTS:
                     continue
                 walk(v, f"{path}.{k}" if path else k)
         elif isinstance(node, list):

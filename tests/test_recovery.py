@@ -1027,8 +1027,8 @@ def test_a_silent_corruption_is_refused_wholesale_by_the_tightly_coupled_familie
     # state and kept through the reset
     from fednav.service.pipelines.base import Pipeline
 
-    def noted_only(self, t, meas, x, P):
-        self.note_refusal(t, self.epoch_refusal(meas, x, P)[0])
+    def noted_only(self, t, meas, x, P, prior=None):
+        self.note_refusal(t, self.epoch_refusal(meas, x, P, prior)[0])
         return False
 
     monkeypatch.setattr(Pipeline, "refused_wholesale", noted_only)
