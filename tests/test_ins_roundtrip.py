@@ -83,3 +83,28 @@ def test_shared_preintegration_applies_each_ins_bias_exactly():
     np.testing.assert_allclose(s1.vel_enu_mps, s2.vel_enu_mps, rtol=0, atol=1e-12)
     np.testing.assert_allclose(s1.q_nb, s2.q_nb, rtol=0, atol=1e-14)
     assert abs(s1.lat_rad - s2.lat_rad) < 1e-15 and abs(s1.h_m - s2.h_m) < 1e-9
+
+
+def test_push_steps_equals_push6_of_each_interval():
+    """Preintegrator.push_steps (the engine's stretch of a batch's usual records) leaves the
+    state push6 of each interval leaves, to the last bit, also split into several calls."""
+    from fednav.service.ins.mechanisation import Preintegrator
+
+    rng = np.random.default_rng(7)
+    rows = [
+        (*rng.normal(scale=0.002, size=3), *(rng.normal(scale=0.05, size=3) + [0.0, 0.0, 0.049]), dt)
+        for dt in rng.uniform(0.004, 0.006, size=23)
+    ]
+    one = Preintegrator()
+    one.reset(5.0)
+    t = 5.0
+    for r in rows:
+        t += r[6]
+        one.push6(*r[:6], r[6], t)
+    runs = Preintegrator()
+    runs.reset(5.0)
+    ends = np.cumsum([5.0] + [r[6] for r in rows])[1:]
+    for i, j in ((0, 1), (1, 10), (10, 11), (11, 23)):
+        runs.push_steps(rows[i:j], float(ends[j - 1]))
+    assert one.v == runs.v and one._prev == runs._prev and one.T == runs.T
+    assert runs.t_end == float(ends[-1])
