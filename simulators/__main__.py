@@ -117,6 +117,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # SIGUSR1 prints every thread's stack to stderr (faulthandler's C handler: it answers even
+    # when the main thread is blocked in a call that does not return to Python)
+    import faulthandler
+    import signal
+
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         return _main(argv)
     except KeyboardInterrupt:  # Ctrl-C (SIGINT): a stop asked for, not a failure to trace back
