@@ -123,7 +123,10 @@ def main(argv: list[str] | None = None) -> int:
     import signal
 
     if hasattr(signal, "SIGUSR1"):
-        faulthandler.register(signal.SIGUSR1, all_threads=True)
+        try:
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
+        except (OSError, ValueError, AttributeError, RuntimeError):  # (io.UnsupportedOperation is an
+            pass  # OSError: a stderr without a file descriptor, as in-process callers may give)
     try:
         return _main(argv)
     except KeyboardInterrupt:  # Ctrl-C (SIGINT): a stop asked for, not a failure to trace back
