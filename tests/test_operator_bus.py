@@ -115,8 +115,23 @@ def test_a_client_cannot_announce_a_vehicle_in_the_services_name(service):
             other.liveliness().declare_token(k)
             for k in ("fednav/ghost/service/alive", "fednav/v1/nav/lc/solution", "fednav/ghost/sensor/alive")
         ]
-        time.sleep(1.5)
-        got = sorted(str(r.ok.key_expr) for r in reader.liveliness().get("fednav/**", timeout=5.0) if r.ok)
+
+        def alive() -> list[str]:
+            replies = reader.liveliness().get("fednav/**", timeout=5.0)
+            return sorted(str(r.ok.key_expr) for r in replies if r.ok)
+
+        # the routed tokens first (a fixed 1.5 s was too short on a loaded fresh-clone CI run: the
+        # get answered nothing at all, not even the service's own token), then 1 s more for a
+        # token that should not be routed to arrive if it were
+        deadline = time.monotonic() + 30.0
+        got = alive()
+        while time.monotonic() < deadline and not (
+            "fednav/ghost/sensor/alive" in got and "fednav/v1/service/alive" in got
+        ):
+            time.sleep(0.5)
+            got = alive()
+        time.sleep(1.0)
+        got = alive()
         for t in tokens:
             t.undeclare()
     assert "fednav/ghost/sensor/alive" in got and "fednav/ghost/sensor/alive" in seen, got
