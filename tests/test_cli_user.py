@@ -145,3 +145,28 @@ def test_sim_help_lists_every_subcommand(capsys):
     with pytest.raises(SystemExit):  # still their own parsers
         sim_main(["eval-rinex", "--help"])
     assert "--no-exclusion" in capsys.readouterr().out
+
+
+def test_sim_prints_every_threads_stack_on_sigusr1():
+    """``fednav-sim`` answers SIGUSR1 with every thread's stack on stderr (faulthandler) and goes on:
+    how a stuck simulator is looked into (a fleet generator that did not stop on SIGINT on a loaded
+    CI run, tests/test_shards.py)."""
+    import signal
+    import sys
+
+    from fednav.simulators.processes import Proc, free_port
+
+    gen = Proc(
+        [sys.executable, "-m", "fednav.simulators", "fleet", "--vehicles", "1", "--duration", "5"]
+        + ["--connect", f"tcp/127.0.0.1:{free_port()}", "--match-timeout", "60"],
+        "fleet",
+    )
+    try:
+        assert gen.wait_for("variants built", timeout=60), gen.output()  # (no service: it waits for one)
+        gen.signal(signal.SIGUSR1)
+        assert gen.wait_for("most recent call first", timeout=20), gen.output()
+        assert gen.p.poll() is None, gen.output()  # the dump does not stop it
+    finally:
+        gen.signal(signal.SIGINT)
+        rc = gen.wait(timeout=60)
+    assert rc == 130 and "Traceback" not in gen.output(), (rc, gen.output())
