@@ -122,6 +122,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from fednav.service.stop_signals import stop_on_sigint
+
+    stop_on_sigint()  # (even when started with SIGINT ignored; SIGUSR1: every thread's stack)
     try:
         return _main(argv)
     except KeyboardInterrupt:  # Ctrl-C (SIGINT): a stop asked for, not a failure to trace back

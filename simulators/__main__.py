@@ -117,16 +117,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    # SIGUSR1 prints every thread's stack to stderr (faulthandler's C handler: it answers even
-    # when the main thread is blocked in a call that does not return to Python)
-    import faulthandler
-    import signal
+    from fednav.service.stop_signals import stop_on_sigint
 
-    if hasattr(signal, "SIGUSR1"):
-        try:
-            faulthandler.register(signal.SIGUSR1, all_threads=True)
-        except (OSError, ValueError, AttributeError, RuntimeError):  # (io.UnsupportedOperation is an
-            pass  # OSError: a stderr without a file descriptor, as in-process callers may give)
+    stop_on_sigint()  # (even when started with SIGINT ignored; SIGUSR1: every thread's stack)
     try:
         return _main(argv)
     except KeyboardInterrupt:  # Ctrl-C (SIGINT): a stop asked for, not a failure to trace back
