@@ -1430,7 +1430,19 @@ def _resolve_boot_offsets(
             else:
                 lag = estimate_lag(imu, kin, MAX_LAG_S if coarse else 2.0)
             doubt = lag_doubt(lag)
-            if doubt is None:
+            sigma = lag.get("sigma_s")
+            if (
+                doubt is None
+                and not coarse
+                and sigma is not None
+                and abs(lag["lag_s"]) <= LAG_SIGNIFICANT * sigma
+            ):
+                # the receive stamps' offset stands: the motion's correction is inside its own noise
+                refine = (
+                    f", not refined by the motion: its {-lag['lag_s']:+.3f} s is within "
+                    f"{LAG_SIGNIFICANT:g} of its sigmas ({sigma:.3f} s) of zero"
+                )
+            elif doubt is None:
                 L = lag["lag_s"]
                 off -= L
                 late = ""
