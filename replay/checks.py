@@ -574,27 +574,45 @@ def _corr(x: np.ndarray, y: np.ndarray) -> float:
     return float((x * y).sum() / d) if d > 0 else 0.0
 
 
-def _turning(tc: np.ndarray, th: np.ndarray, dv: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The IMU's rotation over each window [a, b] (any shape) about the window's own mean specific
-    force (up, in whatever axes the IMU reads: no mapping needed), rad, >= 0; its whole rotation's
-    magnitude where that force is not gravity's (an IMU that outputs gravity removed, free fall).
+#: the specific force that says where up is, averaged over this long around each IMU interval
+UP_WINDOW_S = 1.0
+
+
+def _angle_about_up(tc: np.ndarray, th: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """The IMU's running angle about its own up, (N+1,) at times ``tc`` (:meth:`ImuData.cumulative`):
+    each interval's angle increment projected on the specific force averaged over ``UP_WINDOW_S``
+    around it (up in whatever axes the IMU reads: no mapping needed); the increment's magnitude
+    where that force is not gravity's (an IMU that outputs gravity removed, free fall).
+
     The course turns about the vertical: a vehicle that rolls into its turns (a car on its
     suspension, an aircraft banking) adds roll rate at the start and end of each turn, the very
-    windows that tell the lag, and the magnitude counted it (a simulated drive with one banked
-    turn: 0.106 rad over a 0.8 s window where the course changed 0.032). Roll is about the
-    forward axis, square to the window's specific force in a turn at constant speed."""
-    rot = _at(tc, th, b) - _at(tc, th, a)
-    f = (_at(tc, dv, b) - _at(tc, dv, a)) / np.maximum(b - a, 1e-9)[..., None]
+    windows that tell the lag, and the rotation's magnitude counted it (a simulated drive with one
+    banked turn: 0.106 rad over a 0.8 s window where the course changed 0.032). Roll is about the
+    forward axis, square to the specific force in a turn at constant speed. One running angle:
+    a window's rotation is then two interpolations, at every lag searched."""
+    tm = 0.5 * (tc[:-1] + tc[1:])
+    h = 0.5 * UP_WINDOW_S
+    lo, hi = np.maximum(tm - h, tc[0]), np.minimum(tm + h, tc[-1])
+    f = np.stack([np.interp(hi, tc, dv[:, j]) - np.interp(lo, tc, dv[:, j]) for j in range(3)], axis=-1)
+    f /= np.maximum(hi - lo, 1e-9)[:, None]
     fn = np.linalg.norm(f, axis=-1)
-    up = (rot * f).sum(axis=-1) / np.where(fn > 0, fn, 1.0)
-    return np.where((fn > 5.0) & (fn < 15.0), np.abs(up), np.linalg.norm(rot, axis=-1))
+    d = np.diff(th, axis=0)
+    about_up = (d * f).sum(axis=-1) / np.where(fn > 0, fn, 1.0)
+    inc = np.where((fn > 5.0) & (fn < 15.0), about_up, np.linalg.norm(d, axis=-1))
+    return np.concatenate([[0.0], np.cumsum(inc)])
+
+
+def _turning(tc: np.ndarray, up: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The IMU's rotation about its up over each window [a, b] (any shape), rad, >= 0, from the
+    running angle ``up`` of :func:`_angle_about_up`."""
+    return np.abs(np.interp(b, tc, up) - np.interp(a, tc, up))
 
 
 def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) -> dict:
     """How late the IMU's stamps are against the GNSS's (s): the lag L maximising the correlation
-    of the IMU's rotation over [ta + L, tb + L] (its magnitude: whatever the axes) with the
-    course change over [ta, tb]. The IMU's event at true time T is stamped T + L: subtract L from
-    its stamps (``time_offset_s -= L``).
+    of the IMU's rotation over [ta + L, tb + L] (about the window's specific force,
+    :func:`_turning`: whatever the axes) with the course change over [ta, tb]. The IMU's event at
+    true time T is stamped T + L: subtract L from its stamps (``time_offset_s -= L``).
 
     Lags within +-``max_lag_s`` where at least half the windows lie inside the IMU's log are
     searched: every ``LAG_COARSE_STEP_S``, then the best ``LAG_PEAKS`` peaks (ranked by the
@@ -618,6 +636,7 @@ def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) ->
     ta, tb, g = kin.ta[sel], kin.tb[sel], kin.turn[sel]
     wt = np.ones(len(sel))
     tc, th, dv = imu.cumulative()
+    cum = _angle_about_up(tc, th, dv)
     gaps = imu.gap_times()
     need = max(MIN_TURN_EPOCHS, 0.5 * len(g))
     g_total = float(g.sum())
@@ -653,7 +672,7 @@ def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) ->
         for c0 in range(0, len(lags), 128):
             L = lags[c0 : c0 + 128, None]
             a, b = ta[None, :] + L, tb[None, :] + L
-            rot = _turning(tc, th, dv, a, b)
+            rot = _turning(tc, cum, a, b)
             valid = np.broadcast_to(fixed, a.shape) if fixed is not None else inside(a, b)
             ok = (valid.sum(axis=1) >= need) & (valid & (g > 0)).any(axis=1)
             w = valid * wt
@@ -707,7 +726,7 @@ def estimate_lag(imu: ImuData, kin: Kinematics, max_lag_s: float = MAX_LAG_S) ->
     others = [c for c in cands[1:] if abs(c[1] - lag) >= LAG_DISTINCT_S]
     out.update(
         lag_s=lag,
-        sigma_s=_lag_sigma(tc, th, dv, ta, tb, g, gaps, lag),
+        sigma_s=_lag_sigma(tc, cum, ta, tb, g, gaps, lag),
         correlation=float(sf[j]),
         zero_correlation=c_zero if math.isfinite(c_zero) else None,
         at_edge=bool(lag - lo < LAG_EDGE_S or hi - lag < LAG_EDGE_S),
@@ -726,9 +745,9 @@ LAG_BOOT_SPAN_S = 0.5
 LAG_BOOT_STEP_S = 0.004
 
 
-def _lag_sigma(tc, th, dv, ta, tb, g, gaps, lag: float) -> float | None:
+def _lag_sigma(tc, cum, ta, tb, g, gaps, lag: float) -> float | None:
     """The standard error of a lag found by :func:`estimate_lag`, s (None when it cannot be told),
-    from its arrays (IMU times ``tc``, running angle ``th`` and velocity ``dv``, windows
+    from its arrays (IMU times ``tc``, running angle about up ``cum``, windows
     ``ta``-``tb`` between two fixes, their course changes ``g``, gap ends).
 
     A parametric bootstrap: the course changes regressed on the IMU's rotation over the windows at
@@ -749,8 +768,8 @@ def _lag_sigma(tc, th, dv, ta, tb, g, gaps, lag: float) -> float | None:
         return None
     ta, tb, y = ta[v], tb[v], g[v]
     lags = lag + np.arange(-span, span + 1e-9, LAG_BOOT_STEP_S)
-    X = _turning(tc, th, dv, ta[None, :] + lags[:, None], tb[None, :] + lags[:, None])
-    x = _turning(tc, th, dv, ta + lag, tb + lag)
+    X = _turning(tc, cum, ta[None, :] + lags[:, None], tb[None, :] + lags[:, None])
+    x = _turning(tc, cum, ta + lag, tb + lag)
     xm = x - x.mean()
     sxx = float(xm @ xm)
     if not sxx > 0:
