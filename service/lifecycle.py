@@ -905,13 +905,22 @@ class VehicleLife:
         last ``CONTESTED_GUARD_S`` are dropped: a forged sample may have been taken just before the
         first refusal (a jittered second publisher), and a checkpoint after it is not a good state.
         ``ambiguous``: a duplicate that differs from the sample taken for its time (two publishers
-        on the same time stamps: :meth:`_reset_after_long_contest`)."""
+        on the same time stamps: :meth:`_reset_after_long_contest`).
+
+        A sample refused further behind the INS than ``future_window_s`` (a time-jump candidate:
+        a stale stream, or a second session delivering its samples tens of seconds late) cannot
+        have displaced any interval the INS took, so it drops nothing: guarding from its own stamp
+        dropped every checkpoint since then (43 s of them when a forged burst reached a loaded
+        service that late), and the jump back to the genuine stream then found none to restart
+        from (docs/hardening.md, "A forged burst delivered 43 s late")."""
+        t_ins = self.engine.last_imu_t
         if ambiguous:
-            self.imu_ambiguous_t = self.engine.last_imu_t if self.engine.last_imu_t is not None else t
+            self.imu_ambiguous_t = t_ins if t_ins is not None else t
+        stale = t_ins is not None and t < t_ins - self.config.intake.future_window_s
         for p in self.engine.pipelines:
             cps = self.checkpoints[p.name]
             clean = self.replayed_checkpoint.get(p.name)
-            while cps and cps[-1][0] > t - CONTESTED_GUARD_S and cps[-1] is not clean:
+            while not stale and cps and cps[-1][0] > t - CONTESTED_GUARD_S and cps[-1] is not clean:
                 cps.pop()
             if self.lives[p.name].stage in _RUNNING and not (p.failed or p.lost):
                 self.suspect(p, t, "imu_contested")

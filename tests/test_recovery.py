@@ -460,6 +460,44 @@ def test_a_forged_imu_burst_arriving_long_before_the_sensors_stream_is_recovered
         assert max(row[4] for row in rec[-100:]) < 2.5, (name, max(row[4] for row in rec[-100:]))
 
 
+def test_a_forged_imu_burst_arriving_long_after_its_time_is_recovered():
+    """The burst of 50 forged IMU samples stamped at 70 s reached a loaded service with the
+    genuine stream at 113 s (real processes, nine vehicles at 10x pace, seed 26: the forger's
+    session the more loaded one this time). 19 were refused ``time_backwards``, the 20th confirmed
+    a time jump 43 s back, 19 genuine samples the jump forward again. Each refusal dropped the
+    checkpoints since the forged sample's own stamp, i.e. all of the last 43 s, so the jump back
+    found no checkpoint: every pipeline lost and re-aligned from scratch (the loosely coupled
+    solution 3.8 m off, the MHSS one 10.4 m, 108 s to get back). Here stamped at 20 s and
+    delivered at 63 s: the pipelines restart from their checkpoint (replayed) and stay within
+    their clean accuracy."""
+    sc = load_scenario("demo_product")
+    sink = Sink()
+    cfg = service_config(sc)
+    cfg = cfg.model_copy(update={"pipelines": [p for p in cfg.pipelines if p.name in ("lc", "fed")]})
+    eng = VehicleEngine("v1", cfg, sink)
+    sim = Simulation(sc, seed=5)
+    sent = False
+    for key, msg in sim:
+        pk = keys.parse_input(key)
+        t_rel = msg.t - sc.t0_gps_s
+        if isinstance(msg, ImuSample) and not sent and t_rel >= 63.0:
+            sent = True
+            t_at = sc.t0_gps_s + 20.0
+            for k in range(1, 51):
+                forged = msg.model_copy(update={"t": t_at + 0.005 + 0.01 * k, "dtheta_rad": (0.2, 0.0, 0.0)})
+                eng.handle("imu", "main", forged)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+    assert eng.rejected["time_jump"] == 2, dict(eng.rejected)
+    assert eng.notes["recovered_from_checkpoint"] == 1, dict(eng.notes)
+    for name in ("lc", "fed"):
+        assert eng.notes[f"replayed:{name}"] >= 1, dict(eng.notes)
+        rec = [(t - sc.t0_gps_s, *row) for t, *row in sink.rec[name]]
+        assert not _lies(rec), (name, _lies(rec)[:5])
+        before = max(row[1] for row in rec if 53.0 <= row[0] < 63.0)
+        after = max(row[1] for row in rec if row[0] >= 63.0)
+        assert after < max(2.0 * before, 2.0), (name, before, after)
+
+
 def _demo_imu_burst_10x(
     monkeypatch, record, seed: int = 12, until_s: float = 150.0, sink=None, yaw_rps: float | None = None
 ) -> tuple[VehicleEngine, Simulation, object]:
