@@ -62,11 +62,13 @@ GATE = {
 VARIANTS = {
     "tc": {"kind": "tightly_coupled", "integrity": False, "elevation_mask_deg": 5.0},
     "gauss": GAUSS,
-    "gauss_sel": dict(GAUSS, selection_correction=True, learn_transition_s=None),
+    # (the marginal v_i of the figures in docs/seed003.md; the recommended IMM is conditional now)
+    "gauss_sel": dict(GAUSS, selection_correction=True, learn_transition_s=None, residuals="marginal"),
     "gauss_sel_iid": dict(
         GAUSS,
         selection_correction=True,
         learn_transition_s=None,
+        residuals="marginal",
         transition=MEMORYLESS,
         initial_probabilities=MEMORYLESS[0],
     ),

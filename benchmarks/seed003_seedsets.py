@@ -6,7 +6,9 @@ variants appended to the scenario's [service] pipelines so that the "before" of 
 the same streams as the "after":
 
     tc_imm_sel_fixed   tc_imm_sel with the paper's fixed Markov matrix (learn_transition_s = None:
-                       the recommended IMM before the learned transition)
+                       the recommended IMM before the learned transition; the marginal residuals)
+    tc_imm_sel_marginal  tc_imm_sel choosing and weighing rows by the marginal v_i (the recommended
+                       IMM before the conditional residuals, 2026-12-02)
 
 ``--pipelines`` picks pipelines (the scenario's and the variants, by name). Writes
 ``{"seed_sets": across_seed_sets(...), "sets": [...]}`` (the JSON of ``fednav-sim eval --seeds``)
@@ -40,6 +42,13 @@ VARIANTS = {
         "likelihood": "gaussian",
         "selection_correction": True,
         "learn_transition_s": None,
+        "residuals": "marginal",
+    },
+    "tc_imm_sel_marginal": {
+        "kind": "imm_tightly_coupled",
+        "likelihood": "gaussian",
+        "selection_correction": True,
+        "residuals": "marginal",
     },
 }
 

@@ -497,6 +497,14 @@ class ImmTightlyCoupledConfig(Model):
         "combined",
         description="'combined': eq (12)-(13) fed back and published; 'map': the most probable model's",
     )
+    residuals: Literal["auto", "marginal", "conditional"] = Field(
+        "auto",
+        description="Statistic the fault models choose and weigh their rows by: 'marginal' v_i = r_i / "
+        "sqrt(S_ii) (the paper's reading), 'conditional' w_i = (S^-1 r)_i / sqrt((S^-1)_ii), the row's "
+        "innovation given the other rows (Baarda's w-test: a common clock or position uncertainty no "
+        "longer hides an outlier; not in the paper; docs/seed003.md); 'auto': conditional with the "
+        "selection correction (the recommended IMM), else marginal (the paper's IMM)",
+    )
     learn_transition_s: float | Literal["auto"] | None = Field(
         "auto",
         description="Learn the Markov matrix online (EM with forgetting of this time constant, s; the "
@@ -538,6 +546,11 @@ class ImmTightlyCoupledConfig(Model):
         if self.learn_transition_s == "auto":
             return 60.0 if self.selection_correction else None
         return self.learn_transition_s
+
+    def resolved_residuals(self) -> str:
+        if self.residuals == "auto":
+            return "conditional" if self.selection_correction else "marginal"
+        return self.residuals
 
     def resolved_mu0(self) -> list[float]:
         if self.initial_probabilities is not None:

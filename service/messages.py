@@ -637,8 +637,8 @@ class ImmModels(WireModel):
     probabilities: list[float] = Field(description="mu_j after the update, one per model (sum 1)")
     rows: list[str] = Field(description="Row labels, e.g. 'G05.pr', 'C03.rr'")
     standardised_residual: list[float] = Field(
-        description="v_i of each row (normal rows), averaged over the models with their predicted "
-        "probabilities"
+        description="v_i of each row (normal rows; w_i, the row's residual given the other rows, with "
+        "conditional residuals), averaged over the models with their predicted probabilities"
     )
     h_scale: list[list[float]] = Field(description="Per model, per row: H-row factor (eq 14; 1 = untouched)")
     r_scale: list[list[float]] = Field(

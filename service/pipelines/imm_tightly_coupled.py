@@ -153,6 +153,7 @@ class ImmTightlyCoupled(Pipeline):
                 self.cfg.likelihood,
                 mask,
                 self.cfg.selection_correction,
+                self.cfg.resolved_residuals(),
             )
             if not kalman.is_positive_definite(st.P).all():
                 raise NotPositiveDefinite("IMM member covariance after the update")

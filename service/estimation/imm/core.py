@@ -28,6 +28,17 @@ approximation is Lambda_j / C(m, k): log Lambda_j -= log C(m, k). Without it, on
 the `largest` model out-scores the normal model whenever max |v_i| > 2.15 (about half of the
 epochs with 20 rows) and a good row is down-weighted (docs/seed003.md).
 
+Conditional residuals (option ``residuals="conditional"``, not in the paper): the fault models
+choose and weigh their rows by v_i = r_i / sqrt(S_ii), the row's innovation against its marginal
+variance. S_ii holds the row's share of every common uncertainty of the prior (the receiver clock
+bias, the position), which the other rows determine: at the first epoch of a tightly coupled
+filter the clock bias has a sigma of 1e5 m, every |v_i| is below 1e-2 and a 40 m outlier cannot
+be told from a good row (docs/seed003.md, "Set 1001 per run": seed 1002). The conditional form
+w_i = (S^-1 r)_i / sqrt((S^-1)_ii) is the innovation of row i given all the other rows,
+standardised (Baarda's w-test for one outlier in row i under the full S): N(0, 1) on clean data
+as v_i is, and its mean under an outlier b on row i is b sqrt((S^-1)_ii) >= b / sqrt(S_ii). With
+S near diagonal (R dominant: in the seed 003 scenario from the second epoch on) the two agree.
+
 Learned transition matrix (option, not in the paper): the paper's Pi is a fixed guess of how
 often and how persistently outliers occur (2-5 % of the epochs leave the normal model, a fault
 model persists with 0.9). :class:`TransitionLearner` estimates Pi online by expectation-
@@ -50,6 +61,7 @@ from fednav.service.estimation import kalman
 from fednav.service.estimation.imm.models import DownWeighting, suspects
 
 LIKELIHOODS = ("paper", "gaussian")
+RESIDUALS = ("marginal", "conditional")
 _TINY = np.finfo(float).tiny
 
 
@@ -140,9 +152,10 @@ class ImmStep:
     """One IMM cycle's results.
 
     x, P: updated members; mu (M,); c (M,) predicted probabilities; log_lik (M,);
-    x_comb (n,), P_comb (n, n): combined output; v (M, m) standardised predicted residuals of each
-    model's mixed prior with the normal rows; h_scale, r_scale (M, m): the rows' eq (14)-(16)
-    factors; result: the bank's innovation statistics.
+    x_comb (n,), P_comb (n, n): combined output; v (M, m) the residual statistic of each model's
+    mixed prior with the normal rows (``residuals``: v_i or w_i), by which the suspected rows were
+    chosen and weighed; h_scale, r_scale (M, m): the rows' eq (14)-(16) factors; result: the
+    bank's innovation statistics.
     """
 
     x: np.ndarray
@@ -168,6 +181,24 @@ def standardised_residuals(
     return v if mask is None else np.where(mask, v, 0.0)
 
 
+def conditional_residuals(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, H: np.ndarray, r_var: np.ndarray, mask: np.ndarray | None
+) -> np.ndarray:
+    """(B, m) w_i = (S^-1 r)_i / sqrt((S^-1)_ii) for each member, S = H P H' + R over the kept rows:
+    row i's innovation given every other kept row, standardised (module docstring; zero on masked
+    rows, which take no part in S)."""
+    r = z[None, :] - x @ H.T
+    S = H @ P @ H.T + np.diag(r_var)  # (B, m, m)
+    if mask is not None:  # masked rows: a unit block of their own, no coupling to the kept rows
+        keep = np.broadcast_to(np.asarray(mask, dtype=bool), r.shape)
+        eye = np.eye(r.shape[1], dtype=bool)[None]
+        S = np.where(keep[:, :, None] & keep[:, None, :], S, eye.astype(float))
+        r = np.where(keep, r, 0.0)
+    Si = np.linalg.inv(S)
+    w = np.einsum("bij,bj->bi", Si, r) / np.sqrt(np.einsum("bii->bi", Si))
+    return w if mask is None else np.where(keep, w, 0.0)
+
+
 def step(
     x: np.ndarray,
     P: np.ndarray,
@@ -181,18 +212,24 @@ def step(
     likelihood: str = "paper",
     mask: np.ndarray | None = None,
     selection: bool = False,
+    residuals: str = "marginal",
 ) -> ImmStep:
     """One IMM cycle (module docstring) on members ``x`` (M, n), ``P`` (M, n, n) with the normal
     rows z (m,), H (m, n), R = diag(r_var); ``mask`` (m,) bool drops rows for every model;
     ``weighting`` the eq (14)-(16) parameters (default: the paper's); ``selection`` divides each
-    model's likelihood by the number of row sets it chose from (module docstring)."""
+    model's likelihood by the number of row sets it chose from; ``residuals`` the statistic the
+    fault models choose and weigh their rows by: ``"marginal"`` v_i (the paper's) or
+    ``"conditional"`` w_i (module docstring)."""
     weighting = weighting or DownWeighting()
     if likelihood not in LIKELIHOODS:
         raise ValueError(f"likelihood {likelihood!r}: choose from {LIKELIHOODS}")
+    if residuals not in RESIDUALS:
+        raise ValueError(f"residuals {residuals!r}: choose from {RESIDUALS}")
     M, m = x.shape[0], z.shape[0]
     x0, P0, c = mix(x, P, mu, Pi)
     keep = None if mask is None else np.broadcast_to(np.asarray(mask, dtype=bool), (M, m))
-    v = standardised_residuals(x0, P0, z, H, r_var, keep)
+    statistic = conditional_residuals if residuals == "conditional" else standardised_residuals
+    v = statistic(x0, P0, z, H, r_var, keep)
     sus = suspects(models, v, weighting.c)
     if keep is not None:
         sus &= keep
@@ -216,8 +253,10 @@ def step(
 __all__ = [
     "ImmStep",
     "LIKELIHOODS",
+    "RESIDUALS",
     "TransitionLearner",
     "combine",
+    "conditional_residuals",
     "log_likelihood_gaussian",
     "log_likelihood_paper",
     "log_row_sets",
