@@ -414,6 +414,30 @@ def test_an_imu_burst_without_gnss_is_recovered_from_the_last_verified_state(sou
         assert max(offset_sd) < 0.05, offset_sd
 
 
+def _demo_burst_delivered_at(arrives_s: float, stamped_s: float):
+    """(scenario, sink, engine) of ``make demo``'s scenario (seed 5, the ``lc`` and ``fed``
+    pipelines) with 50 forged IMU samples (20 rad/s about x) stamped from ``stamped_s`` delivered all
+    at once when the genuine stream reaches ``arrives_s``."""
+    sc = load_scenario("demo_product")
+    sink = Sink()
+    cfg = service_config(sc)
+    cfg = cfg.model_copy(update={"pipelines": [p for p in cfg.pipelines if p.name in ("lc", "fed")]})
+    eng = VehicleEngine("v1", cfg, sink)
+    sim = Simulation(sc, seed=5)
+    sent = False
+    for key, msg in sim:
+        pk = keys.parse_input(key)
+        t_rel = msg.t - sc.t0_gps_s
+        if isinstance(msg, ImuSample) and not sent and t_rel >= arrives_s:
+            sent = True
+            t_at = sc.t0_gps_s + stamped_s
+            for k in range(1, 51):
+                forged = msg.model_copy(update={"t": t_at + 0.005 + 0.01 * k, "dtheta_rad": (0.2, 0.0, 0.0)})
+                eng.handle("imu", "main", forged)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+    return sc, sink, eng
+
+
 @pytest.mark.parametrize("arrives_s", [37.0, 48.0])
 def test_a_forged_imu_burst_arriving_long_before_the_sensors_stream_is_recovered(arrives_s):
     """The burst of 50 forged IMU samples stamped at 70 s reaches the service when the genuine
@@ -432,23 +456,7 @@ def test_a_forged_imu_burst_arriving_long_before_the_sensors_stream_is_recovered
     rows were taken, fix by fix, and the loosely coupled solution was reported ``aided`` from 63 s
     to the end with its height 3-6 m off, 3-5 vertical sigmas (the federated one to 112 s). A
     stream's fault episode and its consistency record now outlive a restart of the filter."""
-    sc = load_scenario("demo_product")
-    sink = Sink()
-    cfg = service_config(sc)
-    cfg = cfg.model_copy(update={"pipelines": [p for p in cfg.pipelines if p.name in ("lc", "fed")]})
-    eng = VehicleEngine("v1", cfg, sink)
-    sim = Simulation(sc, seed=5)
-    sent = False
-    for key, msg in sim:
-        pk = keys.parse_input(key)
-        t_rel = msg.t - sc.t0_gps_s
-        if isinstance(msg, ImuSample) and not sent and t_rel >= arrives_s:
-            sent = True
-            t_at = sc.t0_gps_s + 70.0
-            for k in range(1, 51):
-                forged = msg.model_copy(update={"t": t_at + 0.005 + 0.01 * k, "dtheta_rad": (0.2, 0.0, 0.0)})
-                eng.handle("imu", "main", forged)
-        eng.handle(pk.kind, pk.sensor_id, msg)
+    sc, sink, eng = _demo_burst_delivered_at(arrives_s, stamped_s=70.0)
     assert eng.rejected["time_jump"] == 2 and eng.notes["recovered_from_checkpoint"] >= 1, dict(eng.rejected)
     for name in ("lc", "fed"):
         rec = [(t - sc.t0_gps_s, *row) for t, *row in sink.rec[name]]
@@ -470,23 +478,7 @@ def test_a_forged_imu_burst_arriving_long_after_its_time_is_recovered():
     solution 3.8 m off, the MHSS one 10.4 m, 108 s to get back). Here stamped at 20 s and
     delivered at 63 s: the pipelines restart from their checkpoint (replayed) and stay within
     their clean accuracy."""
-    sc = load_scenario("demo_product")
-    sink = Sink()
-    cfg = service_config(sc)
-    cfg = cfg.model_copy(update={"pipelines": [p for p in cfg.pipelines if p.name in ("lc", "fed")]})
-    eng = VehicleEngine("v1", cfg, sink)
-    sim = Simulation(sc, seed=5)
-    sent = False
-    for key, msg in sim:
-        pk = keys.parse_input(key)
-        t_rel = msg.t - sc.t0_gps_s
-        if isinstance(msg, ImuSample) and not sent and t_rel >= 63.0:
-            sent = True
-            t_at = sc.t0_gps_s + 20.0
-            for k in range(1, 51):
-                forged = msg.model_copy(update={"t": t_at + 0.005 + 0.01 * k, "dtheta_rad": (0.2, 0.0, 0.0)})
-                eng.handle("imu", "main", forged)
-        eng.handle(pk.kind, pk.sensor_id, msg)
+    sc, sink, eng = _demo_burst_delivered_at(63.0, stamped_s=20.0)
     assert eng.rejected["time_jump"] == 2, dict(eng.rejected)
     assert eng.notes["recovered_from_checkpoint"] == 1, dict(eng.notes)
     for name in ("lc", "fed"):
