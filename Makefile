@@ -17,9 +17,12 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(PY) -m fednav.simulators.demo
 
-# one worker per core, at most 4 (each file's tests on one worker: module fixtures built once)
+# one worker per core plus one, at most 4 (each file's tests on one worker: module fixtures built
+# once). The tests' processes wait on Zenoh leases and sleeps: on 2 cores 3 workers kept the CPU
+# 173 % busy and took 10:26 against 12:20 with 2 (docs/DESIGN-NOTES.md, "Tests").
+TEST_WORKERS ?= $(shell $(PYTHON) -c 'import os; print(min(4, (os.cpu_count() or 1) + 1))')
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
