@@ -355,6 +355,19 @@ def carried(nav: NavState, std: InitStd, t: float) -> tuple[NavState, InitStd]:
     return out, InitStd(np.sqrt(np.square(std.pos_enu_m) + grow), std.vel_enu_mps, std.att_rad)
 
 
+def covering(std: InitStd, moved: np.ndarray) -> InitStd:
+    """``std`` (with its full ``cov``) widened so that it also covers ``moved``, the shift of
+    position, velocity and attitude that a reset request weighed into a verified state made:
+    nothing has verified that shift yet, so its square is added to the variances (a request 20 m
+    off that the fusion took 0.5 m of otherwise leaves the restarted filter more certain than it
+    was and 3 sigma off later: docs/hardening.md, "An InitialNav weighed in")."""
+    cov = np.array(std.cov, dtype=float, copy=True)
+    i = np.arange(9)
+    cov[i, i] += np.square(moved)
+    sd = np.sqrt(np.clip(np.diagonal(cov), 0.0, None))
+    return InitStd(sd[0:3], sd[3:6], sd[6:9], cov=cov)
+
+
 def honest_std(std: InitStd, nav: NavState, ref: NavState | None) -> InitStd:
     """Sigmas of a reset state that cover its disagreement with the state it replaces: per axis
     at least the position and velocity difference (neither can be told right yet)."""
@@ -576,6 +589,7 @@ class VehicleLife:
                     life.verified, life.reason = False, event
                     p.mark_unverified(event)
                     continue
+                p_std = covering(p_std, moved)  # restarted: unverified, its shift in its sigmas
             else:
                 p_nav, p_std = nav, wide
             self._start_one(p, p_nav, p_std, event, verified=False, refs=refs)

@@ -200,6 +200,11 @@ def test_an_initial_nav_burst_does_not_pin_the_state(demo, north_m):
         assert eng.pipelines[0].reinitialisations == 1
         statuses = [row[3] for row in rec["lc"] if AT_S <= row[0] <= AT_S + 8.0]
         assert statuses[0] == "degraded" and statuses[-1] == "aided"
+        # weighed in, the request moved the verified state (2.6 m north): the restarted filter is
+        # not more certain than the verified one was (2.51 -> 2.33 m before `covering`, now 3.39)
+        before = [row[2] for row in rec["lc"] if row[0] < AT_S][-1]
+        after = next(row[2] for row in rec["lc"] if row[0] >= AT_S)
+        assert after > before, (before, after)
     worst, p95 = _judge(rec["lc"], clean["lc"], AT_S + 2.5, 0.0)
     assert worst < p95 * 1.5, (worst, p95)
     assert INIT_RESET_INTERVAL_S > 2.5
@@ -376,6 +381,32 @@ def test_a_reset_request_is_weighed_not_taken():
         d = (out.lat_rad - est.lat_rad) * (earth.radii(0.7)[0] + 100.0)
         assert abs(d - moved) < 0.05, (sd, d)
         assert s.pos_enu_m[1] < min(sd, 5.0) and s.cov.shape == (9, 9)
+
+
+def test_a_restart_from_a_weighed_request_covers_its_shift():
+    """covering(): a verified state restarted from a request weighed into it keeps the fused
+    covariance plus the square of the shift the request made (nothing has verified the shift).
+    Without it a request 20 m off with a 10 m floor moved the seed-30 underwater centralised
+    filter ~0.5 m and shrank its sigma: 12 epochs 'aided' beyond 3 sigma a hundred seconds later
+    (docs/hardening.md, "An InitialNav weighed in"); with it, none."""
+    from fednav.service.ins.alignment import InitStd, pos_vel_difference
+    from fednav.service.ins.mechanisation import NavState
+    from fednav.service.lifecycle import attitude_difference, covering, shifted
+
+    est = NavState(
+        t=0.0, lat_rad=0.7, lon_rad=0.2, h_m=100.0, vel_enu_mps=np.zeros(3), q_nb=np.array([1.0, 0, 0, 0])
+    )
+    req = shifted(est, np.array([0.0, 20.0, 0.0]))
+    std = InitStd(np.full(3, 10.0), np.full(3, 0.1), np.radians([0.1, 0.1, 0.1]))
+    P = np.diag(np.square(np.r_[np.full(3, 2.0), np.full(3, 0.1), np.radians([0.1, 0.1, 0.1])]))
+    out, s, _ = fuse(est, P, {}, req, std)
+    moved = np.concatenate([pos_vel_difference(out, est), attitude_difference(out, est)])
+    assert 0.5 < moved[1] < 1.0 and s.pos_enu_m[1] < 2.0  # the fusion alone: more certain than before
+    w = covering(s, moved)
+    np.testing.assert_allclose(np.diagonal(w.cov)[:9], np.diagonal(s.cov)[:9] + np.square(moved), rtol=1e-12)
+    assert w.pos_enu_m[1] >= abs(moved[1]) and w.pos_enu_m[1] > s.pos_enu_m[1]
+    np.testing.assert_allclose(w.cov - np.diag(np.diagonal(w.cov)), s.cov - np.diag(np.diagonal(s.cov)))
+    assert (s.cov == w.cov).sum() == 81 - np.count_nonzero(moved)  # nothing else changed, s untouched
 
 
 @pytest.mark.parametrize("source", ["centralized", "fed_edop"])
