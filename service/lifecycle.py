@@ -1089,6 +1089,11 @@ class VehicleLife:
                     # the run once the checkpoint had expired with no reference left)
                     self.engine.notes[f"reset:{p.name}"] += 1
                     self._start_one(p, ref[0], ref[2], "reset", verified=False, reason="reset", refs=ref[3])
+                    # kept as the reference past CHECKPOINT_MAX_AGE_S: a contest that outlasted
+                    # the last verified checkpoint left the pipeline with no reference at all,
+                    # its screening refusing the USBL and DVL at every epoch, 'degraded' and
+                    # drifting for the rest of the run (seed 31, 40 m; docs/hardening.md)
+                    self._keep_clean_checkpoint(p)
                     return True
                 return False  # (no fix: the pipeline's own screening decides, as before)
             self._reset_from_reference(p, fix, t)  # the checkpoint carried over the gap
@@ -1097,12 +1102,18 @@ class VehicleLife:
             return False
         self.engine.notes[f"reset:{p.name}"] += 1
         self._start_replayed(p, *plan, "reset", t)
+        self._keep_clean_checkpoint(p)
+        return True
+
+    def _keep_clean_checkpoint(self, p: Pipeline) -> None:
+        """The state ``p`` just restarted from (replayed with the verified stream, or the last
+        verified checkpoint carried over the gap: no sample of the contest in it) kept as its
+        newest checkpoint, which the contest's guard (:meth:`on_imu_contested`) does not drop."""
         p.sync()
         est = p.estimate()
         cp = (est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), _imu_of(p))
         self.checkpoints[p.name].append(cp)
         self.replayed_checkpoint[p.name] = cp
-        return True
 
     def _gnss_streams(self) -> bool:
         """Whether the vehicle has a GNSS stream (fixes or raw epochs): its reference after a

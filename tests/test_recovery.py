@@ -7,6 +7,8 @@ under the clean run's 95th percentile soon after the corruption ends, no epoch i
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -1243,3 +1245,25 @@ def test_an_underwater_vehicle_without_a_replay_is_reset_from_its_carried_checkp
         assert row.peak < p95 and row.lies == 0, (name, row.peak, p95, row.lies)
         assert row.recovered is not None and row.recovered <= 10.0, (name, row.recovered)
         assert rec[name][3][-1] == "aided", (name, row.timeline)
+
+
+def test_a_contest_that_outlasts_the_checkpoints_without_gnss_leaves_no_pipeline_stuck():
+    """An underwater vehicle (USBL and DVL, no GNSS) fed 500 forged IMU samples close to the
+    genuine ones over 5 s (``benchmarks/hardening.py``'s ``imu_close 0.05x500``, seed 31): longer
+    than ``CHECKPOINT_MAX_AGE_S``. Each reset restarted the pipeline from the last verified
+    checkpoint carried over the gap, but that checkpoint expired during the contest; after it no
+    reference was left, the pipeline's screening refused the USBL and DVL at every epoch, and both
+    pipelines stayed 'degraded' (suspect) and drifted for the rest of the run (12 m at 200 s, 40 m
+    at 400 s). Now the carried state a reset starts from is kept as the newest checkpoint."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hardening
+
+    sc = hardening.underwater_scenario(200.0)
+    rec, eng, _ = hardening.run_case(sc, 31, "imu_close", "0.05x500", 150.0, "usbl")
+    for name in ("fed_edop", "centralized_chi2"):
+        assert eng.notes[f"reset:{name}"] >= 1, eng.notes
+        t, err, sd, status = rec[name]
+        h = np.hypot(err[:, 0], err[:, 1])
+        after = t > 180.0
+        assert h[after].max() < 5.0, (name, float(h[after].max()))  # before: 8.9-12 m, growing
+        assert status[-1] == "aided" and eng.life.lives[name].stage == "aided", (name, status[-1])
