@@ -554,10 +554,47 @@ def assess(rec, clean, start: float, end: float) -> Row:
     )
 
 
+def choose_cases(cases: list[str] | None) -> list[tuple[str, object]]:
+    """The cases ``--cases`` names: a kind alone (its rows of :data:`CASES`) or ``kind:arg`` with
+    any argument of that kind, on the grid or off it (``drift:5``, ``outage:120``,
+    ``imu_close:0.01x3000``, ``imu_burst:10x``)."""
+    if cases is None:
+        return list(CASES)
+    kinds = {k for k, _ in CASES}
+    chosen: list[tuple[str, object]] = []
+    for c in cases:
+        kind, sep, arg = c.partition(":")
+        if kind not in kinds:
+            raise SystemExit(f"--cases: unknown kind {kind!r}; one of {sorted(kinds)}")
+        if not sep:
+            chosen += [row for row in CASES if row[0] == kind]
+            continue
+        if kind == "imu_burst":
+            if arg not in PACE_JITTER_S:
+                raise SystemExit(f"--cases: imu_burst takes one of {sorted(PACE_JITTER_S)}, not {arg!r}")
+            value: object = arg
+        elif kind == "imu_close":
+            try:
+                _close(arg)
+            except ValueError:
+                why = f"--cases: imu_close takes RATE or RATExN (0.2, 0.05x500), not {arg!r}"
+                raise SystemExit(why) from None
+            value = arg
+        else:
+            try:
+                value = float(arg)
+            except ValueError:
+                raise SystemExit(f"--cases: {kind} takes a number, not {arg!r}") from None
+            if not math.isfinite(value) or value <= 0.0:
+                raise SystemExit(f"--cases: {kind} takes a positive number, not {arg!r}")
+        chosen.append((kind, value))
+    return chosen
+
+
 def transient_part(
     runs: int, seed: int, families: list[str], markdown: Path | None, cases: list[str] | None = None
 ) -> None:
-    chosen = [c for c in CASES if cases is None or c[0] in cases or f"{c[0]}:{c[1]}" in cases]
+    chosen = choose_cases(cases)
     lines = []
     for fam in families:
         build, labels, start, aiding = FAMILIES[fam]
@@ -640,7 +677,8 @@ def main() -> None:
     ap.add_argument("--markdown", type=Path, help="also write the transient tables to this file")
     ap.add_argument(
         "--cases",
-        help="only these transient cases, comma-separated kinds or kind:arg (e.g. imu_burst:max,outage)",
+        help="only these transient cases, comma-separated kinds or kind:arg, the arg on the grid or off it "
+        "(e.g. imu_burst:max,outage,drift:5,imu_close:0.01x3000)",
     )
     a = ap.parse_args()
     if a.part in ("single", "both"):

@@ -1267,3 +1267,29 @@ def test_a_contest_that_outlasts_the_checkpoints_without_gnss_leaves_no_pipeline
         after = t > 180.0
         assert h[after].max() < 5.0, (name, float(h[after].max()))  # before: 8.9-12 m, growing
         assert status[-1] == "aided" and eng.life.lives[name].stage == "aided", (name, status[-1])
+
+
+def test_the_hardening_benchmark_takes_cases_off_its_grid():
+    """``benchmarks/hardening.py --cases``: a kind alone gives its rows of the grid, ``kind:arg``
+    any argument of the kind (how an off-grid probe is reproduced), and a bad one is refused with
+    the reason, not run as something else."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import hardening
+
+    assert hardening.choose_cases(None) == hardening.CASES
+    assert hardening.choose_cases(["outage"]) == [("outage", 60.0)]
+    assert hardening.choose_cases(["drift:5", "imu_close:0.01x3000", "imu_burst:max"]) == [
+        ("drift", 5.0),
+        ("imu_close", "0.01x3000"),
+        ("imu_burst", "max"),
+    ]
+    for bad, why in [
+        ("spoof", "unknown kind"),
+        ("drift:fast", "takes a number"),
+        ("outage:-60", "positive"),
+        ("init_burst:nan", "positive"),
+        ("imu_burst:3x", "imu_burst takes one of"),
+        ("imu_close:fast", "RATExN"),
+    ]:
+        with pytest.raises(SystemExit, match=why):
+            hardening.choose_cases([bad])
