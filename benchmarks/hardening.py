@@ -22,6 +22,10 @@ into a clean stream (seeds S, S+1, ...), against the same stream clean:
 - ``imu_close``: forged samples close to the genuine ones (each the genuine sample's increments
   with more yaw rate), at 10x: ``0.2`` (50 samples, 0.2 rad/s more) and ``0.05x500`` (500 samples,
   5 s, 0.05 rad/s more); plausible, and the fixes agree with the state they leave for a while;
+- ``imu_race``: a forger racing the IMU on its own time stamps: before each genuine sample, a copy
+  on the same time stamp with the previous sample's increments and more yaw rate (``0.05x500``:
+  0.05 rad/s, 500 samples, 5 s), as ``benchmarks/process_probe.py``'s ``race`` arrives in real
+  time: the forged copy of each slot taken, the genuine one refused ``duplicate``;
 - ``init_burst``: 500 InitialNav in 2.5 s, the true state moved 5, 20 or 100 m north, claiming
   1 cm / 0.01 m/s / 0.01 deg;
 - ``drift``: a forged fix stream under the receiver's own key (between its fixes) drifting 0.1 to
@@ -171,6 +175,7 @@ CASES = [
     ("imu_burst", "max"),
     ("imu_close", "0.2"),
     ("imu_close", "0.05x500"),
+    ("imu_race", "0.05x500"),
     ("init_burst", 5.0),
     ("init_burst", 20.0),
     ("init_burst", 100.0),
@@ -194,9 +199,9 @@ def _toml(name: str) -> dict:
     return tomllib.loads((SCENARIOS / f"{name}.toml").read_text())
 
 
-def gnss_scenario(duration_s: float = 300.0):
+def gnss_scenario(duration_s: float = 300.0, keep: tuple[str, ...] | None = None):
     """The demo aircraft with its fixes plus raw GNSS and a star tracker (demo_product's), and one
-    pipeline of each GNSS family."""
+    pipeline of each GNSS family (``keep``: only these of them)."""
     d = _toml("demo_aircraft")
     p = _toml("demo_product")
     d["gnss_raw"], d["star"], d["duration_s"] = p["gnss_raw"], p["star"], duration_s
@@ -222,6 +227,8 @@ def gnss_scenario(duration_s: float = 300.0):
             "selection_correction": True,
         },
     ]
+    if keep is not None:
+        d["service"]["pipelines"] = [q for q in d["service"]["pipelines"] if q["name"] in keep]
     return parse_scenario(d, "hardening: demo aircraft with raw GNSS and a star tracker")
 
 
@@ -364,6 +371,7 @@ class Injector:
     end_s: float = 0.0
     queue: list = field(default_factory=list)
     drift_last: float = -1.0
+    race_prev: object = None
 
     def __post_init__(self):
         self.end_s = self.start_s
@@ -375,7 +383,7 @@ class Injector:
             self.end_s = self.start_s + float(self.arg) + 5.0
         elif self.kind == "imu_burst":
             self.end_s = self.start_s + 0.5
-        elif self.kind == "imu_close":
+        elif self.kind in ("imu_close", "imu_race"):
             self.end_s = self.start_s + 0.01 * _close(self.arg)[1]
 
     def filter(self, pk, msg, t_rel: float, traj):
@@ -439,6 +447,17 @@ class Injector:
         the forged fix on the genuine one's time stamp."""
         if self.kind == "drift_stamped" and pk.kind == self.aiding and self.start_s <= t_rel < self.end_s:
             return [(self.aiding, pk.sensor_id, self._forged(msg, msg.t, t_rel, traj))]
+        if self.kind == "imu_race" and pk.kind == "imu":
+            prev, self.race_prev = self.race_prev, msg
+            if prev is not None and self.start_s - 0.5 * msg.dt_s <= t_rel < self.end_s - 0.5 * msg.dt_s:
+                # the previous sample's increments with more yaw rate, on this one's time stamp
+                a = prev.dtheta_rad
+                rate = _close(self.arg)[0]
+                forged = msg.model_copy(
+                    update={"dtheta_rad": (a[0], a[1], a[2] + rate * msg.dt_s), "dvel_mps": prev.dvel_mps}
+                )
+                return [("imu", pk.sensor_id, forged)]
+            return []
         out = []
         if self.kind in ("imu_burst", "imu_close") and pk.kind == "imu":
             while self.queue and self.queue[0][0] < msg.t:
@@ -573,11 +592,11 @@ def choose_cases(cases: list[str] | None) -> list[tuple[str, object]]:
             if arg not in PACE_JITTER_S:
                 raise SystemExit(f"--cases: imu_burst takes one of {sorted(PACE_JITTER_S)}, not {arg!r}")
             value: object = arg
-        elif kind == "imu_close":
+        elif kind in ("imu_close", "imu_race"):
             try:
                 _close(arg)
             except ValueError:
-                why = f"--cases: imu_close takes RATE or RATExN (0.2, 0.05x500), not {arg!r}"
+                why = f"--cases: {kind} takes RATE or RATExN (0.2, 0.05x500), not {arg!r}"
                 raise SystemExit(why) from None
             value = arg
         else:
