@@ -1243,12 +1243,9 @@ class VehicleLife:
         """(NavState, InitStd, private references or None) a reset restarts ``p`` from: velocity
         from the fix, attitude from gravity and the GNSS track (in motion; static: the attitude
         kept, its sigmas widened), position from the pipeline's last verified estimate carried to
-        ``t`` (:meth:`_from_checkpoint`), else the fix's; bias estimates kept. While the IMU key is
-        contested (the moment of the corruption known): the last verified state carried over the
-        gap, whole (:meth:`_carried_state`), when the fix agrees with it."""
-        carried = self._carried_state(p, fix, t)
-        if carried is not None:
-            return carried
+        ``t`` (:meth:`_from_checkpoint`), else the fix's; bias estimates kept. (While the IMU key is
+        contested, :meth:`_reset_from_reference` restarts from the last verified state carried over
+        the gap instead, :meth:`_carried_state`, when the fix agrees with it.)"""
         est = p.estimate()
         if alignment.fix_speed(fix) >= self.config.init.min_speed_mps:
             ins = p.bank.ins
