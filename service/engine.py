@@ -140,6 +140,53 @@ AIDING_LOG_LEN = 256
 _PACK_ROW = struct.Struct("=8d").pack_into
 
 
+def imu_candidates(log, t0: float, t1: float) -> tuple[list[tuple], list[tuple], int, int] | None:
+    """The IMU intervals (rows of :attr:`VehicleEngine.imu_log`, ``log``) of the stream the INS
+    followed at ``t0``, as :meth:`VehicleEngine.verified_imu` gives them, also when slots of the
+    cadence are held by two different intervals (two publishers on the same time stamps): (the
+    first interval logged for each slot, the last different one for each slot (the first where
+    there is no other), the number of such slots, how many intervals up to the last of them), or
+    None when the slots do not cover the span whole. The first logged is the one the INS took (a
+    second copy is refused ``duplicate``, or ``time_backwards`` once the INS has passed it), so
+    the first list is the stream the INS followed and the second the other candidate wherever
+    the two differ (:meth:`VehicleLife._referee_contest`)."""
+    slots: dict[int, tuple] = {}
+    other: dict[int, tuple] = {}
+    for rec in log:
+        rec = tuple(rec)
+        t, dt = rec[0], rec[1]
+        if t <= t0 + 1e-9 or not dt > 0.0 or t - dt >= t1 - 1e-9:
+            continue  # before the checkpoint, or beginning at or after t1
+        k = round((t - t0) / dt)
+        if k < 1 or abs(t - t0 - k * dt) > 0.01 * dt:
+            continue  # off the verified stream's cadence
+        prev = slots.get(k)
+        if prev is None:
+            slots[k] = rec
+        elif prev != rec:
+            other[k] = rec
+    if not slots or len(slots) != max(slots):
+        return None
+    n = len(slots)
+    out = []
+    for chosen in (slots, {**slots, **other}):
+        rows = [chosen[k] for k in range(1, n + 1)]
+        end = t0
+        for r in rows:
+            if abs(r[0] - r[1] - end) > 0.01 * r[1]:
+                return None
+            end = r[0]
+        last = rows[-1]
+        if abs(last[0] - t1) > 1e-6:
+            if last[0] < t1:
+                return None  # the interval that reaches t1 is not there
+            start = rows[-2][0] if len(rows) > 1 else t0
+            f = (t1 - start) / (last[0] - start)
+            rows[-1] = (t1, t1 - start, *(x * f for x in last[2:]))
+        out.append(rows)
+    return out[0], out[1], len(other), max(other, default=0)
+
+
 class VehicleEngine:
     """Drives all configured pipelines of one vehicle from a time-ordered event stream."""
 
@@ -669,38 +716,14 @@ class VehicleEngine:
         interval at an aiding epoch (its share of the increments). None unless they cover the
         span whole and unambiguously: a slot of that cadence missing, or held by two different
         intervals (a second publisher on the verified stream's own time stamps: which one is
-        genuine is not known). A second publisher between the verified stream's samples (the
-        forged bursts of docs/hardening.md) is off its cadence and left out."""
-        slots: dict[int, tuple] = {}
-        for rec in self.imu_log:
-            rec = tuple(rec)
-            t, dt = rec[0], rec[1]
-            if t <= t0 + 1e-9 or not dt > 0.0 or t - dt >= t1 - 1e-9:
-                continue  # before the checkpoint, or beginning at or after t1
-            k = round((t - t0) / dt)
-            if k < 1 or abs(t - t0 - k * dt) > 0.01 * dt:
-                continue  # off the verified stream's cadence
-            prev = slots.get(k)
-            if prev is not None and prev != rec:
-                return None
-            slots[k] = rec
-        if not slots or len(slots) != max(slots):
-            return None
-        rows = [slots[k] for k in range(1, len(slots) + 1)]
-        end = t0
-        for r in rows:
-            if abs(r[0] - r[1] - end) > 0.01 * r[1]:
-                return None
-            end = r[0]
-        last = rows[-1]
-        if abs(last[0] - t1) <= 1e-6:
-            return rows
-        if last[0] < t1:
-            return None  # the interval that reaches t1 is not there
-        start = rows[-2][0] if len(rows) > 1 else t0
-        f = (t1 - start) / (last[0] - start)
-        rows[-1] = (t1, t1 - start, *(x * f for x in last[2:]))
-        return rows
+        genuine is not known: :meth:`candidate_imu`). A second publisher between the verified
+        stream's samples (the forged bursts of docs/hardening.md) is off its cadence and left out."""
+        cands = imu_candidates(self.imu_log, t0, t1)
+        return None if cands is None or cands[2] else cands[0]
+
+    def candidate_imu(self, t0: float, t1: float) -> tuple[list[tuple], list[tuple], int, int] | None:
+        """:func:`imu_candidates` of :attr:`imu_log` (:meth:`VehicleLife._referee_contest`)."""
+        return imu_candidates(self.imu_log, t0, t1)
 
     def _watch_contest(self, kind: str, sensor_id: str, msg: WireModel) -> None:
         """A duplicate aiding message (the time of one already taken): when it says something else

@@ -77,6 +77,7 @@ service's last state, or, on a running vehicle, is a reset request checked like 
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from collections import deque
@@ -148,6 +149,13 @@ CHECKPOINT_MAX_AGE_S = 5.0
 #: long (a 30 s race through the gnss family's turns, carried throughout: 15.6 m, 'aided' beyond
 #: 3 sigma at 569 epochs against 290 clean; docs/hardening.md, "A forger racing the IMU in real time")
 CARRY_CHAIN_MAX_S = 10.0
+#: two publishers on the IMU's own time stamps (:meth:`VehicleLife._referee_contest`): a candidate
+#: stream agrees with the last verified state carried over the contest when its attitude is within
+#: this chi-square(3) quantile of the carry's (1e-6)
+CONTEST_AGREE_CHI2_3DOF = 30.66
+#: ... and the differences it absorbs into the covariance along a chain of such restarts, at most
+#: (attitude deg, velocity m/s, position m): beyond, the small-angle error model no longer holds
+CONTEST_ABSORB_MAX = (5.0, 2.0, 20.0)
 CHECKPOINTS = 8
 #: ... one kept at most every this often (s; the cost of a copy of the filter at output epochs)
 CHECKPOINT_PERIOD_S = 0.1
@@ -210,6 +218,9 @@ class Life:
     #: the time of the verified checkpoint its newest checkpoint was carried from, when that one is
     #: a carried restart kept during a contested IMU (:meth:`VehicleLife._reset_from_reference`)
     carried_root_t: float | None = None
+    #: (time of its newest checkpoint, the differences absorbed since the verified one it descends
+    #: from, (9,)) when that checkpoint is an absorbed contest (:meth:`VehicleLife._referee_contest`)
+    absorbed: tuple[float, np.ndarray] | None = None
 
 
 def floored_std(std: InitStd) -> InitStd:
@@ -474,6 +485,17 @@ class VehicleLife:
         ``nav.t``). With ``refs`` (private references, and the members' private error states for a
         bank of several) and a full ``std.cov`` (every state; per member for a bank of several):
         the whole filter state."""
+        self._restore(p, nav, std, event, refs)
+        life = self.lives[p.name]
+        self.go(p, event, nav.t if event_t is None else event_t, reason)
+        life.source, life.verified, life.reason = event, verified, (None if verified else reason or event)
+        if verified:
+            p.mark_verified()
+        else:
+            p.mark_unverified(life.reason)
+
+    def _restore(self, p: Pipeline, nav: NavState, std: InitStd, event: str, refs=None) -> None:
+        """:meth:`_start_one`'s restart of the filter, without the lifecycle's stage move."""
         old = p.bank
         cov = std.cov
         members = cov is not None and cov.ndim == 3
@@ -492,13 +514,6 @@ class VehicleLife:
             p.restore_references(refs)
         elif event in _KEEPS_SENSOR_STATES:
             p.keep_private_states(old)
-        life = self.lives[p.name]
-        self.go(p, event, nav.t if event_t is None else event_t, reason)
-        life.source, life.verified, life.reason = event, verified, (None if verified else reason or event)
-        if verified:
-            p.mark_verified()
-        else:
-            p.mark_unverified(life.reason)
 
     def start_all(
         self, nav: NavState, std: InitStd, event: str = "start", verified: bool = True, per_pipeline=None
@@ -1115,6 +1130,8 @@ class VehicleLife:
         if not self.engine.imu_took_forged(c[0], t):
             return False
         if plan is None:  # a stream that is not replayed (node IMUs) or not unambiguously
+            if self._referee_contest(p, c, ref, t):
+                return True
             if fix is None:
                 if isinstance(ref[2], InitStd) and not self._gnss_streams():
                     # a vehicle without GNSS: the checkpoint carried over the gap is its only
@@ -1141,13 +1158,114 @@ class VehicleLife:
         self._keep_clean_checkpoint(p)
         return True
 
-    def _keep_clean_checkpoint(self, p: Pipeline) -> None:
-        """The state ``p`` just restarted from (replayed with the verified stream, or the last
-        verified checkpoint carried over the gap: no sample of the contest in it) kept as its
-        newest checkpoint, which the contest's guard (:meth:`on_imu_contested`) does not drop."""
+    def _referee_contest(self, p: Pipeline, c, ref, t: float) -> bool:
+        """Two publishers on the IMU's own time stamps (which one is genuine is not known from the
+        samples), checkpoint ``c`` before the contest: the two candidate streams
+        (:meth:`VehicleEngine.candidate_imu`: the copies the INS took, and the others) are each
+        run on a copy of ``p`` from ``c`` with the aiding since, to the end of the last slot held
+        by two copies, and their attitudes compared with ``c`` carried there with its own turn
+        rate (:meth:`_carried_checkpoint`): the referee a forged turn rate cannot pass. What
+        tells them apart is the turn over the span, so the yardstick is the carry's growth alone
+        (``carry_sigmas``), not ``c``'s own attitude sigma, which all three share. The likelier
+        candidate (within ``CONTEST_AGREE_CHI2_3DOF`` of the carry; neither: None) is the stream
+        ``p`` restarts from, at ``c``, with its position, velocity and attitude variances grown by
+        the other's probability times the squares of their differences (the second moment of the
+        two-hypothesis mixture: nothing when the referee is clear, half the square when it cannot
+        tell), kept as the newest checkpoint at that slot's end, and run on to ``t`` with the
+        copies taken (slots whose second copy may still come are judged by the next reset). Nothing
+        the aiding since ``c`` said is lost, as it is in a carry. The state must still agree with
+        this epoch's reference ``ref``; unverified; counted ``absorbed:<pipeline>``. Along a
+        chain of such restarts the grown sigmas add up (``Life.absorbed``: a drift that passes
+        grows the variance with its square, not a piece at a time) to ``CONTEST_ABSORB_MAX``.
+        Returns whether it did (else the reset carries ``c`` over the gap, as before).
+
+        Why: a forger's copies delivered ~1 s behind the IMU, four of them ahead of the genuine
+        samples (refused ``duplicate``): the demo, seed 38, through real processes at 10x: the
+        MHSS filter (five BeiDou satellites) restarted from its checkpoint carried over 3 s at
+        three fixes, 4.6 m off 15 s later against 1.2 m clean, not back in the 45 s left; the
+        copies it had taken had moved its heading by ~2 mrad. The copies taken trusted without a
+        referee lost the race the forger won: the gnss family's loosely coupled filters back after
+        33 s or never, an underwater filter 234 m off (docs/hardening.md, "A race lost by the
+        forger")."""
+        if c is None or p.wants_imu_samples or p.node_imu_ids() or p.bank is None:
+            return False
+        if not self.engine.aiding_logged_since(c[0]):
+            return False
+        cands = self.engine.candidate_imu(c[0], t)
+        if cands is None or not cands[2]:
+            return False
+        taken, other, _, last = cands
+        t_last = taken[last - 1][0]
+        carry = self._carried_checkpoint(p, t_last, level=False)
+        if carry is None:
+            return False
+        navs = []
+        for rows in (taken, other):  # each candidate on a copy (its screening's records stay there)
+            q = copy.deepcopy(p)
+            self._start_replayed(q, c, rows[:last], "reset", t_last + 1e-6, quiet=True)
+            navs.append(q.estimate().nav)
+        sd = max(self.carry_sigmas(p)[1] * abs(t_last - c[0]), 1e-6)
+        m_taken, m_other = (float(np.sum(np.square(attitude_difference(n, carry[0]) / sd))) for n in navs)
+        if min(m_taken, m_other) > CONTEST_AGREE_CHI2_3DOF:
+            return False  # neither agrees with the carry (a manoeuvre it did not foresee)
+        rows = taken if m_taken <= m_other else other
+        p_other = 1.0 / (1.0 + math.exp(min(0.5 * abs(m_taken - m_other), 700.0)))
+        diff = np.concatenate(
+            [alignment.pos_vel_difference(navs[0], navs[1]), attitude_difference(navs[0], navs[1])]
+        )
+        life = self.lives[p.name]
+        chain = life.absorbed
+        before = chain[1] if chain is not None and chain[0] == c[0] else np.zeros(9)
+        total = before + math.sqrt(p_other) * np.abs(diff)
+        att, vel, pos = CONTEST_ABSORB_MAX
+        if not (
+            np.all(np.isfinite(total))
+            and float(total[6:9].max()) <= math.radians(att)
+            and float(total[3:6].max()) <= vel
+            and float(total[0:3].max()) <= pos
+        ):
+            return False
+        t_cp, cp, P9, P, refs, dyn = c
+        grow = total * total - before * before
+        P9 = P9.copy()
+        P = P.copy()
+        for j in range(9):
+            if P9[j, j] > 0.0:
+                P[..., j, j] += grow[j] * P[..., j, j] / P9[j, j]  # members by their share
+            P9[j, j] += grow[j]
+        # kept at the last slot held by two copies: the slots after it may yet get their second
+        # copy (the forger's, or the genuine one behind it), which the next reset judges. (Kept
+        # at this epoch instead, the copy taken of the slot holding it leaked into the chain at
+        # every reset: a forger first on every slot moved the heading 0.7 deg in 5 s under a
+        # sigma of 0.0005 deg)
+        self._start_replayed(p, (t_cp, cp, P9, P, refs, dyn), rows[:last], "reset", t_last + 1e-6, quiet=True)
+        # (carried on with c's motion, the last verified one: the INS's last interval may be a
+        # short one holding copies of the contest, and the next referee's carry would follow it)
+        self._keep_clean_checkpoint(p, dyn)
+        kept = self.checkpoints[p.name][-1]
+        self._start_replayed(p, self._checkpoint(p, t), taken[last:], "reset", t)
         p.sync()
         est = p.estimate()
-        cp = (est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), _imu_of(p))
+        if not alignment.plausible(est.nav, ref[0], est.P9[:6, :6] + ref[1])[0]:
+            self.checkpoints[p.name].remove(kept)  # (not a state to go on from)
+            self.replayed_checkpoint.pop(p.name, None)
+            if isinstance(ref[2], GnssFix):
+                self._reset_from_reference(p, ref[2], t)
+            else:  # (no fix: the last verified state carried over the gap, as before)
+                self._start_one(p, ref[0], ref[2], "reset", verified=False, reason="reset", refs=ref[3])
+            return True
+        self.engine.notes[f"absorbed:{p.name}"] += 1
+        life.absorbed = (kept[0], total)
+        return True
+
+    def _keep_clean_checkpoint(self, p: Pipeline, dyn=None) -> None:
+        """The state ``p`` just restarted from (replayed with the verified stream, or the last
+        verified checkpoint carried over the gap: no sample of the contest in it) kept as its
+        newest checkpoint, which the contest's guard (:meth:`on_imu_contested`) does not drop.
+        ``dyn``: the motion a carry of it goes on with (default: its INS's last interval)."""
+        p.sync()
+        est = p.estimate()
+        cp = (est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), _imu_of(p) if dyn is None else dyn)
         self.checkpoints[p.name].append(cp)
         self.replayed_checkpoint[p.name] = cp
         self.lives[p.name].carried_root_t = None  # (a carried restart sets it after this)
@@ -1194,18 +1312,24 @@ class VehicleLife:
         rows = self.engine.verified_imu(c[0], t)
         return None if rows is None else (c, rows)
 
-    def _start_replayed(self, p: Pipeline, c, rows, event: str, t: float, skip=None) -> None:
+    def _start_replayed(
+        self, p: Pipeline, c, rows, event: str, t: float, skip=None, quiet: bool = False
+    ) -> None:
         """Restart ``p`` from checkpoint ``c``, whole, then run the IMU intervals ``rows`` through
         it to ``t`` (the filter's own propagation: navigation, covariance, private states), with
         the aiding messages the engine handed it in between applied again at their epochs (the
         interval holding one cut there, as the engine cuts it; the pipeline's own screening judges
         them again; their outputs were sent the first time and are not sent again); unverified.
         Counted ``replayed:<pipeline>``. ``skip``: (kind, sensor id, t0), that key's messages from
-        ``t0`` on are not applied again (a contested aiding key)."""
+        ``t0`` on are not applied again (a contested aiding key). ``quiet``: the filter only (a
+        copy of ``p`` run to see where a stream takes it): no stage move, not counted."""
         t_cp, cp, P9, P, refs, _ = c
         sd = np.sqrt(np.clip(np.diagonal(P9), 0.0, None))
         std = InitStd(sd[0:3], sd[3:6], sd[6:9], cov=P)
-        self._start_one(p, cp, std, event, verified=False, reason=event, refs=refs, event_t=t)
+        if quiet:
+            self._restore(p, cp, std, event, refs)
+        else:
+            self._start_one(p, cp, std, event, verified=False, reason=event, refs=refs, event_t=t)
         kinds = p.consumed_kinds()
         aids = [
             a
@@ -1237,7 +1361,8 @@ class VehicleLife:
             cur = end
         p.sync()
         p.take_events()  # (what the replayed epochs' screening said is about epochs already judged)
-        self.engine.notes[f"replayed:{p.name}"] += 1
+        if not quiet:
+            self.engine.notes[f"replayed:{p.name}"] += 1
 
     def _fix_state(self, p: Pipeline, fix: GnssFix, t: float):
         """(NavState, InitStd, private references or None) a reset restarts ``p`` from: velocity
