@@ -132,6 +132,11 @@ def test_a_client_cannot_announce_a_vehicle_in_the_services_name(service):
             got = alive()
         time.sleep(1.0)
         got = alive()
+        # (a get that answers nothing at all, not even the service's own token, is no verdict on
+        # what is routed: seen once on a loaded 2-core run of the whole suite; asked again)
+        while time.monotonic() < deadline and "fednav/v1/service/alive" not in got:
+            time.sleep(0.5)
+            got = alive()
         for t in tokens:
             t.undeclare()
     assert "fednav/ghost/sensor/alive" in got and "fednav/ghost/sensor/alive" in seen, got
