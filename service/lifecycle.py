@@ -1111,9 +1111,10 @@ class VehicleLife:
         (:meth:`_start_replayed`), whether or not its state disagrees with the reference yet, and
         keep the replayed state as a checkpoint (built from the verified stream alone: a contest
         that goes on replays from it). With a fix as the reference, only when the replayed
-        navigation agrees with it (:meth:`_replay_agrees`). A pipeline whose stream is not replayed
-        (node IMUs) or not unambiguously is reset from its checkpoint carried over the gap
-        instead (:meth:`_reset_from_reference`). Returns whether it did.
+        navigation agrees with it (:meth:`_replay_agrees`). A stream held on its own time stamps by
+        two publishers is refereed (:meth:`_referee_contest`); a pipeline whose stream is not
+        replayed (node IMUs), or that the referee cannot settle, is reset from its checkpoint
+        carried over the gap instead (:meth:`_reset_from_reference`). Returns whether it did.
 
         Why: a forged sample close to the genuine ones (the genuine increments with 0.2 rad/s more
         yaw rate) leaves a state that still agrees with the fixes, so no reset came; the heading
