@@ -624,3 +624,55 @@ def test_exclusion_book_carried_to_another_book_keeps_each_health_clock():
     assert both.healthy_for(500.0) == {"C03": 10.0}
     both.restore({"C03": 0.0}, 500.0)
     assert both.healthy_for(500.0) == {"C03": 0.0}
+
+
+@pytest.mark.parametrize("purge", [False, True], ids=["tied", "untied"])
+def test_a_bank_restored_from_its_state_keeps_every_member_around_the_new_main(purge):
+    """A lifecycle checkpoint keeps the whole bank (``MhssBank.state``); a restart rebuilds it
+    around the restart's main covariance (``MhssBank.restored``): the main's change is common to
+    every block, each member keeps its excess over the main and its state, so the separations'
+    covariances and thresholds are the checkpoint's (a restart that started every member as a copy
+    of the main made the demo's HPL fall from 16.4 to 7.0 m). Restored at the same covariance the
+    bank equals the original and runs on identically; a member that would not be positive definite
+    gives None (the caller starts a new bank)."""
+    rng = np.random.default_rng(3)
+    bank = MhssBank.initial(np.zeros(N_X), P0, IDS[:6], depth=2, h_idx=H_IDX, v_idx=V_IDX)
+    truth = rng.multivariate_normal(np.zeros(N_X), P0)
+    for k in range(8):
+        bank.predict(PHI, Q)
+        truth = PHI @ truth + rng.multivariate_normal(np.zeros(N_X), Q)
+        if purge and k == 4:
+            bank = bank.rebuild([s for s in bank.sats if s != "S2"], purge=["S2"])
+        H = rows(bank.sats)
+        z = H @ truth + SIGMA * rng.standard_normal(len(H))
+        bank.update(z, H, np.full(len(H), SIGMA**2), np.arange(len(H)))
+        bank.shift(bank.x[0].copy())
+    assert bank.tied == (not purge)
+    s = bank.state()
+    assert len(s.blocks) == (bank.B if bank.tied else len(bank.pa))
+    same = MhssBank.restored(s, bank.P[0])
+    np.testing.assert_allclose(same.blocks, bank.blocks, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(same.x, bank.x)
+    assert same.tied == bank.tied and same.sats == bank.sats
+    H = rows(bank.sats)
+    z = H @ truth
+    for b in (bank, same):
+        b.predict(PHI, Q)
+        b.update(z, H, np.full(len(H), SIGMA**2), np.arange(len(H)))
+    np.testing.assert_allclose(same.blocks, bank.blocks, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(same.x, bank.x, rtol=1e-12, atol=1e-12)
+    grown = bank.P[0] + np.diag([4.0, 4.0, 1.0, 9.0])  # a carry over a gap: a common error
+    s = bank.state()
+    out = MhssBank.restored(s, grown)
+    np.testing.assert_allclose(
+        out.blocks - bank.blocks, np.broadcast_to(grown - bank.P[0], bank.blocks.shape), atol=1e-9
+    )
+    kfa, kmd = k_fa(1e-3, bank.N), k_md(1e-3)
+    d_before = bank.P[1:] - bank.P[0]
+    np.testing.assert_allclose(out.P[1:] - out.P[0], d_before, atol=1e-9)  # the separations' covariances
+    assert out.main_tests(kfa, kmd).hpl > bank.main_tests(kfa, kmd).hpl  # the common error in a_n
+    fresh = MhssBank.initial(np.zeros(N_X), grown, bank.sats, depth=2, h_idx=H_IDX, v_idx=V_IDX)
+    assert out.main_tests(kfa, kmd).hpl > fresh.main_tests(kfa, kmd).hpl + 1.0  # copies of the main: no T_n
+    # a shrink no member's excess covers leaves members not positive definite: refused
+    assert MhssBank.restored(s, bank.P[0] - 50.0 * np.eye(N_X)) is None
+    assert MhssBank.restored(s, np.eye(N_X + 1)) is None

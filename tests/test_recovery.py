@@ -23,7 +23,7 @@ from fednav.service.estimation.measurements.base import (
     SigmaFloors,
 )
 from fednav.service.intake_rules import AcceptanceRules
-from fednav.service.lifecycle import INIT_RESET_INTERVAL_S, fuse
+from fednav.service.lifecycle import INIT_RESET_INTERVAL_S, fuse, publisher_streams
 from fednav.service.messages import GnssFix, ImuSample, InitialNav, Integrity
 from fednav.simulators.evaluate import service_config
 from fednav.simulators.scenario import load_scenario
@@ -1216,26 +1216,21 @@ def test_a_forger_racing_the_imu_on_its_own_time_stamps_is_reset_out_after_the_c
     assert all(n >= 5 for n in restarts.values()), eng.notes  # at every reference of the contest
 
 
-def test_a_race_lost_by_the_forger_leaves_the_mhss_filter_as_it_was():
-    """The process probe's race at 10x as the loaded service received it (the demo, seed 38): the
-    forger's copies (the previous sample's increments with 0.05 rad/s more yaw rate, on the genuine
-    time stamps) 1.1 s behind the IMU, refused ``time_backwards``, and four of them ahead of the
-    genuine sample (which is refused ``duplicate``). Every slot held by two copies is ambiguous;
-    each reference epoch restarted the pipelines from their checkpoint carried over the gap (3 s at
-    the first), and the MHSS filter drifted from that carry: 4.8 m off 20 s later (1.2 m clean), not
-    back under its clean 95th percentile in the 45 s left. Now the referee replays both candidate
-    streams and keeps the one whose heading agrees with the checkpoint carried over the contest
-    (``VehicleLife._referee_contest``): the copies the INS took, here."""
+def _race_38(first: tuple[float, ...], seed: int = 38):
+    """The process probe's race on the demo as a loaded service at 10x received it: the forger's
+    copies (the previous sample's increments with 0.05 rad/s more yaw rate, on the genuine time
+    stamps, 500 from 70 s) 1.1 s behind the IMU, but those at ``first`` (s after the start) ahead
+    of the genuine sample. (scenario, engine, sink); ``first`` () with no forger: the clean run."""
     sc = shortened("demo_product.toml", 120.0)
     eng = VehicleEngine("v1", service_config(sc), sink := Sink())
     late, prev = [], None
-    first = (72.99, 73.0, 74.85, 74.86)  # the copies that arrived first
-    for key, msg in Simulation(sc, seed=38):
+    for key, msg in Simulation(sc, seed=seed):
         pk = keys.parse_input(key)
         t_rel = msg.t - sc.t0_gps_s
         while late and late[0][0] <= t_rel:
             eng.handle("imu", "main", late.pop(0)[1])
-        if pk.kind == "imu" and 70.0 - 0.005 <= t_rel < 75.0 - 0.005 and prev is not None:
+        forging = bool(first) and 70.0 - 0.005 <= t_rel < 75.0 - 0.005
+        if pk.kind == "imu" and forging and prev is not None:
             a = prev.dtheta_rad
             forged = msg.model_copy(
                 update={"dtheta_rad": (a[0], a[1], a[2] + 0.05 * msg.dt_s), "dvel_mps": prev.dvel_mps}
@@ -1247,6 +1242,20 @@ def test_a_race_lost_by_the_forger_leaves_the_mhss_filter_as_it_was():
         if pk.kind == "imu":
             prev = msg
         eng.handle(pk.kind, pk.sensor_id, msg)
+    return sc, eng, sink
+
+
+def test_a_race_lost_by_the_forger_leaves_the_mhss_filter_as_it_was():
+    """The process probe's race at 10x as the loaded service received it (the demo, seed 38): the
+    forger's copies (the previous sample's increments with 0.05 rad/s more yaw rate, on the genuine
+    time stamps) 1.1 s behind the IMU, refused ``time_backwards``, and four of them ahead of the
+    genuine sample (which is refused ``duplicate``). Every slot held by two copies is ambiguous;
+    each reference epoch restarted the pipelines from their checkpoint carried over the gap (3 s at
+    the first), and the MHSS filter drifted from that carry: 4.8 m off 20 s later (1.2 m clean), not
+    back under its clean 95th percentile in the 45 s left. Now the referee replays both candidate
+    streams and keeps the one whose heading agrees with the checkpoint carried over the contest
+    (``VehicleLife._referee_contest``): the copies the INS took, here."""
+    sc, eng, sink = _race_38((72.99, 73.0, 74.85, 74.86))
     assert eng.rejected["time_backwards"] + eng.rejected["duplicate"] == 500, dict(eng.rejected)
     assert eng.rejected["duplicate"] == 4, dict(eng.rejected)
     for name in ("lc", "fed", "tc_mhss"):
@@ -1254,6 +1263,63 @@ def test_a_race_lost_by_the_forger_leaves_the_mhss_filter_as_it_was():
         assert max(r[1] for r in rec) < 2.5, (name, max(rec, key=lambda r: r[1]))  # before: 4.8 m
         assert not _lies(rec), (name, _lies(rec)[:3])
     assert eng.notes["absorbed:tc_mhss"] >= 1, dict(eng.notes)
+
+
+def test_a_forger_first_on_the_last_contested_slot_is_not_kept():
+    """The same race with the forger ahead of the genuine sample where it was in a captured run
+    (the demo, seed 38, all nine vehicles through processes at 10x): on the last slot held by two
+    copies when three of the references came. The referee weighed the copies the INS took (the
+    genuine ones but that slot) against the other copy of every slot, kept the first, and with it
+    the forged interval (0.5 mrad of heading each time): in that run the MHSS filter (five
+    satellites) 1.5 mrad off in heading, 2.9 m off 130 s later against 1.5 m clean, never back;
+    here the loosely coupled filter 0.53 mrad off the clean run's heading at the end. Now the
+    candidates are each publisher's copies (``lifecycle.publisher_streams``): every pipeline's
+    heading at the end within half a forged interval of the clean run's (lc 0.004 mrad; tc_mhss
+    0.11, against its 0.15 mrad sigma, the same with the old candidates), and the MHSS filter's
+    protection levels the clean run's (its bank restored whole at each restart)."""
+    capture = (70.21, 71.27, 72.41, 74.6)  # the slots the forger won in that run
+    sc, eng, sink = _race_38(capture)
+    _, clean, clean_sink = _race_38(())
+    assert eng.rejected["duplicate"] == len(capture), dict(eng.rejected)
+    for p, q in zip(eng.pipelines, clean.pipelines, strict=True):
+        p.sync(), q.sync()
+        dyaw = earth.wrap_pi(p.estimate().nav.rpy_rad[2] - q.estimate().nav.rpy_rad[2])
+        assert abs(dyaw) < 2.5e-4, (p.name, dyaw)  # before: lc 5.3e-4
+        rec = [r for r in sink.rec[p.name] if r[0] - sc.t0_gps_s >= 70.0]
+        assert max(r[1] for r in rec) < 2.5, (p.name, max(rec, key=lambda r: r[1]))
+        assert not _lies(rec), (p.name, _lies(rec)[:3])
+    # each restart of the MHSS filter restores its whole bank (MhssBank.restored): the protection
+    # levels through the contest are the clean run's (sub-filters restarted as copies of the main:
+    # HPL 0.31 of the clean run's at 75 s)
+    hpl = {round(m.t, 1): m.hpl_m for m in sink.integrity}
+    ratio = [hpl[round(m.t, 1)] / m.hpl_m for m in clean_sink.integrity if round(m.t, 1) in hpl]
+    assert len(ratio) > 400 and min(ratio) > 0.95, min(ratio)
+    assert not any(k.startswith("bank_not_restored") for k in eng.notes), dict(eng.notes)
+
+
+def test_publisher_streams_sort_the_copies_by_publisher_not_by_arrival():
+    """Two publishers on the same time stamps, either first on any slot: the candidate streams are
+    each publisher's copies, told apart by the sign of their difference along its principal
+    direction (a forger's systematic offset), whichever arrived first; the stream sharing more
+    slots with the first-logged comes first; a slot held by one copy is in both."""
+    rng = np.random.default_rng(7)
+    genuine = [
+        (0.01 * (k + 1), 0.01, *rng.normal(0.0, 1e-5, 3), *rng.normal(0.0, 1e-3, 3)) for k in range(40)
+    ]
+    forged = [(r[0], r[1], r[2], r[3], r[4] + 5e-4, *r[5:]) for r in genuine]
+    forger_first = {3, 17, 29}
+    single = {8, 9}  # the forger's copy not (yet) there
+    first = [forged[k] if k in forger_first else genuine[k] for k in range(40)]
+    other = [first[k] if k in single else (genuine[k] if k in forger_first else forged[k]) for k in range(40)]
+    a, b = publisher_streams(first, other, 35)
+    assert a == genuine[:35]
+    assert b == [genuine[k] if k in single else forged[k] for k in range(35)]
+    # the forger first on most slots: its stream shares more with the first-logged, comes first
+    first2 = [genuine[k] if k in forger_first else forged[k] for k in range(40)]
+    other2 = [forged[k] if k in forger_first else genuine[k] for k in range(40)]
+    a, b = publisher_streams(first2, other2, 40)
+    assert a == forged and b == genuine
+    assert publisher_streams(genuine, genuine, 40) == (genuine, genuine)
 
 
 def test_only_an_imu_duplicate_that_differs_is_ambiguous():
