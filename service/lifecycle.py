@@ -160,6 +160,10 @@ CONTEST_ABSORB_MAX = (5.0, 2.0, 20.0)
 CHECKPOINTS = 8
 #: ... one kept at most every this often (s; the cost of a copy of the filter at output epochs)
 CHECKPOINT_PERIOD_S = 0.1
+#: older than the newest ``CHECKPOINTS``, one kept per this long, up to ``CHECKPOINT_MAX_AGE_S``
+#: behind the newest (:func:`_thin`): a contest noticed late (a second publisher's copies 1.4 s
+#: behind the IMU) drops the checkpoints since its first copy, and the newest eight span 0.8 s
+CHECKPOINT_OLD_SPACING_S = 1.0
 #: an aiding key on which two publishers said different things for one epoch (a duplicate that
 #: differs from the message taken) is used again only after this long without such a pair (s)
 CONTESTED_AIDING_HOLD_S = 10.0
@@ -409,6 +413,26 @@ def _private_over(p: Pipeline, refs, P: np.ndarray, dt: float):
     return (refs, privx), P
 
 
+def _thin(cps: deque) -> None:
+    """After a checkpoint is appended to ``cps``: the newest ``CHECKPOINTS`` kept as they come,
+    older ones one per ``CHECKPOINT_OLD_SPACING_S``, none more than ``CHECKPOINT_MAX_AGE_S``
+    behind the newest (and at most twice as many as that spacing allows, whatever the times).
+
+    Why: the probe's race at 10x through processes (the demo, seed 38): the forger's copies
+    reached the loaded service 1.4 s behind the IMU; its first copy dropped every checkpoint
+    since its own stamp (:meth:`VehicleLife.on_imu_contested`), the eight newest 0.8 s, so none
+    was left to replay or carry: `tc_mhss` reset from the snapshot fix, 4.6 m off, back after
+    84 s (docs/hardening.md, "A lagging copy is not a new time base")."""
+    k = len(cps) - CHECKPOINTS - 1  # the one that just left the newest eight
+    if k >= 1 and cps[k][0] - cps[k - 1][0] < CHECKPOINT_OLD_SPACING_S:
+        del cps[k]
+    newest = cps[-1][0]
+    while cps and newest - cps[0][0] > CHECKPOINT_MAX_AGE_S:
+        cps.popleft()
+    while len(cps) > CHECKPOINTS + 2 * int(CHECKPOINT_MAX_AGE_S / CHECKPOINT_OLD_SPACING_S):
+        cps.popleft()
+
+
 def carried(nav: NavState, std: InitStd, t: float) -> tuple[NavState, InitStd]:
     """A state moved to time ``t`` with its own velocity, its position sigma grown over the gap."""
     dt = t - nav.t
@@ -468,7 +492,7 @@ class VehicleLife:
         self.last_init_reset_t: float | None = None
         #: per pipeline, its latest verified estimates (t, NavState, P9, full state, dynamics) at
         #: output epochs; dynamics: (acceleration ENU m/s^2, body turn rate w_nb rad/s) of its INS
-        self.checkpoints: dict[str, deque] = {p.name: deque(maxlen=CHECKPOINTS) for p in engine.pipelines}
+        self.checkpoints: dict[str, deque] = {p.name: deque() for p in engine.pipelines}  # (_thin)
         #: per pipeline, the checkpoint its last replay under a contest left (the verified
         #: stream's alone: a later contested sample does not drop it, :meth:`on_imu_contested`)
         self.replayed_checkpoint: dict[str, tuple] = {}
@@ -1323,6 +1347,7 @@ class VehicleLife:
         est = p.estimate()
         cp = (est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), _imu_of(p) if dyn is None else dyn)
         self.checkpoints[p.name].append(cp)
+        _thin(self.checkpoints[p.name])
         self.replayed_checkpoint[p.name] = cp
         self.lives[p.name].carried_root_t = None  # (a carried restart sets it after this)
 
@@ -1394,6 +1419,24 @@ class VehicleLife:
             and a[1] in kinds
             and not (skip is not None and a[1:3] == skip[:2] and a[3].t >= skip[2] - 1e-9)
         ]
+        screened = p.screened.copy()  # (each message's screening counted once, when it came)
+        p.replaying = True
+        try:
+            self._replay_rows(p, rows, aids, t_cp)
+        finally:
+            p.replaying = False
+            p.screened.clear()
+            p.screened.update(screened)
+        p.sync()
+        p.take_events()  # (what the replayed epochs' screening said is about epochs already judged)
+        if not quiet:
+            self.engine.notes[f"replayed:{p.name}"] += 1
+
+    @staticmethod
+    def _replay_rows(p: Pipeline, rows, aids, t_cp: float) -> None:
+        """:meth:`_start_replayed`'s loop: the IMU intervals ``rows`` through ``p`` from ``t_cp``
+        with the aiding messages ``aids`` applied at their epochs (the interval holding one cut
+        there, as the engine cuts it)."""
         i, cur = 0, t_cp
         for r in rows:
             end = r[0]
@@ -1415,10 +1458,6 @@ class VehicleLife:
             if end - cur > 1e-12:
                 p.push_imu(dth, dv, end - cur, end)
             cur = end
-        p.sync()
-        p.take_events()  # (what the replayed epochs' screening said is about epochs already judged)
-        if not quiet:
-            self.engine.notes[f"replayed:{p.name}"] += 1
 
     def _fix_state(self, p: Pipeline, fix: GnssFix, t: float):
         """(NavState, InitStd, private references or None) a reset restarts ``p`` from: velocity
@@ -1508,6 +1547,7 @@ class VehicleLife:
             while changes and changes[0][0] < est.nav.t - CARRY_HISTORY_S:
                 changes.popleft()
         cps.append((est.nav.t, est.nav.copy(), est.P9.copy(), full_state(p), dyn))
+        _thin(cps)
 
     def carry_sigmas(self, p: Pipeline) -> tuple[float, float]:
         """(acceleration m/s^2, turn rate rad/s) a carried checkpoint of ``p`` may miss, 1-sigma:

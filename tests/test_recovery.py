@@ -22,6 +22,7 @@ from fednav.service.estimation.measurements.base import (
     Measurement,
     SigmaFloors,
 )
+from fednav.service.ins import alignment
 from fednav.service.intake_rules import AcceptanceRules
 from fednav.service.lifecycle import INIT_RESET_INTERVAL_S, fuse, publisher_streams
 from fednav.service.messages import GnssFix, ImuSample, InitialNav, Integrity
@@ -1216,19 +1217,22 @@ def test_a_forger_racing_the_imu_on_its_own_time_stamps_is_reset_out_after_the_c
     assert all(n >= 5 for n in restarts.values()), eng.notes  # at every reference of the contest
 
 
-def _race_38(first: tuple[float, ...], seed: int = 38):
+def _race_38(first: tuple[float, ...], seed: int = 38, late_s: float = 1.1, run: int = 1):
     """The process probe's race on the demo as a loaded service at 10x received it: the forger's
     copies (the previous sample's increments with 0.05 rad/s more yaw rate, on the genuine time
-    stamps, 500 from 70 s) 1.1 s behind the IMU, but those at ``first`` (s after the start) ahead
-    of the genuine sample. (scenario, engine, sink); ``first`` () with no forger: the clean run."""
+    stamps, 500 from 70 s) ``late_s`` behind the IMU, delivered ``run`` at a time (no genuine
+    sample between them), but those at ``first`` (s after the start) ahead of the genuine sample.
+    (scenario, engine, sink); ``first`` () with no forger: the clean run."""
     sc = shortened("demo_product.toml", 120.0)
     eng = VehicleEngine("v1", service_config(sc), sink := Sink())
     late, prev = [], None
     for key, msg in Simulation(sc, seed=seed):
         pk = keys.parse_input(key)
         t_rel = msg.t - sc.t0_gps_s
-        while late and late[0][0] <= t_rel:
+        k = 0  # (once one is due, ``run`` go together)
+        while late and (late[0][0] <= t_rel or 0 < k < run):
             eng.handle("imu", "main", late.pop(0)[1])
+            k += 1
         forging = bool(first) and 70.0 - 0.005 <= t_rel < 75.0 - 0.005
         if pk.kind == "imu" and forging and prev is not None:
             a = prev.dtheta_rad
@@ -1238,7 +1242,7 @@ def _race_38(first: tuple[float, ...], seed: int = 38):
             if any(abs(t_rel - f) < 0.003 for f in first):
                 eng.handle(pk.kind, pk.sensor_id, forged)
             else:
-                late.append((t_rel + 1.1, forged))
+                late.append((t_rel + late_s, forged))
         if pk.kind == "imu":
             prev = msg
         eng.handle(pk.kind, pk.sensor_id, msg)
@@ -1295,6 +1299,61 @@ def test_a_forger_first_on_the_last_contested_slot_is_not_kept():
     ratio = [hpl[round(m.t, 1)] / m.hpl_m for m in clean_sink.integrity if round(m.t, 1) in hpl]
     assert len(ratio) > 400 and min(ratio) > 0.95, min(ratio)
     assert not any(k.startswith("bank_not_restored") for k in eng.notes), dict(eng.notes)
+
+
+@pytest.mark.parametrize("late_s", [3.3, 1.4])
+def test_a_forger_lagging_by_seconds_is_not_a_new_time_base(late_s):
+    """The race as another run of the probe delivered it (the demo, seed 38, all nine vehicles
+    through processes at 10x): the forger's copies 3.3 s behind the IMU in runs of a hundred with
+    no genuine sample between them. Beyond ``future_window_s`` behind, twenty in a row confirmed
+    a time jump: the INS was re-based on the forger's stream, lost, then re-based back (a second
+    jump, the genuine samples now ahead): `tc_mhss` 4.5 m, back after 77 s. A run of copies of
+    slots the IMU ring holds is now refused ``time_backwards`` (``VehicleEngine._late_copy``;
+    without: ten time jumps, `tc_mhss` 4.3 m). The copies 1.4 s behind (the same run, earlier):
+    the contest is noticed that long after its first copy, which dropped the eight newest
+    checkpoints (0.8 s); now the checkpoints span seconds (``lifecycle._thin``; without: `lc` and
+    `fed` 5.9 m, `tc_mhss` 4.4 m), and the aiding log 5 s (``AIDING_LOG_S``), so a state before
+    the contest is left to referee from."""
+    sc, eng, sink = _race_38((71.4, 74.71, 74.72), late_s=late_s, run=100)
+    assert eng.rejected["time_jump"] == 0 and eng.rejected["imu_gap"] == 0, dict(eng.rejected)
+    assert eng.rejected["time_backwards"] + eng.rejected["duplicate"] == 500, dict(eng.rejected)
+    for name in ("lc", "fed", "tc_mhss"):
+        rec = [r for r in sink.rec[name] if r[0] - sc.t0_gps_s >= 70.0]
+        assert max(r[1] for r in rec) < 2.5, (name, max(rec, key=lambda r: r[1]))
+        assert not _lies(rec), (name, _lies(rec)[:3])
+        assert eng.notes[f"absorbed:{name}"] >= 1, dict(eng.notes)
+
+
+def test_a_replay_records_no_epoch_twice():
+    """A replayed restart (``VehicleLife._start_replayed``) applies again the aiding a pipeline had
+    applied since its checkpoint: those epochs were recorded in the streams' sigma histories, the
+    recording's innovation windows and the screening counts when they came, and are not again
+    (before, each replay recorded them a second time). Replaying the very stream the pipeline
+    took, from its checkpoint, gives back its state to within half its sigma (not to the digit:
+    the replay judges the epochs again, with the sigma floors of now and the restart's fresh
+    consistency and bias windows)."""
+    sc = shortened("demo_product.toml", 40.0)
+    eng = VehicleEngine("v1", service_config(sc), Sink())
+    for key, msg in Simulation(sc, seed=3):
+        pk = keys.parse_input(key)
+        eng.handle(pk.kind, pk.sensor_id, msg)
+    life, t = eng.life, eng.last_imu_t
+    for p in eng.pipelines:
+        c = life._checkpoint(p, t)
+        rows = eng.verified_imu(c[0], t)
+        assert rows and eng.aiding_logged_since(c[0]), p.name
+        p.sync()
+        before = p.estimate().nav
+        hist = {k: list(h.r2) for k, h in p.floors._rows.items()}
+        screened, n_inn = dict(p.screened), len(p.innovations)
+        life._start_replayed(p, c, rows, "reset", t, quiet=True)
+        assert {k: list(h.r2) for k, h in p.floors._rows.items()} == hist, p.name
+        assert dict(p.screened) == screened and len(p.innovations) == n_inn, p.name
+        assert not p.replaying
+        est = p.estimate()
+        d = alignment.pos_vel_difference(est.nav, before)
+        sd = np.sqrt(np.diagonal(est.P9)[:6])
+        assert np.all(np.abs(d) < 0.5 * sd), (p.name, d, sd)  # (re-judged: R floors, bias windows)
 
 
 def test_publisher_streams_sort_the_copies_by_publisher_not_by_arrival():

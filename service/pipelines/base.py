@@ -438,6 +438,12 @@ class Pipeline(ABC):
     #: satellite is their integrity monitor's business
     bias_test: bool = False
 
+    #: the lifecycle is replaying epochs the pipeline had applied before (``VehicleLife.
+    #: _start_replayed``): their rows are not recorded again in the streams' sigma histories nor in
+    #: the recording's innovation windows (they were, once, when they came; each epoch counted
+    #: once); the restarted consistency windows take them (they were cleared by the restart)
+    replaying: bool = False
+
     def record_rows(self, key: str, meas, claimed, innovation, S_diag, used=None, taken=None) -> None:
         """The rows of an update that passed its screening, into the stream's sigma history and
         its innovation consistency window (innovations ``z - H x`` of the prior and the diagonal
@@ -463,13 +469,15 @@ class Pipeline(ABC):
         if use is not None:
             ok = [a and b for a, b in zip(ok, use, strict=True)]
         hph = [v - rv for v, rv in zip(S_l, R_l, strict=True)]
-        self.floors.record_floats(key, meas.labels, np.asarray(claimed, dtype=float).tolist(), inn, hph, ok)
+        if not self.replaying:
+            claims = np.asarray(claimed, dtype=float).tolist()
+            self.floors.record_floats(key, meas.labels, claims, inn, hph, ok)
         ins = getattr(self.bank, "ins", None)
         t = ins.state.t if ins is not None else getattr(self.bank, "t", None)
         used_rows = _all_rows(len(inn)) if used is None else np.asarray(used, dtype=bool)
         r_l = [v / d for v, d in zip(inn, sd, strict=True)]
         r = np.array(r_l, dtype=float)
-        if ins is not None:  # for the recording's innovation windows (fednav-inspect's NIS per row)
+        if ins is not None and not self.replaying:  # the recording's innovation windows (NIS per row)
             self.innovations.append((t, key, meas.labels, r, used_rows))
         if t is None:
             return
