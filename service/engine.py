@@ -698,19 +698,22 @@ class VehicleEngine:
         return True
 
     def _late_copy(self, t: float, dt: float) -> bool:
-        """Whether a time jump back to ``t`` the rules confirmed is a run of late copies of slots
-        the IMU ring holds (a second publisher on the stream's own time stamps lagging it by more
-        than ``future_window_s``, its samples reaching the service in runs of ``time_jump_samples``
-        and more): another interval of the ring ends at ``t`` (to 1 % of ``dt``) besides the
-        sample's own. A new time base (a sensor restarted, its clock stepped) does not land on the
-        old one's slots (nor one that stepped further back than the ring holds: seconds); taken
-        for one, the INS was re-based on the forger's stream and lost twice (the probe's race at
-        10x through processes, seed 38: copies 3.3 s late in runs of 100, `tc_mhss` 4.5 m, back
-        after 77 s; docs/hardening.md, "A lagging copy is not a new time base")."""
+        """Whether a time jump back to ``t`` the rules confirmed is a run of late copies of the
+        stream the IMU ring holds (a second publisher lagging it by more than ``future_window_s``,
+        its samples reaching the service in runs of ``time_jump_samples`` and more): besides the
+        sample's own, an interval of the ring covers ``t`` (ends at it, to 1 % of ``dt``, or spans
+        it: copies stamped between the slots). A new time base (a sensor restarted, its clock
+        stepped) does not land inside the old one's last seconds, nor does one that stepped
+        further back than the ring holds; taken for one, the INS was re-based on the forger's
+        stream and lost twice (the probe's race at 10x through processes, seed 38: copies 3.3 s
+        late in runs of 100, `tc_mhss` 4.5 m, back after 77 s; docs/hardening.md, "A lagging copy
+        is not a new time base")."""
         if self.last_imu_t is None or t >= self.last_imu_t:
             return False
         n = min(self._imu_n, IMU_LOG_LEN)
-        return int(np.count_nonzero(np.abs(self._imu_ring[:n, 0] - t) <= 0.01 * dt)) >= 2
+        ends, spans = self._imu_ring[:n, 0], self._imu_ring[:n, 1]
+        tol = 0.01 * dt
+        return int(np.count_nonzero((ends - spans < t - tol) & (t <= ends + tol))) >= 2
 
     def _duplicate_differs(self, t: float, look_back: int = 64) -> bool:
         """Whether the IMU ring's latest ``look_back`` rows hold two different intervals for the

@@ -1381,6 +1381,22 @@ def test_publisher_streams_sort_the_copies_by_publisher_not_by_arrival():
     assert publisher_streams(genuine, genuine, 40) == (genuine, genuine)
 
 
+def test_a_time_jump_back_into_the_rings_span_is_a_late_copy():
+    """``VehicleEngine._late_copy``: a confirmed jump back onto a slot the IMU ring holds, or
+    inside an interval it holds (copies stamped between the slots), is a run of late copies; a
+    jump back further than the ring reaches, or forward, is a new time base."""
+    eng = VehicleEngine("v1", service_config(load_scenario("demo_aircraft.toml")), Sink())
+    for k in range(1, 301):
+        s = ImuSample(t=1000.0 + 0.01 * k, dt_s=0.01, dtheta_rad=(0.0, 0.0, 1e-4), dvel_mps=(0.0, 0.0, 0.098))
+        eng.handle("imu", "main", s)
+    assert eng.last_imu_t == pytest.approx(1003.0)
+    eng._log_imu_rows(np.array([[1000.5, 0.01, 0, 0, 0, 0, 0, 0], [1000.505, 0.01, 0, 0, 0, 0, 0, 0]]))
+    assert eng._late_copy(1000.5, 0.01)  # on a slot (the copy's own row besides)
+    assert eng._late_copy(1000.505, 0.01)  # between two slots: inside an interval held
+    assert not eng._late_copy(999.0, 0.01)  # further back than the ring holds
+    assert not eng._late_copy(1003.5, 0.01)  # ahead
+
+
 def test_only_an_imu_duplicate_that_differs_is_ambiguous():
     """A copy of a sample (a retransmission) is not a second publisher on the genuine time stamps;
     a duplicate with other increments is (``VehicleEngine._duplicate_differs``, read from the IMU
