@@ -1217,12 +1217,12 @@ def test_a_forger_racing_the_imu_on_its_own_time_stamps_is_reset_out_after_the_c
     assert all(n >= 5 for n in restarts.values()), eng.notes  # at every reference of the contest
 
 
-def _race_38(first: tuple[float, ...], seed: int = 38, late_s: float = 1.1, run: int = 1):
+def _race_38(first: tuple[float, ...] | None, seed: int = 38, late_s: float = 1.1, run: int = 1):
     """The process probe's race on the demo as a loaded service at 10x received it: the forger's
     copies (the previous sample's increments with 0.05 rad/s more yaw rate, on the genuine time
     stamps, 500 from 70 s) ``late_s`` behind the IMU, delivered ``run`` at a time (no genuine
     sample between them), but those at ``first`` (s after the start) ahead of the genuine sample.
-    (scenario, engine, sink); ``first`` () with no forger: the clean run."""
+    (scenario, engine, sink); ``first`` None: no forger (the clean run)."""
     sc = shortened("demo_product.toml", 120.0)
     eng = VehicleEngine("v1", service_config(sc), sink := Sink())
     late, prev = [], None
@@ -1233,7 +1233,7 @@ def _race_38(first: tuple[float, ...], seed: int = 38, late_s: float = 1.1, run:
         while late and (late[0][0] <= t_rel or 0 < k < run):
             eng.handle("imu", "main", late.pop(0)[1])
             k += 1
-        forging = bool(first) and 70.0 - 0.005 <= t_rel < 75.0 - 0.005
+        forging = first is not None and 70.0 - 0.005 <= t_rel < 75.0 - 0.005
         if pk.kind == "imu" and forging and prev is not None:
             a = prev.dtheta_rad
             forged = msg.model_copy(
@@ -1283,7 +1283,7 @@ def test_a_forger_first_on_the_last_contested_slot_is_not_kept():
     protection levels the clean run's (its bank restored whole at each restart)."""
     capture = (70.21, 71.27, 72.41, 74.6)  # the slots the forger won in that run
     sc, eng, sink = _race_38(capture)
-    _, clean, clean_sink = _race_38(())
+    _, clean, clean_sink = _race_38(None)
     assert eng.rejected["duplicate"] == len(capture), dict(eng.rejected)
     for p, q in zip(eng.pipelines, clean.pipelines, strict=True):
         p.sync(), q.sync()
@@ -1301,8 +1301,10 @@ def test_a_forger_first_on_the_last_contested_slot_is_not_kept():
     assert not any(k.startswith("bank_not_restored") for k in eng.notes), dict(eng.notes)
 
 
-@pytest.mark.parametrize("late_s", [3.3, 1.4])
-def test_a_forger_lagging_by_seconds_is_not_a_new_time_base(late_s):
+@pytest.mark.parametrize(
+    ("late_s", "first"), [(3.3, (71.4, 74.71, 74.72)), (1.4, (71.4, 74.71, 74.72)), (1.9, ())]
+)
+def test_a_forger_lagging_by_seconds_is_not_a_new_time_base(late_s, first):
     """The race as another run of the probe delivered it (the demo, seed 38, all nine vehicles
     through processes at 10x): the forger's copies 3.3 s behind the IMU in runs of a hundred with
     no genuine sample between them. Beyond ``future_window_s`` behind, twenty in a row confirmed
@@ -1312,9 +1314,10 @@ def test_a_forger_lagging_by_seconds_is_not_a_new_time_base(late_s):
     without: ten time jumps, `tc_mhss` 4.3 m). The copies 1.4 s behind (the same run, earlier):
     the contest is noticed that long after its first copy, which dropped the eight newest
     checkpoints (0.8 s); now the checkpoints span seconds (``lifecycle._thin``; without: `lc` and
-    `fed` 5.9 m, `tc_mhss` 4.4 m), and the aiding log 5 s (``AIDING_LOG_S``), so a state before
-    the contest is left to referee from."""
-    sc, eng, sink = _race_38((71.4, 74.71, 74.72), late_s=late_s, run=100)
+    `fed` 5.9 m, `tc_mhss` 4.4 m), and the aiding log 5 s (``AIDING_LOG_S``; copies 1.9 s late,
+    none first: with 2 s `tc_mhss` 4.8 m), so a state before the contest is left to referee
+    from."""
+    sc, eng, sink = _race_38(first, late_s=late_s, run=100)
     assert eng.rejected["time_jump"] == 0 and eng.rejected["imu_gap"] == 0, dict(eng.rejected)
     assert eng.rejected["time_backwards"] + eng.rejected["duplicate"] == 500, dict(eng.rejected)
     for name in ("lc", "fed", "tc_mhss"):
