@@ -132,7 +132,7 @@ UNAIDED_WARNING_S = 30.0
 #: contest; its checkpoint is at most ~0.2 s before it); a replay that does not reach back to its
 #: checkpoint falls back to the carry
 IMU_LOG_LEN = 1024
-#: a confirmed time jump back onto slots the IMU ring holds: late copies (:meth:`VehicleEngine._late_copy`)
+#: a confirmed time jump back into the span the IMU ring holds: late copies (:meth:`VehicleEngine._late_copy`)
 LATE_COPY = Verdict("time_backwards")
 #: aiding messages kept for the same replay: those of the last AIDING_LOG_S of INS time, at most
 #: AIDING_LOG_LEN (the messages themselves: a fix ~1.9 kB, a raw GNSS epoch of 12 satellites ~16 kB)
