@@ -403,10 +403,11 @@ class VehicleWorker:
             for member in to:
                 self.pubs.publish(keys.fleet_state_to(group, member, self.vehicle, st.pipeline, prefix), st)
 
-    def take_over(self, payloads: dict[str, bytes], t_start: float) -> None:
+    def take_over(self, payloads: dict[str, bytes], t_start: float) -> bool:
         """Start the vehicle from the last handover state another service published (called once,
-        before its first IMU sample: ``t_start`` is that sample's start); a state older than
-        ``[fleet] handover_max_age_s`` (or unreadable) is not used: the vehicle aligns itself."""
+        before its first IMU sample: ``t_start`` is that sample's start; or by
+        :meth:`resume_from_fleet`); a state older than ``[fleet] handover_max_age_s`` (or
+        unreadable) is not used: the vehicle aligns itself. True when the state was taken."""
         states = []
         for payload in payloads.values():
             try:
@@ -420,7 +421,7 @@ class VehicleWorker:
         if not usable:
             if states:
                 self.engine.notes["handover_state_too_old"] += 1
-            return
+            return False
         st = usable[0]
         nav, std = fleet.handover_nav(st, t_start)
         hand_over = getattr(self.engine, "hand_over", None)
@@ -432,7 +433,7 @@ class VehicleWorker:
                     self.vehicle,
                     st.service,
                 )
-                return
+                return False
         else:  # the engine's lifecycle without a handover transition: a plain start
             self.engine._start(nav, std)
         self.engine.notes[f"handed_over_from:{st.service}"] += 1
@@ -457,15 +458,23 @@ class VehicleWorker:
         )
         if self.rr is not None:
             self.rr.log_event(self.vehicle, t_start, f"handed over from {st.service} ({st.status} state)")
+        return True
 
     def resume_from_fleet(self) -> bool:
         """A vehicle this service had lost (``life.lost``: an IMU gap, e.g. the service was stopped
         longer than its lease while another member served the vehicle) is started from another
         member's handover state newer than the loss, when one within ``handover_max_age_s`` of the
-        vehicle's time is there, instead of aligning anew. Called by the pool worker's scan (off the
-        per-message path); parses the states only when they changed. True when it took one."""
+        vehicle's time is there, instead of aligning anew. The same, as a reset request
+        (``VehicleLifecycle.hand_over`` on a running vehicle), for a vehicle that started itself
+        again after the loss (its own alignment: a fix in the drain that confirmed the loss, before
+        the other member's state came; the CI saw that once) within ``handover_max_age_s`` of that
+        start. Called by the pool worker's scan (off the per-message path); parses the states only
+        when they changed. True when it took one."""
         eng = self.engine
-        if not eng.life.lost or eng.last_imu_t is None or self.fleet_states_of is None:
+        life = eng.life
+        if eng.lost_after_t is None or eng.last_imu_t is None or self.fleet_states_of is None:
+            return False
+        if not life.lost and not self._started_itself_after_loss():
             return False
         payloads = self.fleet_states_of()
         key = tuple(sorted((n, len(b), hash(b)) for n, b in payloads.items()))
@@ -482,13 +491,23 @@ class VehicleWorker:
             newer = eng.lost_after_t is None or st.t > eng.lost_after_t  # served there after the loss
             if st.service != self.fleet_me and newer and -1.0 <= t - st.t <= max_age:
                 others[name] = payload
-        if not others:
-            return False
-        self.take_over(others, t)
-        if eng.life.lost:
+        if not others or not self.take_over(others, t) or life.lost:
             return False
         eng.notes["resumed_from_fleet_state"] += 1
         return True
+
+    def _started_itself_after_loss(self) -> bool:
+        """Whether the vehicle runs from its own start after its latest loss (alignment, an
+        InitialNav; not a hand-over), begun within ``[fleet] handover_max_age_s`` of its time."""
+        eng = self.engine
+        life = eng.life
+        return (
+            life.initialised
+            and life.start_t is not None
+            and life.start_t > eng.lost_after_t
+            and eng.last_imu_t - life.start_t <= self.config.fleet.handover_max_age_s
+            and all(lf.source == "start" for lf in life.lives.values())
+        )
 
     def final_outputs(self) -> None:
         """The vehicle's last Solutions (at its last IMU time) and Health, as it leaves this service

@@ -811,12 +811,12 @@ class VehicleLife:
 
     def references(self, t: float) -> list[tuple[NavState, np.ndarray]]:
         """Independent positions/velocities at ``t`` with their 6x6 covariances: the latest GNSS
-        fix when current, then the estimate of the first running pipeline that is verified."""
+        fix when current (carried to ``t``: :func:`alignment.fix_reference`), then the estimate
+        of the first running pipeline that is verified."""
         out = []
         fix = self.last_fix
         if fix is not None and alignment.fix_is_current(fix, t):
-            nav, std = alignment.motion_alignment(fix, t)
-            out.append((nav, alignment.std_cov6(std)))
+            out.append(alignment.fix_reference(fix, t, self.prev_fix))
         for p in self.engine.pipelines:
             if self.lives[p.name].stage == AIDED and p.current_status(t) not in ("initialising", "failed"):
                 p.sync()
@@ -824,20 +824,6 @@ class VehicleLife:
                 out.append((est.nav, est.P9[:6, :6]))
                 break
         return out
-
-    def reference_state(self, t: float) -> tuple[NavState, np.ndarray] | None:
-        """An independent position/velocity at ``t`` and its 6x6 covariance: the latest GNSS fix if
-        current, else the first running pipeline's estimate."""
-        fix = self.last_fix
-        if fix is not None and alignment.fix_is_current(fix, t):
-            nav, std = alignment.motion_alignment(fix, t)
-            return nav, alignment.std_cov6(std)
-        p = self.running_pipeline(t)
-        if p is None:
-            return None
-        p.sync()
-        est = p.estimate()
-        return est.nav, est.P9[:6, :6]
 
     def running_pipeline(self, t: float) -> Pipeline | None:
         """The first pipeline with a usable estimate (not initialising, not failed)."""

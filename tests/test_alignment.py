@@ -157,6 +157,54 @@ def test_nav_at_fix_carries_position_with_the_fix_velocity():
     assert back.h_m == pytest.approx(49.0)
 
 
+@pytest.mark.parametrize("age_s", [0.3, 0.9, -0.6])
+def test_a_fix_as_a_reference_is_carried_along_the_turn_its_fixes_show(age_s):
+    """alignment.fix_reference: the demo aircraft's 3 deg/s turn at 120 m/s (6.3 m/s^2 centripetal),
+    fixes 1 s apart: the last fix carried over its age with the two fixes' acceleration covers the
+    true state at the INS time (chi-square of 6 within its 99.9 % quantile, 22.5), where the fix as
+    it was (motion_alignment: its velocity held, its sigmas kept) is 1.9-5.7 m/s off against 0.1 m/s;
+    without the previous fix its sigmas grow by the unknown acceleration instead."""
+    omega, speed = math.radians(3.0), 120.0
+    r_m, r_n = earth.radii(LAT)
+
+    def truth(t):  # a circle east/north about the origin of the turn, heading north at t=0
+        th = omega * t
+        e, n = (speed / omega) * (1.0 - math.cos(th)), (speed / omega) * math.sin(th)
+        return (
+            np.array([e, n, 0.0]),
+            np.array([speed * math.sin(th), speed * math.cos(th), 0.0]),
+        )
+
+    def fix_at(t):
+        p, v = truth(t)
+        return GnssFix(
+            t=t,
+            lat_deg=LAT_DEG + math.degrees(p[1] / (r_m + 50.0)),
+            lon_deg=10.0 + math.degrees(p[0] / ((r_n + 50.0) * math.cos(LAT))),
+            height_m=50.0,
+            vel_enu_mps=tuple(v),
+            pos_std_enu_m=(1.0, 1.0, 2.0),
+            vel_std_enu_mps=(0.1, 0.1, 0.1),
+        )
+
+    prev, fix = fix_at(9.0), fix_at(10.0)
+    t = 10.0 + age_s
+    p_true, v_true = truth(t)
+    true_nav = al.nav_at_fix(fix_at(t), np.zeros(3), t)
+    nav, cov = al.fix_reference(fix, t, prev)
+    d = al.pos_vel_difference(nav, true_nav)
+    assert float(d @ np.linalg.solve(cov, d)) < 22.5, (d, np.sqrt(np.diag(cov)))
+    assert np.all(np.sqrt(np.diag(cov))[3:5] < 0.6)  # the acceleration known: still a tight reference
+    held, held_std = al.motion_alignment(fix, t)
+    dv = al.pos_vel_difference(held, true_nav)[3:]
+    assert np.linalg.norm(dv) > 1.5 and np.all(np.asarray(held_std.vel_enu_mps) <= 0.1)  # the old reference
+    alone_nav, alone_cov = al.fix_reference(fix, t)  # no previous fix: the acceleration unknown
+    d = al.pos_vel_difference(alone_nav, true_nav)
+    assert float(d @ np.linalg.solve(alone_cov, d)) < 22.5
+    assert np.all(np.sqrt(np.diag(alone_cov))[3:5] >= al.REF_ACC_UNKNOWN_MPS2 * abs(age_s) * 0.99)
+    assert np.allclose(al.fix_reference(fix, 10.0, prev)[1], al.std_cov6(al.motion_alignment(fix, 10.0)[1]))
+
+
 def test_fix_age_and_speed():
     fix = _fix(t=100.0, vel=(3.0, 4.0, 0.0))
     assert al.fix_is_current(fix, 101.0) and al.fix_is_current(fix, 99.0)

@@ -164,3 +164,49 @@ def test_a_vehicle_lost_here_resumes_only_from_a_state_served_after_the_loss():
             break
     assert before_gap is not None and after_gap is not None
     assert w.engine.lost_after_t is not None and before_gap.t < w.engine.lost_after_t < after_gap.t
+
+
+@pytest.mark.parametrize("state_after_s", [1.0, 8.0])
+def test_a_vehicle_that_aligned_itself_after_its_loss_still_resumes_from_a_fresher_state(state_after_s):
+    """A vehicle lost here (an 8 s IMU gap: this service stopped while another member served the
+    vehicle) that started itself again from its own alignment before the other member's state came
+    (a fix in the drain that confirmed the loss: the CI saw it once, the fleet test's vehicle then
+    never said it resumed) takes a state served after the loss that arrives within
+    ``handover_max_age_s`` (5 s) of that start, as a reset request; 8 s after its start it keeps its
+    own solution."""
+    sc = shortened("demo_product.toml", 55.0)
+    cfg = service_config(sc, ["lc"])
+    w, _ = _worker(cfg)
+    other, _ = _worker(cfg)
+    w.fleet_me = "service-a"
+    states: dict[str, bytes] = {}
+    w.fleet_states_of = lambda: dict(states)
+    t_stop, t_back = sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
+    restarted = offered = None
+    for key, msg in Simulation(sc, seed=SEED):
+        pk = keys.parse_input(key)
+        if pk.kind == "truth":
+            continue
+        other.loop.process(pk.kind, pk.sensor_id, msg)
+        if msg.t <= t_stop or msg.t > t_back:
+            w.loop.process(pk.kind, pk.sensor_id, msg)
+        life = w.engine.life
+        if restarted is None and w.engine.lost_after_t is not None and life.initialised:
+            restarted = life.start_t  # its own start after the loss
+            assert restarted > w.engine.lost_after_t > t_stop - 0.1
+            assert {lf.source for lf in life.lives.values()} == {"start"}
+        if restarted is not None and offered is None and msg.t > restarted + state_after_s:
+            (st,) = other.handover_states("service-b")
+            states["lc"] = st.to_json()
+            offered = w.resume_from_fleet()
+        if offered is not None and msg.t > restarted + state_after_s + 1.0:
+            break
+    assert restarted is not None and offered is not None
+    notes = w.engine.notes
+    if state_after_s < cfg.fleet.handover_max_age_s:
+        assert offered and notes["resumed_from_fleet_state"] == 1, (notes, w.engine.rejected)
+        assert {lf.source for lf in w.engine.life.lives.values()} == {"hand_over"}
+        assert notes["handed_over_from:service-b"] == 1, notes
+    else:
+        assert not offered and notes["resumed_from_fleet_state"] == 0, notes
+        assert {lf.source for lf in w.engine.life.lives.values()} == {"start"}
