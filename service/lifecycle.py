@@ -674,12 +674,18 @@ class VehicleLife:
                 p.sync()
                 est = p.estimate()
                 full = full_state(p)
+                members = None
                 if full is not None and full[0].ndim == 2:
-                    P, refs = full[0], full[1]
+                    P, refs, members = full
                 else:
                     P, refs = est.P9, {}
                 p_nav, p_std, refs = fuse(est.nav.copy(), P, refs, nav, std)
-                if not refs:
+                if isinstance(members, BankState):
+                    # the MHSS bank's sub-filters kept around the restart's main covariance (as at a
+                    # restart from a checkpoint), not started as copies of the main: their excess
+                    # over it is what the protection levels are made of
+                    refs = (refs, members)
+                elif not refs:
                     refs = None
                 moved = np.concatenate(
                     [alignment.pos_vel_difference(p_nav, est.nav), attitude_difference(p_nav, est.nav)]

@@ -1515,3 +1515,27 @@ def test_a_race_for_the_imu_that_outlasts_the_checkpoints_keeps_the_state_carrie
         assert h[after].max() < 4.0, (name, float(h[after].max()))  # before: 10-12 m
         aided = np.array([s == "aided" for s in st])
         assert not np.any(aided & after & (h > 3.0 * hs)), name
+
+
+def test_an_initial_nav_reset_keeps_the_mhss_sub_filters(raw_demo):
+    """A forged InitialNav 30 m off (claiming 1 cm; its sigmas raised to the host's 5 m) weighed
+    into the verified MHSS pipeline moves it by more than its sigma: the pipeline restarts
+    (``lifecycle.covering``). Its sub-filters are restored around the restart's main covariance
+    (``MhssBank.restored``, as at a restart from a checkpoint), not started as copies of the main,
+    which left nothing of their excess over it: the demo's protection level fell from 12 to 5.8 m
+    for 40 s and more (hardening's demo family, seed 34) while nothing had been verified."""
+    sc, _ = raw_demo
+
+    def hpl(inject):
+        eng, _ = _run(sc, inject)
+        return eng, [(m.t - sc.t0_gps_s, m.hpl_m) for m in eng.sink.integrity if m.pipeline == "tc"]
+
+    _, clean = hpl(None)
+    eng, forged = hpl(_init_burst(30.0))
+    assert eng.notes["init_reset"] == 1 and eng.notes["reset:tc"] == 0, (eng.notes, eng.rejected)
+    assert next(p for p in eng.pipelines if p.name == "tc").reinitialisations == 1  # restarted
+    clean_at = dict(clean)
+    after = [(t, h, clean_at[t]) for t, h in forged if AT_S <= t <= AT_S + 20.0 and t in clean_at]
+    assert len(after) > 50, after[:3]
+    low = min(h / c for _, h, c in after)
+    assert low > 0.9, [(t, h, c) for t, h, c in after if h / c <= 0.9][:5]
