@@ -201,6 +201,9 @@ class VehicleEngine:
     #: the last IMU time before the latest loss (a class default likewise): a fleet member's state
     #: newer than this is what a vehicle lost here may resume from (app.VehicleWorker.resume_from_fleet)
     lost_after_t: float | None = None
+    #: whether the log said the vehicle would re-initialise after a loss and not yet that it did
+    #: (VehicleLife.start_all says it; a class default likewise)
+    restart_untold = False
 
     def __init__(
         self, vehicle: str, config: ServiceConfig, sink: EngineSink, counters: Counter | None = None
@@ -875,6 +878,7 @@ class VehicleEngine:
             else "re-initialising (an InitialNav, or alignment)"
         )
         more = f" ({n - 1} more since the last such warning)" if n > 1 else ""
+        self.restart_untold = not self.life.initialised
         log.warning(
             "vehicle %s: INS lost at t=%.3f: %s; %s (Health rejected %s)%s",
             self.vehicle,

@@ -594,17 +594,35 @@ class VehicleLife:
             p.keep_private_states(old)
 
     def start_all(
-        self, nav: NavState, std: InitStd, event: str = "start", verified: bool = True, per_pipeline=None
+        self,
+        nav: NavState,
+        std: InitStd,
+        event: str = "start",
+        verified: bool = True,
+        per_pipeline=None,
+        source: str = "its own alignment",
     ) -> None:
         """Every pipeline starts from ``nav`` (or ``per_pipeline(p) -> (nav, std, refs)``): the
-        vehicle's clock moves to ``nav.t``."""
-        for p in self.engine.pipelines:
+        vehicle's clock moves to ``nav.t``. After a loss the log said it would re-initialise
+        (``VehicleEngine._log_imu_lost``), the log says it did, from ``source``."""
+        eng = self.engine
+        for p in eng.pipelines:
             p_nav, p_std, refs = (nav, std, None) if per_pipeline is None else per_pipeline(p)
             self._start_one(p, p_nav, p_std, event, verified, refs=refs)
-        self.engine._restart_clock(nav.t)
+        eng._restart_clock(nav.t)
         self.initialised = True
         self.start_t = nav.t
         self.lost = False
+        if eng.restart_untold:
+            eng.restart_untold = False
+            if event != "hand_over":  # (the service logs a hand-over itself: app.take_over)
+                log.info(
+                    "vehicle %s: INS re-initialised at t=%.3f from %s%s",
+                    eng.vehicle,
+                    nav.t,
+                    source,
+                    "" if verified else "; degraded until its own aiding verifies it",
+                )
 
     # --- InitialNav, hand-over ------------------------------------------------------------------------
     def on_initial_nav(self, msg: InitialNav) -> bool:
@@ -616,7 +634,7 @@ class VehicleLife:
         nav, std = alignment.from_initial_nav(msg)
         if self.initialised:
             return self._init_reset(nav, std)
-        self.start_all(nav, std)
+        self.start_all(nav, std, source="an InitialNav")
         self.init_sigmas.append(std)
         self.check_first_fix = True
         return True
@@ -852,9 +870,14 @@ class VehicleLife:
             if self.lost and self.align.n:  # a re-alignment: attitude from gravity, last good position
                 f_b = self.align.mean_specific_force()
                 nav, std = alignment.moving_alignment(fix, t, f_b, self.prev_fix)
-                self.start_all(nav, std, per_pipeline=lambda p: self._from_checkpoint(p, nav, std, t))
+                self.start_all(
+                    nav,
+                    std,
+                    per_pipeline=lambda p: self._from_checkpoint(p, nav, std, t),
+                    source="its own alignment in motion (a fix, gravity; the last checkpoint's biases)",
+                )
             else:
-                self.start_all(*alignment.motion_alignment(fix, t))
+                self.start_all(*alignment.motion_alignment(fix, t), source="a fix's velocity track")
             return
         if (
             mode in ("auto", "static")
@@ -864,7 +887,7 @@ class VehicleLife:
             sg, sa = self.config.imu.bias_sigmas()
             aligned = alignment.static_alignment(self.align, fix, t, sg, sa)
             if aligned is not None:  # else not static: wait for motion initialisation
-                self.start_all(*aligned)
+                self.start_all(*aligned, source="a static alignment")
 
     # --- around an aiding epoch ---------------------------------------------------------------------------
     def before_aiding(self, kind: str, msg) -> None:

@@ -8,6 +8,7 @@ vehicle restarts from its next GNSS fix (an operator's audit saw 15-20 m for ~4 
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -167,13 +168,14 @@ def test_a_vehicle_lost_here_resumes_only_from_a_state_served_after_the_loss():
 
 
 @pytest.mark.parametrize("state_after_s", [1.0, 8.0])
-def test_a_vehicle_that_aligned_itself_after_its_loss_still_resumes_from_a_fresher_state(state_after_s):
+def test_a_vehicle_aligned_by_itself_after_its_loss_still_resumes_from_a_fresher_state(state_after_s, caplog):
     """A vehicle lost here (an 8 s IMU gap: this service stopped while another member served the
     vehicle) that started itself again from its own alignment before the other member's state came
     (a fix in the drain that confirmed the loss: the CI saw it once, the fleet test's vehicle then
     never said it resumed) takes a state served after the loss that arrives within
     ``handover_max_age_s`` (5 s) of that start, as a reset request; 8 s after its start it keeps its
-    own solution."""
+    own solution. The log says the vehicle re-initialised, and from what, after saying it would."""
+    caplog.set_level(logging.INFO, logger="fednav.service")
     sc = shortened("demo_product.toml", 55.0)
     cfg = service_config(sc, ["lc"])
     w, _ = _worker(cfg)
@@ -202,6 +204,9 @@ def test_a_vehicle_that_aligned_itself_after_its_loss_still_resumes_from_a_fresh
         if offered is not None and msg.t > restarted + state_after_s + 1.0:
             break
     assert restarted is not None and offered is not None
+    said = [r.getMessage() for r in caplog.records if "vehicle v1: INS" in r.getMessage()]
+    assert len(said) == 2 and "re-initialising" in said[0], said
+    assert said[1].startswith(f"vehicle v1: INS re-initialised at t={restarted:.3f} from its own alignment")
     notes = w.engine.notes
     if state_after_s < cfg.fleet.handover_max_age_s:
         assert offered and notes["resumed_from_fleet_state"] == 1, (notes, w.engine.rejected)
