@@ -469,7 +469,9 @@ class VehicleWorker:
         again after the loss (its own alignment: a fix in the drain that confirmed the loss, before
         the other member's state came; the CI saw that once) within ``handover_max_age_s`` of that
         start. Called by the pool worker's scan (off the per-message path); parses the states only
-        when they changed. True when it took one."""
+        when they changed, or while one is ahead of the vehicle's time (more than 1 s: this
+        service's stream of the vehicle lags the other's, as after it resumed with a backlog; the
+        other sends its last state once as it lets the vehicle go). True when it took one."""
         eng = self.engine
         life = eng.life
         if eng.lost_after_t is None or eng.last_imu_t is None or self.fleet_states_of is None:
@@ -480,17 +482,21 @@ class VehicleWorker:
         key = tuple(sorted((n, len(b), hash(b)) for n, b in payloads.items()))
         if not payloads or key == self._resume_seen:
             return False
-        self._resume_seen = key
         t, max_age = eng.last_imu_t, self.config.fleet.handover_max_age_s
-        others = {}
+        others, ahead = {}, False
         for name, payload in payloads.items():
             try:
                 st = HandoverState.model_validate_json(payload)
             except ValidationError:
                 continue
-            newer = eng.lost_after_t is None or st.t > eng.lost_after_t  # served there after the loss
-            if st.service != self.fleet_me and newer and -1.0 <= t - st.t <= max_age:
+            if st.service == self.fleet_me or st.t <= eng.lost_after_t:  # (not served there after the loss)
+                continue
+            if t - st.t < -1.0:
+                ahead = True  # usable once the vehicle's time comes near it
+            elif t - st.t <= max_age:
                 others[name] = payload
+        if not ahead:
+            self._resume_seen = key
         if not others or not self.take_over(others, t) or life.lost:
             return False
         eng.notes["resumed_from_fleet_state"] += 1

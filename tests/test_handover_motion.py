@@ -215,3 +215,46 @@ def test_a_vehicle_aligned_by_itself_after_its_loss_still_resumes_from_a_fresher
     else:
         assert not offered and notes["resumed_from_fleet_state"] == 0, notes
         assert {lf.source for lf in w.engine.life.lives.values()} == {"start"}
+
+
+def test_a_state_ahead_of_the_lagging_vehicle_is_taken_once_its_time_comes_near():
+    """The other member sends its last state once, as it lets the vehicle go; this service's
+    stream of the vehicle lags the other's by 2 s (it resumed with a backlog): the state is ahead
+    of the lost vehicle's time by more than 1 s, not usable yet. It is looked at again at each
+    scan (not skipped as seen) and taken once the vehicle's time is within 1 s of it, without
+    another message from the other member."""
+    from collections import deque
+
+    sc = shortened("demo_product.toml", 55.0)
+    cfg = service_config(sc, ["lc"])
+    w, _ = _worker(cfg)
+    other, _ = _worker(cfg)
+    w.fleet_me = "service-a"
+    states: dict[str, bytes] = {}
+    w.fleet_states_of = lambda: dict(states)
+    t_stop, t_back, lag = sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0, 2.0
+    backlog: deque = deque()
+    sent = None
+    scans = []
+    for key, msg in Simulation(sc, seed=SEED):
+        pk = keys.parse_input(key)
+        if pk.kind == "truth":
+            continue
+        other.loop.process(pk.kind, pk.sensor_id, msg)
+        if msg.t <= t_stop or msg.t > t_back:
+            backlog.append((pk, msg))
+        while backlog and backlog[0][1].t <= msg.t - lag:  # this service lags the other by 2 s
+            k, m = backlog.popleft()
+            w.loop.process(k.kind, k.sensor_id, m)
+        if sent is None and w.engine.lost_after_t is not None and w.engine.life.lost:
+            (sent,) = other.handover_states("service-b")  # its last state, sent once
+            states["lc"] = sent.to_json()
+        if sent is not None:
+            scans.append((w.engine.last_imu_t, w.resume_from_fleet()))
+            if scans[-1][1] or msg.t > sent.t + 6.0:
+                break
+    assert sent is not None and scans, scans
+    t_taken, taken = scans[-1]
+    assert taken and w.engine.notes["resumed_from_fleet_state"] == 1, (scans[-5:], w.engine.rejected, sent.t)
+    assert not any(ok for _, ok in scans[:-1])
+    assert scans[0][0] < sent.t - 1.0 <= t_taken, (scans[0][0], sent.t, t_taken)  # ahead at first
