@@ -129,22 +129,30 @@ def test_a_hand_over_during_a_gnss_step_keeps_refusing_the_stepped_fixes(case):
         assert worst_h > 8.0, worst_h  # 15 m on this seed
 
 
+def _members(max_age_s: float | None = None):
+    """The demo product (55 s, ``lc``) on two workers: this member's, lost in an 8 s IMU gap
+    (25-33 s: the service stopped), and the other member's that serves the vehicle meanwhile; the
+    handover states this member sees are ``states`` (pipeline -> payload). Returns (sc, cfg, w,
+    other, states, t_stop, t_back)."""
+    sc = shortened("demo_product.toml", 55.0)
+    cfg = service_config(sc, ["lc"])
+    if max_age_s is not None:
+        cfg = cfg.model_copy(update={"fleet": cfg.fleet.model_copy(update={"handover_max_age_s": max_age_s})})
+    w, _ = _worker(cfg)
+    other, _ = _worker(cfg)
+    w.fleet_me = "service-a"
+    states: dict[str, bytes] = {}
+    w.fleet_states_of = lambda: dict(states)
+    return sc, cfg, w, other, states, sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
+
+
 def test_a_vehicle_lost_here_resumes_only_from_a_state_served_after_the_loss():
     """VehicleWorker.resume_from_fleet: a vehicle whose IMU stream stopped for 8 s (this service
     stopped; longer than its own checkpoints carry, 5 s) is lost; another member's state from before
     the gap, young enough for ``handover_max_age_s`` (set to 20 s here), is not taken (it would be
     carried over the whole gap), one served after the loss is, and the vehicle runs on from it."""
-
-    sc = shortened("demo_product.toml", 55.0)
-    cfg = service_config(sc, ["lc"])
-    cfg = cfg.model_copy(update={"fleet": cfg.fleet.model_copy(update={"handover_max_age_s": 20.0})})
-    w, _ = _worker(cfg)
-    t_stop, t_back = sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
+    sc, cfg, w, other, states, t_stop, t_back = _members(max_age_s=20.0)
     before_gap = after_gap = None
-    other, _ = _worker(cfg)  # the member that served the vehicle meanwhile
-    w.fleet_me = "service-a"
-    states: dict[str, bytes] = {}
-    w.fleet_states_of = lambda: dict(states)
     for key, msg in Simulation(sc, seed=SEED):
         pk = keys.parse_input(key)
         if pk.kind == "truth":
@@ -176,14 +184,7 @@ def test_a_vehicle_aligned_by_itself_after_its_loss_still_resumes_from_a_fresher
     ``handover_max_age_s`` (5 s) of that start, as a reset request; 8 s after its start it keeps its
     own solution. The log says the vehicle re-initialised, and from what, after saying it would."""
     caplog.set_level(logging.INFO, logger="fednav.service")
-    sc = shortened("demo_product.toml", 55.0)
-    cfg = service_config(sc, ["lc"])
-    w, _ = _worker(cfg)
-    other, _ = _worker(cfg)
-    w.fleet_me = "service-a"
-    states: dict[str, bytes] = {}
-    w.fleet_states_of = lambda: dict(states)
-    t_stop, t_back = sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
+    sc, cfg, w, other, states, t_stop, t_back = _members()
     restarted = offered = None
     for key, msg in Simulation(sc, seed=SEED):
         pk = keys.parse_input(key)
@@ -225,14 +226,8 @@ def test_a_state_ahead_of_the_lagging_vehicle_is_taken_once_its_time_comes_near(
     another message from the other member."""
     from collections import deque
 
-    sc = shortened("demo_product.toml", 55.0)
-    cfg = service_config(sc, ["lc"])
-    w, _ = _worker(cfg)
-    other, _ = _worker(cfg)
-    w.fleet_me = "service-a"
-    states: dict[str, bytes] = {}
-    w.fleet_states_of = lambda: dict(states)
-    t_stop, t_back, lag = sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0, 2.0
+    sc, cfg, w, other, states, t_stop, t_back = _members()
+    lag = 2.0
     backlog: deque = deque()
     sent = None
     scans = []
