@@ -1762,11 +1762,12 @@ class VehicleLife:
             return
         p.sync()
         est = p.estimate()
-        nav_fix, std_fix = alignment.motion_alignment(fix, est.nav.t)
-        ok, _ = alignment.plausible(est.nav, nav_fix, est.P9[:6, :6] + alignment.std_cov6(std_fix))
+        ref_nav, ref_cov = alignment.fix_reference(fix, est.nav.t, self.prev_fix)  # (carried to the INS time)
+        ok, _ = alignment.plausible(est.nav, ref_nav, est.P9[:6, :6] + ref_cov)
         if ok:
             return
         self.engine.rejected["implausible_init"] += 1
+        nav_fix, std_fix = alignment.motion_alignment(fix, est.nav.t)
         if alignment.fix_speed(fix) < self.config.init.min_speed_mps:  # keep the attitude
             nav_fix = alignment.nav_at_fix(fix, est.nav.rpy_rad, est.nav.t)
             att_std = np.sqrt(np.clip(np.diagonal(est.P9)[6:9], 0.0, None))
