@@ -146,6 +146,16 @@ def _members(max_age_s: float | None = None):
     return sc, cfg, w, other, states, sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
 
 
+def _served(sc, other):
+    """The scenario's inputs (truth left out) as (parsed key, message), each once the other
+    member has processed it."""
+    for key, msg in Simulation(sc, seed=SEED):
+        pk = keys.parse_input(key)
+        if pk.kind != "truth":
+            other.loop.process(pk.kind, pk.sensor_id, msg)
+            yield pk, msg
+
+
 def test_a_vehicle_lost_here_resumes_only_from_a_state_served_after_the_loss():
     """VehicleWorker.resume_from_fleet: a vehicle whose IMU stream stopped for 8 s (this service
     stopped; longer than its own checkpoints carry, 5 s) is lost; another member's state from before
@@ -153,11 +163,7 @@ def test_a_vehicle_lost_here_resumes_only_from_a_state_served_after_the_loss():
     carried over the whole gap), one served after the loss is, and the vehicle runs on from it."""
     sc, cfg, w, other, states, t_stop, t_back = _members(max_age_s=20.0)
     before_gap = after_gap = None
-    for key, msg in Simulation(sc, seed=SEED):
-        pk = keys.parse_input(key)
-        if pk.kind == "truth":
-            continue
-        other.loop.process(pk.kind, pk.sensor_id, msg)
+    for pk, msg in _served(sc, other):
         if before_gap is None and msg.t > t_stop - 0.5:
             (before_gap,) = other.handover_states("service-b")
         if msg.t <= t_stop or msg.t > t_back:
@@ -186,11 +192,7 @@ def test_a_vehicle_aligned_by_itself_after_its_loss_still_resumes_from_a_fresher
     caplog.set_level(logging.INFO, logger="fednav.service")
     sc, cfg, w, other, states, t_stop, t_back = _members()
     restarted = offered = None
-    for key, msg in Simulation(sc, seed=SEED):
-        pk = keys.parse_input(key)
-        if pk.kind == "truth":
-            continue
-        other.loop.process(pk.kind, pk.sensor_id, msg)
+    for pk, msg in _served(sc, other):
         if msg.t <= t_stop or msg.t > t_back:
             w.loop.process(pk.kind, pk.sensor_id, msg)
         life = w.engine.life
@@ -231,11 +233,7 @@ def test_a_state_ahead_of_the_lagging_vehicle_is_taken_once_its_time_comes_near(
     backlog: deque = deque()
     sent = None
     scans = []
-    for key, msg in Simulation(sc, seed=SEED):
-        pk = keys.parse_input(key)
-        if pk.kind == "truth":
-            continue
-        other.loop.process(pk.kind, pk.sensor_id, msg)
+    for pk, msg in _served(sc, other):
         if msg.t <= t_stop or msg.t > t_back:
             backlog.append((pk, msg))
         while backlog and backlog[0][1].t <= msg.t - lag:  # this service lags the other by 2 s
