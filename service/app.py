@@ -1048,6 +1048,7 @@ class Service:
                     if self.fleet_view is not None:
                         w.on_retired = self._retired
                         w.fleet_states_of = functools.partial(self.fleet_states.get, vehicle)
+                        w.engine.life.resume_from_fleet = w.resume_from_fleet
                         w.fleet_me = self.fleet_view.me
                         w.state_to = self._state_to
                         states = self.fleet_states.get(vehicle)

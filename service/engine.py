@@ -872,11 +872,15 @@ class VehicleEngine:
             )
         else:
             what = f"the IMU stream went {-gap:.2f} s back (a sensor restarted, or a clock step)"
-        then = (
-            "carried over the gap from the last checkpoint, degraded until the aiding verifies it"
-            if self.life.initialised
-            else "re-initialising (an InitialNav, or alignment)"
-        )
+        sources = {lf.source for lf in self.life.lives.values()}
+        if not self.life.initialised:
+            then = "re-initialising (an InitialNav, or alignment)"
+        elif sources == {"hand_over"}:
+            then = "resumed from another fleet member's state (above), degraded until the aiding verifies it"
+        elif sources == {"recover"}:
+            then = "carried over the gap from the last checkpoint, degraded until the aiding verifies it"
+        else:
+            then = "restarted from an InitialNav that came meanwhile"
         more = f" ({n - 1} more since the last such warning)" if n > 1 else ""
         self.restart_untold = not self.life.initialised
         log.warning(

@@ -471,6 +471,12 @@ class VehicleLife:
     :meth:`on_initial_nav`, :meth:`on_fix`, :meth:`on_raw`, :meth:`try_align`,
     :meth:`before_aiding`, :meth:`after_aiding`, :meth:`on_imu_lost` and :meth:`hand_over`."""
 
+    #: a fleet member's hook, () -> bool (app.VehicleWorker.resume_from_fleet, set on the instance):
+    #: at a loss its checkpoints cannot carry, a state another member served meanwhile is taken at
+    #: once, before the next message (a fix in the same drain started the vehicle from its own
+    #: alignment first, 14.8 m off in a fleet test, and the state came as a reset request after)
+    resume_from_fleet = None
+
     def __init__(self, engine: VehicleEngine):
         self.engine = engine
         self.config = engine.config
@@ -1830,6 +1836,9 @@ class VehicleLife:
             self.engine._restart_clock(t)
             self.initialised, self.start_t, self.lost = True, t, False
             self.engine.notes["recovered_from_checkpoint"] += 1
+            return
+        if self.resume_from_fleet is not None:
+            self.resume_from_fleet()
 
 
 __all__ = [

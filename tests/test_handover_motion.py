@@ -143,6 +143,7 @@ def _members(max_age_s: float | None = None):
     w.fleet_me = "service-a"
     states: dict[str, bytes] = {}
     w.fleet_states_of = lambda: dict(states)
+    w.engine.life.resume_from_fleet = w.resume_from_fleet  # (as the service wires a fleet member's)
     return sc, cfg, w, other, states, sc.t0_gps_s + 25.0, sc.t0_gps_s + 33.0
 
 
@@ -251,3 +252,33 @@ def test_a_state_ahead_of_the_lagging_vehicle_is_taken_once_its_time_comes_near(
     assert taken and w.engine.notes["resumed_from_fleet_state"] == 1, (scans[-5:], w.engine.rejected, sent.t)
     assert not any(ok for _, ok in scans[:-1])
     assert scans[0][0] < sent.t - 1.0 <= t_taken, (scans[0][0], sent.t, t_taken)  # ahead at first
+
+
+def test_a_state_there_at_the_loss_is_taken_at_once(caplog):
+    """The other member's state is there when the loss is confirmed (its last state came while this
+    service worked through its backlog): the vehicle resumes from it at the loss itself
+    (``VehicleLife.resume_from_fleet``), before the next message; a fix right after the confirming
+    sample started it from its own alignment first (14.8 m off in the fleet test's CI run), the
+    state taken as a reset request only at the next scan. The log says which."""
+    caplog.set_level(logging.INFO, logger="fednav.service")
+    sc, cfg, w, other, states, t_stop, t_back = _members()
+    resumed_at = None
+    for pk, msg in _served(sc, other):
+        if msg.t > t_back and not states:
+            (st,) = other.handover_states("service-b")
+            states["lc"] = st.to_json()  # there before this service's first sample after the gap
+        if msg.t <= t_stop or msg.t > t_back:
+            w.loop.process(pk.kind, pk.sensor_id, msg)
+        if resumed_at is None and w.engine.notes["resumed_from_fleet_state"]:
+            resumed_at = w.engine.last_imu_t
+            assert w.engine.lost_after_t is not None  # at the sample that confirmed the loss
+            assert {lf.source for lf in w.engine.life.lives.values()} == {"hand_over"}
+            assert w.engine.life.start_t == resumed_at
+        if msg.t > t_back + 2.0:
+            break
+    assert resumed_at is not None, (w.engine.notes, w.engine.rejected)
+    said = [r.getMessage() for r in caplog.records if "vehicle v1" in r.getMessage()]
+    lost = [m for m in said if "INS lost" in m]
+    assert len(lost) == 1 and "resumed from another fleet member's state" in lost[0], said
+    assert any("handed over from service service-b" in m for m in said), said
+    assert not any("re-initialised" in m for m in said), said
