@@ -476,7 +476,7 @@ class VehicleWorker:
         life = eng.life
         if eng.lost_after_t is None or eng.last_imu_t is None or self.fleet_states_of is None:
             return False
-        if not life.lost and not self._started_itself_after_loss():
+        if not life.lost and not life.started_itself_after_loss(self.config.fleet.handover_max_age_s):
             return False
         payloads = self.fleet_states_of()
         key = tuple(sorted((n, len(b), hash(b)) for n, b in payloads.items()))
@@ -501,19 +501,6 @@ class VehicleWorker:
             return False
         eng.notes["resumed_from_fleet_state"] += 1
         return True
-
-    def _started_itself_after_loss(self) -> bool:
-        """Whether the vehicle runs from its own start after its latest loss (alignment, an
-        InitialNav; not a hand-over), begun within ``[fleet] handover_max_age_s`` of its time."""
-        eng = self.engine
-        life = eng.life
-        return (
-            life.initialised
-            and life.start_t is not None
-            and life.start_t > eng.lost_after_t
-            and eng.last_imu_t - life.start_t <= self.config.fleet.handover_max_age_s
-            and all(lf.source == "start" for lf in life.lives.values())
-        )
 
     def final_outputs(self) -> None:
         """The vehicle's last Solutions (at its last IMU time) and Health, as it leaves this service

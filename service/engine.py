@@ -201,9 +201,6 @@ class VehicleEngine:
     #: the last IMU time before the latest loss (a class default likewise): a fleet member's state
     #: newer than this is what a vehicle lost here may resume from (app.VehicleWorker.resume_from_fleet)
     lost_after_t: float | None = None
-    #: whether the log said the vehicle would re-initialise after a loss and not yet that it did
-    #: (VehicleLife.start_all says it; a class default likewise)
-    restart_untold = False
 
     def __init__(
         self, vehicle: str, config: ServiceConfig, sink: EngineSink, counters: Counter | None = None
@@ -872,17 +869,9 @@ class VehicleEngine:
             )
         else:
             what = f"the IMU stream went {-gap:.2f} s back (a sensor restarted, or a clock step)"
-        sources = {lf.source for lf in self.life.lives.values()}
-        if not self.life.initialised:
-            then = "re-initialising (an InitialNav, or alignment)"
-        elif sources == {"hand_over"}:
-            then = "resumed from another fleet member's state (above), degraded until the aiding verifies it"
-        elif sources == {"recover"}:
-            then = "carried over the gap from the last checkpoint, degraded until the aiding verifies it"
-        else:
-            then = "restarted from an InitialNav that came meanwhile"
+        then = self.life.how_restarted()
         more = f" ({n - 1} more since the last such warning)" if n > 1 else ""
-        self.restart_untold = not self.life.initialised
+        self.life.restart_untold = not self.life.initialised
         log.warning(
             "vehicle %s: INS lost at t=%.3f: %s; %s (Health rejected %s)%s",
             self.vehicle,

@@ -476,6 +476,9 @@ class VehicleLife:
     #: once, before the next message (a fix in the same drain started the vehicle from its own
     #: alignment first, 14.8 m off in a fleet test, and the state came as a reset request after)
     resume_from_fleet = None
+    #: whether the log said the vehicle would re-initialise after a loss
+    #: (``VehicleEngine._log_imu_lost``) and not yet that it did (:meth:`start_all` says it)
+    restart_untold = False
 
     def __init__(self, engine: VehicleEngine):
         self.engine = engine
@@ -619,8 +622,8 @@ class VehicleLife:
         self.initialised = True
         self.start_t = nav.t
         self.lost = False
-        if eng.restart_untold:
-            eng.restart_untold = False
+        if self.restart_untold:
+            self.restart_untold = False
             if event != "hand_over":  # (the service logs a hand-over itself: app.take_over)
                 log.info(
                     "vehicle %s: INS re-initialised at t=%.3f from %s%s",
@@ -629,6 +632,30 @@ class VehicleLife:
                     source,
                     "" if verified else "; degraded until its own aiding verifies it",
                 )
+
+    def started_itself_after_loss(self, within_s: float) -> bool:
+        """Whether the vehicle runs from its own start after its latest loss (alignment, an
+        InitialNav; not a hand-over, a checkpoint carry), begun within ``within_s`` of its time."""
+        eng = self.engine
+        return (
+            self.initialised
+            and eng.lost_after_t is not None
+            and self.start_t is not None
+            and self.start_t > eng.lost_after_t
+            and eng.last_imu_t - self.start_t <= within_s
+            and all(lf.source == "start" for lf in self.lives.values())
+        )
+
+    def how_restarted(self) -> str:
+        """What the vehicle went on from at a loss (for the loss's log line)."""
+        if not self.initialised:
+            return "re-initialising (an InitialNav, or alignment)"
+        sources = {lf.source for lf in self.lives.values()}
+        if sources == {"hand_over"}:
+            return "resumed from another fleet member's state (above), degraded until the aiding verifies it"
+        if sources == {"recover"}:
+            return "carried over the gap from the last checkpoint, degraded until the aiding verifies it"
+        return "restarted from an InitialNav that came meanwhile"
 
     # --- InitialNav, hand-over ------------------------------------------------------------------------
     def on_initial_nav(self, msg: InitialNav) -> bool:

@@ -282,3 +282,33 @@ def test_a_state_there_at_the_loss_is_taken_at_once(caplog):
     assert len(lost) == 1 and "resumed from another fleet member's state" in lost[0], said
     assert any("handed over from service service-b" in m for m in said), said
     assert not any("re-initialised" in m for m in said), said
+
+
+def test_a_state_ahead_is_carried_back_along_its_motion():
+    """fleet.handover_nav with ``t_start`` before the state's time (a taker whose stream lags the
+    giver's): the state carried back along its velocity and acceleration, sigmas grown by the span
+    as forward; before, it was held as it was (the demo aircraft: 117 m off at 1 s)."""
+    from fednav.service import fleet
+    from fednav.service.ins import alignment
+
+    sc, cfg, w, other, states, t_stop, t_back = _members()
+    for _, msg in _served(sc, other):
+        if msg.t > sc.t0_gps_s + 30.0:  # in the 3 deg/s turn
+            break
+    (st,) = other.handover_states("service-b")
+    held, _ = fleet.handover_nav(st, st.t)
+    back, back_std = fleet.handover_nav(st, st.t - 0.5)
+    ahead, ahead_std = fleet.handover_nav(st, st.t + 0.5)
+    d = alignment.pos_vel_difference(back, held)
+    v, a = np.asarray(st.vel_enu_mps), np.asarray(st.acc_enu_mps2)
+    assert np.allclose(d[:3], -0.5 * v + 0.125 * a, atol=1e-3), (d[:3], v, a)
+    assert np.allclose(d[3:], -0.5 * a, atol=1e-9)
+    assert np.allclose(back_std.pos_enu_m, ahead_std.pos_enu_m)
+    assert np.allclose(back_std.vel_enu_mps, ahead_std.vel_enu_mps)
+    assert np.all(back_std.pos_enu_m > np.sqrt(np.diagonal(np.reshape(st.P9, (9, 9)))[:3]))
+    # the attitude turned back by half a second of the body rate (the turn's ~3 deg/s)
+    rel = back.mat_nb.T @ held.mat_nb
+    angle = math.acos(min(1.0, (float(np.trace(rel)) - 1.0) / 2.0))
+    rate = float(np.linalg.norm(st.rate_body_rps))
+    assert rate > math.radians(2.0) and angle == pytest.approx(0.5 * rate, rel=1e-6), (angle, rate)
+    assert ahead.t - back.t == pytest.approx(1.0)
